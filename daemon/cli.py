@@ -1,0 +1,33 @@
+"""The `roadlog` command: one subcommand per job, each a module's `main(argv)`."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# name -> (module with main(argv), one-line help). The only place a subcommand is declared.
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "check-config": ("daemon.check_config", "validate a car config file and print the resolved config"),
+    "log-info": ("daemon.log_info", "summarise MCAP log files: topics, counts, time span, truncation"),
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    parser = argparse.ArgumentParser(prog="roadlog", description="ROS-free sensor logging and live road mapping.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (_, help_text) in SUBCOMMANDS.items():
+        sub.add_parser(name, help=help_text, add_help=False)
+    if not argv or argv[0] in ("-h", "--help"):
+        parser.print_help()
+        return 0
+    name, rest = argv[0], argv[1:]
+    if name not in SUBCOMMANDS:
+        parser.error(f"unknown command {name!r} (choose from {', '.join(SUBCOMMANDS)})")
+    module = importlib.import_module(SUBCOMMANDS[name][0])
+    return int(module.main(rest) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
