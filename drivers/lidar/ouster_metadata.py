@@ -1,0 +1,242 @@
+"""Ouster sensor metadata: parse the sensor's JSON (legacy and non-legacy layouts) into one typed
+dataclass, and write the JSON of a simulated OS-128 that ouster-sdk accepts."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+# Profiles whose packet layout drivers/lidar/ouster_packet_layout.py knows.
+KNOWN_LIDAR_PROFILES = (
+    "LEGACY",
+    "RNG19_RFL8_SIG16_NIR16",
+    "RNG19_RFL8_SIG16_NIR16_DUAL",
+    "RNG15_RFL8_NIR8",
+    "RNG15_RFL8_NIR8_DUAL",
+    "FUSA_RNG15_RFL8_NIR8_DUAL",
+)
+
+
+@dataclass
+class OusterMetadata:
+    """What a decoder needs to know about one Ouster sensor, in the sensor's own units."""
+
+    prod_line: str  # e.g. "OS-1-128"
+    prod_sn: str  # serial number, as printed on the unit
+    firmware: str  # image_rev (or build_rev when image_rev is absent)
+    init_id: int  # changes each time the sensor re-initialises
+    lidar_mode: str  # e.g. "2048x10"
+    udp_profile_lidar: str  # one of KNOWN_LIDAR_PROFILES
+    udp_profile_imu: str
+    header_type: str  # "STANDARD" or "FUSA" (32-bit frame id header)
+    columns_per_frame: int
+    columns_per_packet: int
+    pixels_per_column: int
+    column_window: tuple[int, int]  # first and last measurement id sent, inclusive
+    pixel_shift_by_row: np.ndarray  # (H,) int, columns to roll each row by to destagger
+    beam_altitude_angles: np.ndarray  # (H,) degrees
+    beam_azimuth_angles: np.ndarray  # (H,) degrees
+    lidar_origin_to_beam_origin_mm: float
+    beam_to_lidar_transform: np.ndarray  # (4, 4), translation in mm
+    lidar_to_sensor_transform: np.ndarray  # (4, 4), translation in mm
+    imu_to_sensor_transform: np.ndarray  # (4, 4), translation in mm
+    udp_port_lidar: int
+    udp_port_imu: int
+
+    @property
+    def fps(self) -> int:
+        return int(self.lidar_mode.split("x")[1])
+
+    @property
+    def packets_per_frame(self) -> int:
+        return -(-self.columns_per_frame // self.columns_per_packet)
+
+    @property
+    def frame_id_modulus(self) -> int:
+        """Frame ids wrap at this value (16-bit, or 32-bit with the FuSa header)."""
+        return 1 << 32 if self.header_type == "FUSA" else 1 << 16
+
+
+def _get(d: dict, *keys: str) -> Any:
+    for key in keys:
+        if key not in d:
+            raise ValueError(f"Ouster metadata: missing key {'.'.join(keys)!r}")
+        d = d[key]
+    return d
+
+
+def _matrix(values: Any, name: str) -> np.ndarray:
+    m = np.asarray(values, dtype=np.float64)
+    if m.size != 16:
+        raise ValueError(f"Ouster metadata: {name} must have 16 values, has {m.size}")
+    return m.reshape(4, 4)
+
+
+def _beam_to_lidar(origin_mm: float) -> np.ndarray:
+    m = np.eye(4)
+    m[0, 3] = origin_mm
+    return m
+
+
+def parse_metadata(source: str | bytes | dict | Path) -> OusterMetadata:
+    """Parse sensor metadata from JSON text, a decoded dict or a file path.
+
+    Accepts both the legacy flat layout (firmware 2.x: "data_format", "beam_altitude_angles" at top
+    level) and the non-legacy sectioned one ("lidar_data_format", "beam_intrinsics", ...). Raises
+    ValueError naming the first missing or unusable key."""
+    if isinstance(source, Path):
+        source = source.read_text()
+    d = json.loads(source) if isinstance(source, (str, bytes)) else source
+    if "lidar_data_format" in d:
+        fmt = d["lidar_data_format"]
+        beams = _get(d, "beam_intrinsics")
+        info = d.get("sensor_info", {})
+        config = d.get("config_params", {})
+        lidar_to_sensor = _get(d, "lidar_intrinsics", "lidar_to_sensor_transform")
+        imu_to_sensor = d.get("imu_intrinsics", {}).get("imu_to_sensor_transform", np.eye(4).ravel())
+        lidar_mode = config.get("lidar_mode") or f"{_get(fmt, 'columns_per_frame')}x{fmt.get('fps', 10)}"
+        ports = (config.get("udp_port_lidar", 7502), config.get("udp_port_imu", 7503))
+    else:
+        fmt = _get(d, "data_format")
+        beams, info = d, d
+        lidar_to_sensor = _get(d, "lidar_to_sensor_transform")
+        imu_to_sensor = d.get("imu_to_sensor_transform", np.eye(4).ravel())
+        lidar_mode = _get(d, "lidar_mode")
+        ports = (d.get("udp_port_lidar", 7502), d.get("udp_port_imu", 7503))
+
+    profile = fmt.get("udp_profile_lidar", "LEGACY")
+    if profile not in KNOWN_LIDAR_PROFILES:
+        raise ValueError(f"Ouster metadata: udp_profile_lidar {profile!r} is not one of {KNOWN_LIDAR_PROFILES}")
+    header_type = fmt.get("header_type") or ("FUSA" if profile.startswith("FUSA_") else "STANDARD")
+    h = int(_get(fmt, "pixels_per_column"))
+    w = int(_get(fmt, "columns_per_frame"))
+    origin_mm = float(_get(beams, "lidar_origin_to_beam_origin_mm"))
+    if "beam_to_lidar_transform" in beams:
+        beam_to_lidar = _matrix(beams["beam_to_lidar_transform"], "beam_to_lidar_transform")
+    else:
+        beam_to_lidar = _beam_to_lidar(origin_mm)
+    meta = OusterMetadata(
+        prod_line=str(info.get("prod_line", "")),
+        prod_sn=str(info.get("prod_sn", "")),
+        firmware=str(info.get("image_rev") or info.get("build_rev", "")),
+        init_id=int(info.get("initialization_id", 0)),
+        lidar_mode=str(lidar_mode),
+        udp_profile_lidar=profile,
+        udp_profile_imu=str(fmt.get("udp_profile_imu", "LEGACY")),
+        header_type=str(header_type),
+        columns_per_frame=w,
+        columns_per_packet=int(_get(fmt, "columns_per_packet")),
+        pixels_per_column=h,
+        column_window=tuple(int(v) for v in fmt.get("column_window", (0, w - 1))),
+        pixel_shift_by_row=np.asarray(_get(fmt, "pixel_shift_by_row"), dtype=np.int64),
+        beam_altitude_angles=np.asarray(_get(beams, "beam_altitude_angles"), dtype=np.float64),
+        beam_azimuth_angles=np.asarray(_get(beams, "beam_azimuth_angles"), dtype=np.float64),
+        lidar_origin_to_beam_origin_mm=origin_mm,
+        beam_to_lidar_transform=beam_to_lidar,
+        lidar_to_sensor_transform=_matrix(lidar_to_sensor, "lidar_to_sensor_transform"),
+        imu_to_sensor_transform=_matrix(imu_to_sensor, "imu_to_sensor_transform"),
+        udp_port_lidar=int(ports[0]),
+        udp_port_imu=int(ports[1]),
+    )
+    for name in ("pixel_shift_by_row", "beam_altitude_angles", "beam_azimuth_angles"):
+        if getattr(meta, name).shape != (h,):
+            raise ValueError(f"Ouster metadata: {name} must have pixels_per_column={h} values")
+    if w % meta.columns_per_packet:
+        raise ValueError("Ouster metadata: columns_per_frame must be a multiple of columns_per_packet")
+    return meta
+
+
+def simulated_os128_metadata(
+    columns_per_frame: int = 2048,
+    fps: int = 10,
+    udp_profile_lidar: str = "LEGACY",
+    prod_sn: str = "122000000128",
+    init_id: int = 1280001,
+) -> OusterMetadata:
+    """Metadata of a nominal OS-1-128: uniform 45 degree vertical field of view, the four-column
+    azimuth stagger of real units, pixel shifts as firmware 3.x computes them."""
+    if columns_per_frame not in (512, 1024, 2048, 4096):
+        raise ValueError(f"columns_per_frame must be 512, 1024, 2048 or 4096, not {columns_per_frame}")
+    if udp_profile_lidar not in KNOWN_LIDAR_PROFILES:
+        raise ValueError(f"udp_profile_lidar {udp_profile_lidar!r} is not one of {KNOWN_LIDAR_PROFILES}")
+    azimuth = np.tile([4.2, 1.4, -1.4, -4.2], 32)
+    lidar_to_sensor = np.diag([-1.0, -1.0, 1.0, 1.0])
+    lidar_to_sensor[2, 3] = 36.18
+    origin_mm = 15.806
+    return OusterMetadata(
+        prod_line="OS-1-128",
+        prod_sn=prod_sn,
+        firmware="ousteros-image-prod-bootes-v3.1.0+roadlog.simulated",
+        init_id=init_id,
+        lidar_mode=f"{columns_per_frame}x{fps}",
+        udp_profile_lidar=udp_profile_lidar,
+        udp_profile_imu="LEGACY",
+        header_type="FUSA" if udp_profile_lidar.startswith("FUSA_") else "STANDARD",
+        columns_per_frame=columns_per_frame,
+        columns_per_packet=16,
+        pixels_per_column=128,
+        column_window=(0, columns_per_frame - 1),
+        pixel_shift_by_row=np.round(azimuth * columns_per_frame / 360.0).astype(np.int64),
+        beam_altitude_angles=np.linspace(22.5, -22.5, 128),
+        beam_azimuth_angles=azimuth,
+        lidar_origin_to_beam_origin_mm=origin_mm,
+        beam_to_lidar_transform=_beam_to_lidar(origin_mm),
+        lidar_to_sensor_transform=lidar_to_sensor,
+        imu_to_sensor_transform=np.eye(4),
+        udp_port_lidar=7502,
+        udp_port_imu=7503,
+    )
+
+
+def _flat(m: np.ndarray) -> list[float]:
+    return [float(v) for v in np.asarray(m, dtype=np.float64).ravel()]
+
+
+def metadata_to_json(meta: OusterMetadata) -> str:
+    """The non-legacy (firmware 3.x) metadata JSON for `meta`; `parse_metadata` reads it back and
+    ouster-sdk's SensorInfo accepts it."""
+    data_format = {
+        "column_window": list(meta.column_window),
+        "columns_per_frame": meta.columns_per_frame,
+        "columns_per_packet": meta.columns_per_packet,
+        "fps": meta.fps,
+        "header_type": meta.header_type,
+        "pixel_shift_by_row": [int(v) for v in meta.pixel_shift_by_row],
+        "pixels_per_column": meta.pixels_per_column,
+        "udp_profile_imu": meta.udp_profile_imu,
+        "udp_profile_lidar": meta.udp_profile_lidar,
+    }
+    doc = {
+        "beam_intrinsics": {
+            "beam_altitude_angles": [float(v) for v in meta.beam_altitude_angles],
+            "beam_azimuth_angles": [float(v) for v in meta.beam_azimuth_angles],
+            "beam_to_lidar_transform": _flat(meta.beam_to_lidar_transform),
+            "lidar_origin_to_beam_origin_mm": meta.lidar_origin_to_beam_origin_mm,
+        },
+        "calibration_status": {},
+        "config_params": {
+            "columns_per_packet": meta.columns_per_packet,
+            "lidar_mode": meta.lidar_mode,
+            "udp_port_imu": meta.udp_port_imu,
+            "udp_port_lidar": meta.udp_port_lidar,
+            "udp_profile_imu": meta.udp_profile_imu,
+            "udp_profile_lidar": meta.udp_profile_lidar,
+        },
+        "imu_intrinsics": {"imu_to_sensor_transform": _flat(meta.imu_to_sensor_transform)},
+        "lidar_data_format": data_format,
+        "lidar_intrinsics": {"lidar_to_sensor_transform": _flat(meta.lidar_to_sensor_transform)},
+        "sensor_info": {
+            "build_rev": meta.firmware,
+            "image_rev": meta.firmware,
+            "initialization_id": meta.init_id,
+            "prod_line": meta.prod_line,
+            "prod_pn": "",
+            "prod_sn": meta.prod_sn,
+            "status": "RUNNING",
+        },
+    }
+    return json.dumps(doc, indent=2)
