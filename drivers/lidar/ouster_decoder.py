@@ -207,17 +207,34 @@ def packet_sequence(batch: LidarPacketBatch, layout: OusterPacketLayout) -> np.n
     return batch.frame_id * per_frame + np.minimum(ordinal, per_frame - 1)
 
 
-def count_missing_packets(sequence: np.ndarray, layout: OusterPacketLayout, previous: int | None = None) -> int:
-    """Packets lost between consecutive packets of `sequence` (from packet_sequence), and between
-    `previous` (the last sequence number of the batch before) and the first. A repeated or
-    backwards step (reordering) counts nothing."""
-    seq = np.asarray(sequence, dtype=np.int64)
-    if previous is not None:
-        seq = np.concatenate(([previous], seq))
+def _steps_ahead(sequence: np.ndarray, layout: OusterPacketLayout, reference: int) -> np.ndarray:
+    """How far each sequence number is ahead of `reference`, negative for behind (wrap-aware)."""
     modulus = layout.frame_id_modulus * layout.window_packets[1]
-    step = np.diff(seq) % modulus
-    forward = (step >= 1) & (step < modulus // 2)
-    return int((step[forward] - 1).sum())
+    step = (np.asarray(sequence, dtype=np.int64) - reference) % modulus
+    return np.where(step > modulus // 2, step - modulus, step)
+
+
+def count_missing_packets(sequence: np.ndarray, layout: OusterPacketLayout, previous: int | None = None) -> int:
+    """Packets never seen between `previous` (the newest sequence number of earlier batches, see
+    newest_packet; else the first of this one) and the newest packet of `sequence` (from
+    packet_sequence). Reordered and repeated packets are not losses; a packet older than the
+    reference is ignored."""
+    if len(sequence) == 0:
+        return 0
+    reference = int(sequence[0]) if previous is None else previous
+    ahead = _steps_ahead(sequence, layout, reference)
+    ahead = np.unique(ahead[ahead > 0])
+    return int(ahead[-1] - len(ahead)) if len(ahead) else 0
+
+
+def newest_packet(sequence: np.ndarray, layout: OusterPacketLayout, previous: int | None = None) -> int | None:
+    """The newest sequence number seen in `sequence` and `previous` together: the `previous` to
+    pass with the next batch."""
+    if len(sequence) == 0:
+        return previous
+    reference = int(sequence[0]) if previous is None else previous
+    modulus = layout.frame_id_modulus * layout.window_packets[1]
+    return (reference + max(0, int(_steps_ahead(sequence, layout, reference).max()))) % modulus
 
 
 def ouster_scan_assembler(layout: OusterPacketLayout) -> ScanAssembler:

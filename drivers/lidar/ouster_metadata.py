@@ -10,16 +10,6 @@ from typing import Any
 
 import numpy as np
 
-# Profiles whose packet layout drivers/lidar/ouster_packet_layout.py knows.
-KNOWN_LIDAR_PROFILES = (
-    "LEGACY",
-    "RNG19_RFL8_SIG16_NIR16",
-    "RNG19_RFL8_SIG16_NIR16_DUAL",
-    "RNG15_RFL8_NIR8",
-    "RNG15_RFL8_NIR8_DUAL",
-    "FUSA_RNG15_RFL8_NIR8_DUAL",
-)
-
 
 @dataclass
 class OusterMetadata:
@@ -30,7 +20,7 @@ class OusterMetadata:
     firmware: str  # image_rev (or build_rev when image_rev is absent)
     init_id: int  # changes each time the sensor re-initialises
     lidar_mode: str  # e.g. "2048x10"
-    udp_profile_lidar: str  # one of KNOWN_LIDAR_PROFILES
+    udp_profile_lidar: str  # e.g. "LEGACY", "RNG19_RFL8_SIG16_NIR16" (see ouster_packet_layout)
     udp_profile_imu: str
     header_type: str  # "STANDARD" or "FUSA" (32-bit frame id header)
     columns_per_frame: int
@@ -108,9 +98,7 @@ def parse_metadata(source: str | bytes | dict | Path) -> OusterMetadata:
         lidar_mode = _get(d, "lidar_mode")
         ports = (d.get("udp_port_lidar", 7502), d.get("udp_port_imu", 7503))
 
-    profile = fmt.get("udp_profile_lidar", "LEGACY")
-    if profile not in KNOWN_LIDAR_PROFILES:
-        raise ValueError(f"Ouster metadata: udp_profile_lidar {profile!r} is not one of {KNOWN_LIDAR_PROFILES}")
+    profile = str(fmt.get("udp_profile_lidar", "LEGACY"))
     header_type = fmt.get("header_type") or ("FUSA" if profile.startswith("FUSA_") else "STANDARD")
     h = int(_get(fmt, "pixels_per_column"))
     w = int(_get(fmt, "columns_per_frame"))
@@ -161,8 +149,6 @@ def simulated_os128_metadata(
     azimuth stagger of real units, pixel shifts as firmware 3.x computes them."""
     if columns_per_frame not in (512, 1024, 2048, 4096):
         raise ValueError(f"columns_per_frame must be 512, 1024, 2048 or 4096, not {columns_per_frame}")
-    if udp_profile_lidar not in KNOWN_LIDAR_PROFILES:
-        raise ValueError(f"udp_profile_lidar {udp_profile_lidar!r} is not one of {KNOWN_LIDAR_PROFILES}")
     azimuth = np.tile([4.2, 1.4, -1.4, -4.2], 32)
     lidar_to_sensor = np.diag([-1.0, -1.0, 1.0, 1.0])
     lidar_to_sensor[2, 3] = 36.18

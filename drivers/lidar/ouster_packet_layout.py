@@ -62,6 +62,9 @@ PROFILE_PIXEL_FIELDS: dict[str, tuple[int, dict[str, PixelField]]] = {
     "RNG15_RFL8_NIR8": (4, _LB),
     "RNG15_RFL8_NIR8_DUAL": (8, _LB_DUAL),
     "FUSA_RNG15_RFL8_NIR8_DUAL": (8, _LB_DUAL),
+    # Zone-monitoring profiles: a 16-bit zone mask follows (not decoded).
+    "RNG19_RFL8_SIG16_NIR16_ZONE16": (12, _SINGLE),
+    "RNG15_RFL8_NIR8_ZONE16": (8, _LB),
 }
 
 LEGACY_ENCODER_TICKS_PER_REV = 90112
@@ -114,7 +117,9 @@ class OusterPacketLayout:
 
 def packet_layout(meta: OusterMetadata) -> OusterPacketLayout:
     if meta.udp_profile_lidar not in PROFILE_PIXEL_FIELDS:
-        raise ValueError(f"no packet layout for UDP profile {meta.udp_profile_lidar!r}")
+        raise ValueError(
+            f"no packet layout for UDP profile {meta.udp_profile_lidar!r}; known: {sorted(PROFILE_PIXEL_FIELDS)}"
+        )
     pixel_size, fields = PROFILE_PIXEL_FIELDS[meta.udp_profile_lidar]
     legacy = meta.udp_profile_lidar == "LEGACY"
     layout = OusterPacketLayout(

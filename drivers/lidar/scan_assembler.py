@@ -78,8 +78,10 @@ class ScanAssembler:
                 target[:, columns] = getattr(batch, name)[packets][valid].T
 
     def add(self, batch: LidarPacketBatch) -> list[LidarScan]:
-        released = []
+        released: list[LidarScan] = []
         frame_ids = batch.frame_id
+        if len(frame_ids) == 0:
+            return released
         starts = np.flatnonzero(np.diff(frame_ids, prepend=-1) != 0)
         ends = np.append(starts[1:], len(frame_ids))
         for start, end in zip(starts.tolist(), ends.tolist(), strict=True):
