@@ -1,0 +1,534 @@
+"""A shared-memory ring of variable-size records: one writer, many readers, across processes.
+
+A ring is one file in /dev/shm, mapped by every process (no multiprocessing.shared_memory, whose
+resource tracker unlinks segments when an attaching process exits). Layout:
+
+    page 0  header words (u64): magic, layout, capacity, writer pid/start time, retired flag,
+            the commit counter, two commit descriptors (head, next_seq, last_pos) and the
+            writer's reserve and tail positions
+    page 1  reader slots (64 bytes each: pid, process start time, read position, flags)
+    page 2+ the data area, `capacity` bytes
+
+Positions are absolute byte counts (never wrap); a position's offset in the data area is
+`pos % capacity`. A record is [seq, total, meta_len, bulk_len] (32 bytes), the meta bytes, then
+the bulk bytes at the next 64-byte boundary; records are 64-byte aligned and never straddle the
+end of the data area: the writer fills the remainder with a pad record (seq = PAD_SEQ) instead.
+
+Writer protocol for one record at [start, end), where start = head or the end of a pad:
+  1. advance `tail` past every record that the new bytes will overwrite (those before end - capacity)
+  2. store `reserve` = end: readers holding data before reserve - capacity know it may be overwritten
+  3. write the pad header, the record header, meta and bulk straight into the mapping
+  4. fill the spare commit descriptor (head = end, next_seq, last_pos = start), then store
+     commit + 1 (the single store that publishes the record), then wake futex waiters.
+Reader protocol (seqlock-style): read the record's header and bytes at `pos`, then reload `reserve`;
+if reserve - capacity > pos the bytes may be torn, so the reader jumps to `tail` (the oldest
+intact record) and counts the sequence numbers it skipped as lost. A zero-copy view stays readable
+after it is returned; `Record.still_valid()` re-runs the check after use.
+
+A writer that dies mid-record leaves reserve > head; the next writer covers [head, reserve) with a
+pad record and continues the sequence from the last commit. Readers only ever write their own
+reader slot (lossless readers publish how far they have read there; the writer waits for them).
+
+Memory ordering: this relies on x86-64 TSO (stores become visible in program order, loads are not
+reordered with other loads) and on aligned 8-byte loads and stores being atomic; every header
+access below is a single aligned u64 load or store through a memoryview cast to "Q". Other
+architectures would need explicit barriers.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import fcntl
+import mmap
+import os
+import platform
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+MAGIC = 0x314752494C52524F  # "ORRLIRG1" little-endian, "roadlog ring v1"
+LAYOUT = 1
+PAGE = 4096
+HEADER_BYTES = 2 * PAGE
+DATA_OFFSET = HEADER_BYTES
+ALIGN = 64
+RECORD_HEADER_BYTES = 32
+PAD_SEQ = 2**64 - 1
+NO_RECORD = 2**64 - 1
+MAX_READER_SLOTS = PAGE // 64
+
+# Header word indices (u64). Writer-owned hot words sit on their own cache lines.
+_W_MAGIC, _W_LAYOUT, _W_CAPACITY, _W_WRITER_PID, _W_WRITER_START, _W_RETIRED = 0, 1, 2, 3, 4, 5
+_W_COMMIT = 8
+_W_DESC = (16, 24)  # each: head, next_seq, last_pos
+_W_RESERVE = 32
+_W_TAIL = 40
+_W_SLOTS = PAGE // 8  # slot i at _W_SLOTS + 8 * i: pid, start time, read position, flags
+_SLOT_LOSSLESS = 1
+
+_READ_POLL_SLICE_S = 0.05  # longest single futex wait: bounds how late a reader notices a retired ring
+_WRITER_WAIT_MAX_SLEEP_S = 0.0005  # lossless writer's poll for slow readers
+_FUTEX_WAIT, _FUTEX_WAKE = 0, 1  # not FUTEX_PRIVATE: the word is shared between processes
+_SYS_FUTEX = {"x86_64": 202, "aarch64": 98}[platform.machine()]
+_libc = ctypes.CDLL(None, use_errno=True)
+_libc.syscall.restype = ctypes.c_long
+
+
+class _Timespec(ctypes.Structure):
+    _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
+
+
+def _futex_wait(address: int, expected: int, timeout_s: float) -> None:
+    """Sleep while the u32 at `address` equals `expected`, at most `timeout_s` (spurious wakes allowed)."""
+    ts = _Timespec(int(timeout_s), int((timeout_s % 1.0) * 1e9))
+    _libc.syscall(ctypes.c_long(_SYS_FUTEX), ctypes.c_void_p(address), ctypes.c_int(_FUTEX_WAIT),
+                  ctypes.c_uint32(expected & 0xFFFFFFFF), ctypes.byref(ts), None, ctypes.c_int(0))
+
+
+def _futex_wake(address: int) -> None:
+    _libc.syscall(ctypes.c_long(_SYS_FUTEX), ctypes.c_void_p(address), ctypes.c_int(_FUTEX_WAKE),
+                  ctypes.c_int(2**31 - 1), None, None, ctypes.c_int(0))
+
+
+def _align(n: int) -> int:
+    return (n + ALIGN - 1) & ~(ALIGN - 1)
+
+
+def record_bytes(meta_len: int, bulk_len: int) -> int:
+    """Bytes a record with this meta and bulk takes in the data area (header and alignment included)."""
+    return _align(_align(RECORD_HEADER_BYTES + meta_len) + bulk_len)
+
+
+def max_bulk_bytes(capacity: int, meta_len: int) -> int:
+    """The largest bulk payload that fits a ring of `capacity` bytes next to `meta_len` meta bytes."""
+    return (capacity & ~(ALIGN - 1)) - _align(RECORD_HEADER_BYTES + meta_len)
+
+
+def process_start_ticks(pid: int) -> int | None:
+    """The process's start time (clock ticks since boot), or None when it is gone or a zombie."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+    except (FileNotFoundError, ProcessLookupError, IndexError):
+        return None
+    if fields[0] in (b"Z", b"X"):
+        return None
+    return int(fields[19])
+
+
+def _alive(pid: int, start_ticks: int) -> bool:
+    return pid != 0 and process_start_ticks(pid) == start_ticks
+
+
+class RingRetired(Exception):
+    """The ring file was replaced or removed; reopen it by path."""
+
+
+class _Mapping:
+    """The open file, its header mapping (read-write) and its data mapping."""
+
+    def __init__(self, path: str, *, writable_data: bool):
+        self.path = path
+        self.fd = os.open(path, os.O_RDWR)
+        try:
+            self.header = mmap.mmap(self.fd, HEADER_BYTES, mmap.MAP_SHARED)
+            self.q = memoryview(self.header).cast("Q")
+            if self.q[_W_MAGIC] != MAGIC or self.q[_W_LAYOUT] != LAYOUT:
+                raise ValueError(f"{path} is not a roadlog ring (layout {LAYOUT})")
+            self.capacity = self.q[_W_CAPACITY]
+            prot = mmap.PROT_READ | (mmap.PROT_WRITE if writable_data else 0)
+            self.data = mmap.mmap(self.fd, self.capacity, mmap.MAP_SHARED | mmap.MAP_POPULATE, prot,
+                                  offset=DATA_OFFSET)
+        except BaseException:
+            os.close(self.fd)
+            raise
+        self.dq = memoryview(self.data).cast("Q")
+        self.db = memoryview(self.data)
+        self.commit_address = ctypes.addressof(ctypes.c_char.from_buffer(self.header)) + 8 * _W_COMMIT
+
+    def snapshot(self) -> tuple[int, int, int, int]:
+        """(commit, head, next_seq, last_pos) of one consistent commit."""
+        q = self.q
+        while True:
+            c = q[_W_COMMIT]
+            d = _W_DESC[c & 1]
+            head, next_seq, last_pos = q[d], q[d + 1], q[d + 2]
+            if q[_W_COMMIT] == c:
+                return c, head, next_seq, last_pos
+
+    def close(self) -> None:
+        """Drop this process's mapping; zero-copy views still in use keep the data mapping alive."""
+        if self.fd >= 0:
+            os.close(self.fd)
+            self.fd = -1
+
+
+def _create_file(path: str, capacity: int, next_seq: int) -> None:
+    """Create an initialized ring file at `path` atomically (FileExistsError if one is there)."""
+    tmp = f"{path}.creating.{os.getpid()}"
+    fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o660)
+    try:
+        os.ftruncate(fd, DATA_OFFSET + capacity)
+        with mmap.mmap(fd, HEADER_BYTES, mmap.MAP_SHARED) as header:
+            q = memoryview(header).cast("Q")
+            q[_W_CAPACITY] = capacity
+            q[_W_DESC[0] + 1] = next_seq
+            q[_W_DESC[0] + 2] = NO_RECORD
+            q[_W_LAYOUT] = LAYOUT
+            q[_W_MAGIC] = MAGIC
+            q.release()
+        os.link(tmp, path)
+    finally:
+        os.close(fd)
+        os.unlink(tmp)
+
+
+def retire(path: str) -> None:
+    """Mark a ring as replaced and remove its file; readers waiting on it reopen the path."""
+    try:
+        m = _Mapping(path, writable_data=False)
+    except (FileNotFoundError, ValueError):
+        try:
+            os.unlink(path)
+        except FileNotFoundError:
+            pass
+        return
+    m.q[_W_RETIRED] = 1
+    _futex_wake(m.commit_address)
+    try:
+        os.unlink(path)
+    except FileNotFoundError:
+        pass
+    m.close()
+
+
+class RingWriter:
+    """The single writer of a ring. Opening it creates the ring or resumes an existing one."""
+
+    def __init__(self, path: str, capacity: int, *, label: str | None = None):
+        self.label = label or path
+        capacity &= ~(ALIGN - 1)
+        if capacity < PAGE:
+            raise ValueError(f"{self.label}: ring capacity {capacity} B is below the minimum {PAGE} B")
+        self._m = self._open(path, capacity)
+        m = self._m
+        self.capacity = m.capacity
+        self._ring = np.frombuffer(m.data, dtype=np.uint8)
+        self._commit, self.head, self.next_seq, self.last_pos = m.snapshot()
+        self.reserve, self.tail = m.q[_W_RESERVE], m.q[_W_TAIL]
+        if self.reserve > self.head:
+            self._recover()
+
+    def _open(self, path: str, capacity: int) -> _Mapping:
+        carried_seq = 0
+        while True:
+            try:
+                m = _Mapping(path, writable_data=True)
+            except FileNotFoundError:
+                try:
+                    _create_file(path, capacity, carried_seq)
+                except FileExistsError:
+                    pass
+                continue
+            fcntl.flock(m.fd, fcntl.LOCK_EX)
+            try:
+                q = m.q
+                pid, start = q[_W_WRITER_PID], q[_W_WRITER_START]
+                if q[_W_RETIRED]:
+                    m.close()
+                    continue
+                if _alive(pid, start):
+                    raise RuntimeError(f"{self.label}: the ring already has a live writer (pid {pid})")
+                if m.capacity != capacity:
+                    carried_seq = m.snapshot()[2]
+                    retire(path)
+                    m.close()
+                    continue
+                q[_W_WRITER_START] = process_start_ticks(os.getpid()) or 0
+                q[_W_WRITER_PID] = os.getpid()
+                return m
+            finally:
+                if m.fd >= 0:
+                    fcntl.flock(m.fd, fcntl.LOCK_UN)
+
+    def _recover(self) -> None:
+        """A previous writer died mid-record: cover [head, reserve) with a pad record and commit it."""
+        start = self.head
+        if self.tail > start:  # every record before head had already been given up
+            self.tail = self.reserve
+            self._m.q[_W_TAIL] = self.tail
+        off = start % self.capacity
+        self._m.dq[off >> 3] = PAD_SEQ
+        self._m.dq[(off >> 3) + 1] = self.reserve - start
+        self._commit_record(self.reserve, self.next_seq, self.last_pos)
+
+    def _commit_record(self, head: int, next_seq: int, last_pos: int) -> None:
+        q = self._m.q
+        c = self._commit + 1
+        d = _W_DESC[c & 1]
+        q[d], q[d + 1], q[d + 2] = head, next_seq, last_pos
+        q[_W_COMMIT] = c
+        self._commit, self.head, self.next_seq, self.last_pos = c, head, next_seq, last_pos
+        _futex_wake(self._m.commit_address)
+
+    def _record_total(self, pos: int) -> int:
+        return self._m.dq[((pos % self.capacity) >> 3) + 1]
+
+    def _wait_for_lossless_readers(self, boundary: int, timeout_s: float | None) -> None:
+        """Block until no live lossless reader still has unread records before `boundary`."""
+        q = self._m.q
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        sleep_s = 0.00002
+        while True:
+            blocking = []
+            for i in range(MAX_READER_SLOTS):
+                w = _W_SLOTS + 8 * i
+                pid = q[w]
+                if pid and q[w + 3] & _SLOT_LOSSLESS and q[w + 2] < boundary:
+                    blocking.append(w)
+            if not blocking or all(not _alive(q[w], q[w + 1]) for w in blocking):
+                return
+            if deadline is not None and time.monotonic() >= deadline:
+                behind = min(q[w + 2] for w in blocking)
+                raise TimeoutError(f"{self.label}: a lossless reader is still at byte {behind}, "
+                                   f"{boundary - behind} B short of what the next write overwrites")
+            time.sleep(sleep_s)
+            sleep_s = min(2 * sleep_s, _WRITER_WAIT_MAX_SLEEP_S)
+
+    def write(self, meta: bytes, bulk: object = b"", *, lossless: bool = False,
+              timeout_s: float | None = None) -> int:
+        """Append one record (meta bytes + bulk bytes-like or numpy array); returns its seq.
+
+        lossless: first wait (up to timeout_s, then TimeoutError) until every live lossless reader
+        has read past the bytes this record overwrites.
+        """
+        bulk_array = bulk if isinstance(bulk, np.ndarray) else None
+        bulk_len = bulk_array.nbytes if bulk_array is not None else memoryview(bulk).nbytes
+        meta_len = len(meta)
+        bulk_off = _align(RECORD_HEADER_BYTES + meta_len)
+        total = _align(bulk_off + bulk_len)
+        cap = self.capacity
+        if total > cap:
+            raise ValueError(f"{self.label}: a {bulk_len} B payload (+{meta_len} B meta) can never fit "
+                             f"the {cap} B ring; the largest payload is {max_bulk_bytes(cap, meta_len)} B")
+        head = self.head
+        off = head % cap
+        pad = cap - off if cap - off < total else 0
+        start = head + pad
+        end = start + total
+        boundary = end - cap
+        if lossless:  # a reader already at head loses nothing: only the pad may be overwritten
+            self._wait_for_lossless_readers(min(boundary, head), timeout_s)
+        q, dq = self._m.q, self._m.dq
+        t = self.tail
+        while t < boundary and t < head:
+            t += self._record_total(t)
+        if t < boundary:
+            t = start
+        if t != self.tail:
+            self.tail = t
+            q[_W_TAIL] = t
+        self.reserve = end
+        q[_W_RESERVE] = end
+        if pad:
+            dq[off >> 3] = PAD_SEQ
+            dq[(off >> 3) + 1] = pad
+        seq = self.next_seq
+        o = start % cap
+        i = o >> 3
+        dq[i], dq[i + 1], dq[i + 2], dq[i + 3] = seq, total, meta_len, bulk_len
+        db = self._m.db
+        db[o + RECORD_HEADER_BYTES:o + RECORD_HEADER_BYTES + meta_len] = meta
+        if bulk_len:
+            b = o + bulk_off
+            if bulk_array is not None:
+                dst = self._ring[b:b + bulk_len].view(bulk_array.dtype).reshape(bulk_array.shape)
+                np.copyto(dst, bulk_array, casting="no")
+            else:
+                db[b:b + bulk_len] = memoryview(bulk).cast("B")
+        self._commit_record(end, seq + 1, start)
+        return seq
+
+    def close(self) -> None:
+        """Give up writing (the ring stays for readers and for the next writer)."""
+        m = self._m
+        if m.fd < 0:
+            return
+        if m.q[_W_WRITER_PID] == os.getpid():
+            m.q[_W_WRITER_PID] = 0
+        self._ring = None
+        m.close()
+
+
+@dataclass(slots=True)
+class Record:
+    """One record read from a ring. `bulk` is a read-only view into shared memory unless copied."""
+
+    seq: int
+    meta: bytes
+    bulk: memoryview | bytes
+    pos: int
+    _mapping: _Mapping
+
+    def still_valid(self) -> bool:
+        """Whether the record's bytes are still intact (call after using a zero-copy `bulk`)."""
+        m = self._mapping
+        return m.q[_W_RESERVE] <= self.pos + m.capacity
+
+
+class RingReader:
+    """One reader of a ring: follows the writer, detects being overtaken and counts what it lost.
+
+    start: "next" (records written from now on), "oldest" (everything still in the ring),
+    "latest" (the newest record, then what follows). lossless: take a reader slot and publish the
+    read position there, so lossless writes wait for this reader.
+    """
+
+    def __init__(self, path: str, *, start: str = "next", lossless: bool = False):
+        if start not in ("next", "oldest", "latest"):
+            raise ValueError(f"start must be 'next', 'oldest' or 'latest', not {start!r}")
+        self.path = path
+        self.lossless = lossless
+        self.lost = 0
+        self.received = 0
+        self.skipped = 0
+        self._slot: int | None = None
+        self.expected: int | None = None  # seq of the next message this reader should see
+        self._attach(_Mapping(path, writable_data=False), start)
+
+    def _attach(self, m: _Mapping, start: str) -> None:
+        self._m = m
+        self.capacity = m.capacity
+        _, head, next_seq, last_pos = m.snapshot()
+        if start == "next" or (start == "latest" and last_pos == NO_RECORD):
+            self.pos, expected = head, next_seq
+        elif start == "latest":
+            self.pos, expected = last_pos, next_seq - 1
+        else:
+            self.pos, expected = self._oldest()
+        if self.expected is None or expected < self.expected:
+            self.expected = expected  # a fresh ring, or a replaced one whose sequence restarted
+        if self.lossless:
+            self._claim_slot()
+
+    def _oldest(self) -> tuple[int, int]:
+        """(position, seq) of the oldest intact message record."""
+        m = self._m
+        cap = m.capacity
+        while True:
+            _, head, next_seq, _ = m.snapshot()
+            pos = m.q[_W_TAIL]
+            while pos < head:
+                i = (pos % cap) >> 3
+                seq, total = m.dq[i], m.dq[i + 1]
+                if m.q[_W_RESERVE] > pos + cap:
+                    break
+                if seq != PAD_SEQ:
+                    return pos, seq
+                pos += total
+            else:
+                return head, next_seq
+
+    def _claim_slot(self) -> None:
+        m = self._m
+        q = m.q
+        me, my_start = os.getpid(), process_start_ticks(os.getpid()) or 0
+        fcntl.flock(m.fd, fcntl.LOCK_EX)
+        try:
+            for i in range(MAX_READER_SLOTS):
+                w = _W_SLOTS + 8 * i
+                if q[w] == 0 or not _alive(q[w], q[w + 1]):
+                    q[w] = 0
+                    q[w + 1], q[w + 2], q[w + 3] = my_start, self.pos, _SLOT_LOSSLESS
+                    q[w] = me
+                    self._slot = w
+                    return
+        finally:
+            fcntl.flock(m.fd, fcntl.LOCK_UN)
+        raise RuntimeError(f"{self.path}: all {MAX_READER_SLOTS} lossless reader slots are taken")
+
+    def _release_slot(self) -> None:
+        if self._slot is not None:
+            self._m.q[self._slot] = 0
+            self._slot = None
+
+    def _reopen(self, deadline: float | None) -> bool:
+        """Follow a retired ring to its replacement; False when none appeared before the deadline."""
+        while True:
+            try:
+                m = _Mapping(self.path, writable_data=False)
+            except (FileNotFoundError, ValueError):
+                if deadline is not None and time.monotonic() >= deadline:
+                    return False
+                time.sleep(0.01)
+                continue
+            self._release_slot()
+            self._m.close()
+            self._attach(m, "oldest")
+            return True
+
+    def read(self, timeout_s: float | None = None, *, copy: bool = False) -> Record | None:
+        """The next record, waiting up to timeout_s (None: forever; 0: no wait); None on timeout."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            m = self._m
+            q, dq, cap = m.q, m.dq, m.capacity
+            if self._slot is not None and q[self._slot + 2] != self.pos:
+                q[self._slot + 2] = self.pos
+            commit, head, _, _ = m.snapshot()
+            pos = self.pos
+            if pos >= head:
+                if q[_W_RETIRED]:
+                    if self._reopen(deadline):
+                        continue
+                    return None
+                if deadline is None:
+                    _futex_wait(m.commit_address, commit, _READ_POLL_SLICE_S)
+                    continue
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return None
+                _futex_wait(m.commit_address, commit, min(remaining, _READ_POLL_SLICE_S))
+                continue
+            off = pos % cap
+            i = off >> 3
+            seq, total, meta_len, bulk_len = dq[i], dq[i + 1], dq[i + 2], dq[i + 3]
+            if q[_W_RESERVE] > pos + cap:
+                self.pos = q[_W_TAIL]
+                continue
+            if seq == PAD_SEQ:
+                self.pos = pos + total
+                continue
+            meta_off = off + RECORD_HEADER_BYTES
+            meta = bytes(m.db[meta_off:meta_off + meta_len])
+            bulk_off = off + _align(RECORD_HEADER_BYTES + meta_len)
+            bulk = m.db[bulk_off:bulk_off + bulk_len]
+            if copy:
+                bulk = bytes(bulk)
+            if q[_W_RESERVE] > pos + cap:
+                self.pos = q[_W_TAIL]
+                continue
+            if seq > self.expected:
+                self.lost += seq - self.expected
+            self.expected = seq + 1
+            self.received += 1
+            self.pos = pos + total
+            return Record(seq, meta, bulk, pos, m)
+
+    def latest(self, *, copy: bool = True) -> Record | None:
+        """The newest record if it is newer than what this reader has returned; skips the rest."""
+        _, _, next_seq, last_pos = self._m.snapshot()
+        if last_pos == NO_RECORD or last_pos < self.pos:
+            return None
+        self.skipped += max(0, next_seq - 1 - self.expected)
+        self.pos, self.expected = last_pos, next_seq - 1
+        return self.read(0, copy=copy)
+
+    def backlog_bytes(self) -> int:
+        """Bytes written but not yet read by this reader."""
+        return max(0, self._m.snapshot()[1] - self.pos)
+
+    def close(self) -> None:
+        self._release_slot()
+        self._m.close()
