@@ -148,6 +148,11 @@ def _specific_force_at_reference(imu: ImuSamples, lever_arm_imu: np.ndarray, sec
     return imu.accel - np.cross(angular_accel, lever_arm_imu) - centripetal
 
 
+def _gravity_enu(position: np.ndarray, g0: float) -> np.ndarray:
+    """Gravity in the tangent frame near its origin: tilted towards the origin, weaker with height."""
+    return -g0 * np.array([position[0] / WGS84_A, position[1] / WGS84_A, 1.0 - 2.0 * position[2] / WGS84_A])
+
+
 @dataclass
 class _State:
     p: np.ndarray
@@ -304,6 +309,7 @@ def fuse_trajectory(gnss: GnssFixes, imu: ImuSamples, wheels: WheelSpeeds,
     sum_force = np.zeros(3)  # integral of the specific force in ENU over the epoch interval
     sum_rotation = np.zeros((3, 3))  # integral of the IMU attitude over the epoch interval
     interval = 0.0
+    gravity = _gravity_enu(x.p, g0)  # refreshed every epoch
 
     def update(residual, h, noise, gate, kind):
         nonlocal p
@@ -324,7 +330,6 @@ def fuse_trajectory(gnss: GnssFixes, imu: ImuSamples, wheels: WheelSpeeds,
         r_new = x.r_wi @ so3_exp(w * dt)
         r_mid = 0.5 * (x.r_wi + r_new)
         f_world = r_mid @ (force_mid[j] - x.ba)
-        gravity = -g0 * np.array([x.p[0] / WGS84_A, x.p[1] / WGS84_A, 1.0 - 2.0 * x.p[2] / WGS84_A])
         v_new = x.v + (f_world + gravity) * dt
         x.p = x.p + 0.5 * (x.v + v_new) * dt
         x.v = v_new
@@ -365,7 +370,7 @@ def fuse_trajectory(gnss: GnssFixes, imu: ImuSamples, wheels: WheelSpeeds,
             update(gnss_enu[i] - (x.p + lever_world), h, gnss_cov[i], settings.gate_chi2, "gnss_position")
             if gnss.velocity_enu is not None and np.all(np.isfinite(gnss.velocity_enu[i])):
                 r_wv = x.r_wi @ x.r_iv
-                arm_velocity = r_wv @ np.cross(w_vehicle, l_gnss)
+                arm_velocity = r_wv @ (skew(w_vehicle) @ l_gnss)
                 h = np.zeros((3, N_STATES))
                 h[:, _V] = np.eye(3)
                 h[:, _TH] = -skew(arm_velocity)
@@ -376,7 +381,7 @@ def fuse_trajectory(gnss: GnssFixes, imu: ImuSamples, wheels: WheelSpeeds,
         if np.isfinite(speed):
             r_wv = x.r_wi @ x.r_iv
             u_center = r_wv.T @ x.v
-            u = u_center + np.cross(w_vehicle, l_axle)
+            u = u_center + skew(w_vehicle) @ l_axle
             h = np.zeros((3, N_STATES))
             h[:, _V] = r_wv.T
             h[:, _TH] = r_wv.T @ skew(x.v)
@@ -395,6 +400,7 @@ def fuse_trajectory(gnss: GnssFixes, imu: ImuSamples, wheels: WheelSpeeds,
             update(np.array([yaw_rate - w_vehicle[2]]), h, np.array([[settings.yaw_rate_sigma ** 2]]),
                    CHI2_1DOF_9999, "yaw_rate")
         posts.append(x.copy())
+        gravity = _gravity_enu(x.p, g0)
         knot_p[s_index], knot_v[s_index], knot_r[s_index] = x.p, x.v, x.r_wi
 
     smoothed = [posts[-1]]
