@@ -78,10 +78,15 @@ class LidarPacketBatch:
 class XYZLut:
     """Per (column, beam) unit direction and offset, so that point = direction * range + offset.
 
-    Planar float32 arrays of shape (3, W, H), metres per millimetre of range and metres."""
+    Planar float32 arrays of shape (3, W, H), metres per millimetre of range and metres; the
+    same transposed to (3, H, W) for scan images."""
 
     direction: np.ndarray
     offset: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.direction_image = np.ascontiguousarray(self.direction.transpose(0, 2, 1))
+        self.offset_image = np.ascontiguousarray(self.offset.transpose(0, 2, 1))
 
     @property
     def columns_per_frame(self) -> int:
@@ -157,16 +162,18 @@ class LidarPointCloud:
 
 def scan_point_cloud(scan: LidarScan, lut: XYZLut) -> LidarPointCloud:
     """Points of the valid pixels (valid column, range > 0) of a scan, ordered by ring then column."""
-    keep = (scan.range_mm != 0) & scan.column_valid[None, :]
-    ring, column = np.nonzero(keep)
-    r = scan.range_mm[ring, column]
-    rf = r.astype(np.float32)[:, None]
-    xyz = lut.direction[:, column, ring].T * rf + lut.offset[:, column, ring].T
+    w = scan.range_mm.shape[1]
+    keep = np.flatnonzero(((scan.range_mm != 0) & scan.column_valid[None, :]).ravel())
+    ring, column = np.divmod(keep, w)
+    r = scan.range_mm.ravel()[keep]
+    planar = lut.direction_image.reshape(3, -1).take(keep, axis=1)
+    planar *= r.astype(np.float32)
+    planar += lut.offset_image.reshape(3, -1).take(keep, axis=1)
     return LidarPointCloud(
         frame_id=scan.frame_id,
-        xyz=np.ascontiguousarray(xyz, dtype=np.float32),
+        xyz=np.ascontiguousarray(planar.T),
         range_mm=r,
-        reflectivity=scan.reflectivity[ring, column],
+        reflectivity=scan.reflectivity.ravel()[keep],
         ring=ring.astype(np.uint16),
         column=column.astype(np.uint16),
         timestamp_ns=scan.timestamp_ns[column],
