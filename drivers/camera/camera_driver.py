@@ -1,0 +1,113 @@
+"""The camera driver process (one per camera): frames from the configured backend onto the bus.
+
+Frames go to `camera/<name>` (encoded as the car logs them, with the sensor time), the simulator's
+semantic masks to `mask/<name>`, and the process's health to `health/camera_<name>` once a second from
+a thread of its own (so a stalled device still shows up as stalled).
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import threading
+from collections.abc import Callable, Generator
+
+from daemon.config import CameraConfig, load_config, resolve_path
+from daemon.health import HealthCounters
+from daemon.messages import CameraFrame, SemanticMask
+from daemon.topics import camera_process, camera_topic, health_topic, mask_topic
+
+Publish = Callable[[str, object], None]
+FrameSource = Generator[CameraFrame | SemanticMask, None, None]
+
+
+def open_frame_source(config: CameraConfig, stop: threading.Event, health: HealthCounters, *,
+                      start_mono_ns: int | None = None, log_origin_ns: int | None = None) -> FrameSource:
+    """The configured backend's frames; start_mono_ns / log_origin_ns pace the sim backend only."""
+    if config.backend == "opencv":
+        from drivers.camera.opencv_camera import opencv_frames
+
+        return opencv_frames(config, stop, health)
+    if config.backend == "depthai":
+        from drivers.camera.depthai_camera import depthai_frames
+
+        return depthai_frames(config, stop, health)
+    from drivers.camera.sim_camera import sim_frames
+
+    return sim_frames(config, stop, health, start_mono_ns=start_mono_ns, log_origin_ns=log_origin_ns)
+
+
+def _health_loop(publish: Publish, health: HealthCounters, lock: threading.Lock, done: threading.Event,
+                 period_s: float) -> None:
+    while not done.wait(period_s):
+        with lock:
+            snapshot = health.snapshot()
+        publish(health_topic(health.process), snapshot)
+
+
+def run_camera_driver(config: CameraConfig, frames: FrameSource, publish: Publish, stop: threading.Event,
+                      health: HealthCounters, *, health_period_s: float = 1.0) -> None:
+    """Publish every frame and mask until the source ends or `stop` is set; health every period."""
+    lock = threading.Lock()
+    done = threading.Event()
+    reporter = threading.Thread(target=_health_loop, args=(publish, health, lock, done, health_period_s),
+                                name=f"health-{config.name}", daemon=True)
+    reporter.start()
+    frame_topic, masks_topic = camera_topic(config.name), mask_topic(config.name)
+    try:
+        for message in frames:
+            publish(masks_topic if isinstance(message, SemanticMask) else frame_topic, message)
+            with lock:
+                health.count_published()
+            if stop.is_set():
+                break
+    except Exception as exc:
+        with lock:
+            health.count_error(f"{type(exc).__name__}: {exc}")
+        raise
+    finally:
+        frames.close()
+        done.set()
+        reporter.join()
+        with lock:
+            snapshot = health.snapshot()
+        publish(health_topic(health.process), snapshot)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="roadlog camera driver: one camera's frames onto the bus")
+    parser.add_argument("--config", required=True, help="car config YAML")
+    parser.add_argument("--camera", required=True, help="camera name in sensors.cameras")
+    parser.add_argument("--device", help="override the camera's device (V4L2 path, pipeline, serial, .mcap)")
+    parser.add_argument("--start-mono-ns", type=int, help="sim: host monotonic time the log origin maps to")
+    parser.add_argument("--log-origin-ns", type=int, help="sim: log sensor time played at --start-mono-ns")
+    args = parser.parse_args(argv)
+
+    from daemon.bus import open_publisher
+
+    car = load_config(args.config)
+    try:
+        config = car.camera(args.camera)
+    except KeyError as exc:
+        parser.error(f"{args.config}: {exc.args[0]}")
+    device = args.device if args.device is not None else config.device
+    if config.backend == "sim" and device:
+        device = str(resolve_path(args.config, device))
+    config = config.model_copy(update={"device": device})
+    process = camera_process(config.name)
+    publishers = {t: open_publisher(car, t) for t in
+                  (camera_topic(config.name), mask_topic(config.name), health_topic(process))}
+    health = HealthCounters(process, expected_rate_hz=config.rate_hz)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    frames = open_frame_source(config, stop, health, start_mono_ns=args.start_mono_ns,
+                               log_origin_ns=args.log_origin_ns)
+    run_camera_driver(config, frames, lambda t, m: publishers[t].publish(m), stop, health)
+    print(f"camera {config.name} stopped: received={health.received} published={health.published} "
+          f"dropped={health.dropped} errors={health.errors}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

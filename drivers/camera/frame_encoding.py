@@ -1,0 +1,46 @@
+"""A camera image (numpy, BGR or mono) -> the CameraFrame the car logs: JPEG, or raw pixels."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from daemon.messages import CameraFrame
+
+
+class FrameEncodingError(ValueError):
+    """An image that cannot be encoded (empty, wrong shape, encoder failure)."""
+
+
+def encode_image(image: np.ndarray, camera: str, encoding: str, jpeg_quality: int, sensor_time_ns: int) -> CameraFrame:
+    """`encoding` is "jpeg" (cv2.imencode at `jpeg_quality`) or "raw" (bgr8 / mono8 bytes with the size)."""
+    if image is None or image.size == 0 or image.dtype != np.uint8 or image.ndim not in (2, 3) or (
+            image.ndim == 3 and image.shape[2] not in (1, 3)):
+        shape = None if image is None else (image.shape, image.dtype)
+        raise FrameEncodingError(f"cannot encode an image of shape/dtype {shape}")
+    height, width = image.shape[:2]
+    if encoding == "jpeg":
+        ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+        if not ok:
+            raise FrameEncodingError("cv2.imencode failed")
+        return CameraFrame(sensor_time_ns=sensor_time_ns, camera=camera, format="jpeg", data=buf.tobytes())
+    if encoding == "raw":
+        mono = image.ndim == 2 or image.shape[2] == 1
+        return CameraFrame(sensor_time_ns=sensor_time_ns, camera=camera, format="mono8" if mono else "bgr8",
+                           width=width, height=height, data=np.ascontiguousarray(image).tobytes())
+    raise FrameEncodingError(f"encoding {encoding!r} is not done on the host (jpeg or raw)")
+
+
+def raw_frame_image(frame: CameraFrame) -> np.ndarray:
+    """The pixels of a raw (rgb8, bgr8, mono8) frame as a BGR or mono image."""
+    channels = {"rgb8": 3, "bgr8": 3, "mono8": 1}.get(frame.format)
+    if channels is None:
+        raise FrameEncodingError(f"{frame.format!r} is not a raw format")
+    expected = frame.width * frame.height * channels
+    if len(frame.data) != expected:
+        raise FrameEncodingError(f"{frame.format} {frame.width}x{frame.height}: {len(frame.data)} bytes, "
+                                 f"expected {expected}")
+    image = np.frombuffer(frame.data, np.uint8).reshape(frame.height, frame.width, channels)
+    if frame.format == "rgb8":
+        return image[:, :, ::-1]
+    return image[:, :, 0] if channels == 1 else image
