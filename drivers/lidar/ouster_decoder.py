@@ -70,10 +70,10 @@ def _as_packet_rows(
     """The datagrams of the right size as a C-contiguous (P, packet_size) uint8 array, their indices
     in the input, and the number of datagrams in."""
     if isinstance(datagrams, np.ndarray):
-        rows = datagrams.reshape(len(datagrams), -1) if datagrams.ndim != 2 else datagrams
+        rows = datagrams
         n = rows.shape[0]
-        lengths = np.full(n, rows.shape[1]) if sizes is None else np.asarray(sizes)
-        if rows.dtype != np.uint8 or lengths.shape != (n,):
+        lengths = np.full(n, rows.shape[-1]) if sizes is None else np.asarray(sizes)
+        if rows.ndim != 2 or rows.dtype != np.uint8 or lengths.shape != (n,):
             raise TypeError("datagrams must be a (N, S) uint8 array with sizes of shape (N,)")
         if rows.shape[1] < packet_size:
             return np.zeros((0, packet_size), np.uint8), np.zeros(0, np.int64), n
