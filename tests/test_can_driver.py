@@ -217,3 +217,18 @@ def test_health_is_published_once_a_period():
     health = driver.of(health_topic("can"))
     assert 4 <= len(health) <= 7
     assert all(h.process == "can" for h in health)
+
+
+def test_a_stale_yaw_rate_is_not_paired_with_wheel_speeds():
+    config = virtual_config()
+    db = load_dbc(SIM_DBC)
+    driver = DriverThread(config)
+    sender = can.Bus(interface="virtual", channel=config.channel, preserve_timestamps=True)
+    yaw, wheels = encode_wheel_speeds(db, config.signals, 4.0, 4.0, 4.0, 4.0, 0.2)
+    for frame, t in ((yaw, 100.0), (wheels, 100.5), (wheels, 101.2)):  # the yaw is 1.2 s old at the last
+        frame.timestamp = t
+        sender.send(frame)
+    speeds = driver.wait_for(WHEEL_SPEEDS, 2)
+    driver.finish()
+    sender.shutdown()
+    assert speeds[0].yaw_rate_rps == pytest.approx(0.2, abs=1e-4) and math.isnan(speeds[1].yaw_rate_rps)
