@@ -89,6 +89,9 @@ class FusionSettings:
     gate_chi2: float = CHI2_3DOF_9999  # GNSS and wheel innovations above this are rejected (and counted)
     update_rate_hz: float = 20.0  # Kalman epochs for the wheel speeds (plus one at every GNSS fix)
     wheel_max_gap_s: float = 0.1  # wheel speeds are interpolated to an epoch only across shorter gaps
+    initial_pass_s: float = 60.0  # length of the first pass that refines the initial state (0: none)
+    refined_tilt_sigma: float = np.radians(0.5)  # attitude uncertainty at the start of the full pass
+    refined_yaw_sigma: float = np.radians(2.0)
 
 
 @dataclass(frozen=True)
@@ -241,44 +244,55 @@ def _initial_state(gnss_enu, gnss_cov0, gnss_t, imu_t, force_ref, wheel_t, rear_
     return x, p0
 
 
-def fuse_trajectory(gnss: GnssFixes, imu: ImuSamples, wheels: WheelSpeeds,
-                    mounting: VehicleMounting = VehicleMounting(),
-                    settings: FusionSettings = FusionSettings(),
-                    origin: LocalFrame | None = None) -> FusionResult:
-    """Forward error-state Kalman filter over the IMU, then an RTS smoother; poses come out at every IMU
-    sample and Kalman epoch, from the first GNSS fix to the last IMU sample. The ENU origin defaults to
-    the first GNSS fix."""
-    frame = origin or LocalFrame(float(gnss.lat_deg[0]), float(gnss.lon_deg[0]), float(gnss.alt_m[0]))
-    t_ref = int(gnss.times_ns[0])
-    imu_ns = np.asarray(imu.times_ns, dtype=np.int64) - t_ref
-    gnss_ns = np.asarray(gnss.times_ns, dtype=np.int64) - t_ref
-    imu_t, gnss_t = imu_ns * 1e-9, gnss_ns * 1e-9
-    wheel_t = (np.asarray(wheels.times_ns, dtype=np.int64) - t_ref) * 1e-9
-    gnss_enu = frame.geodetic_to_enu(gnss.lat_deg, gnss.lon_deg, gnss.alt_m)
-    gnss_cov = np.asarray(gnss.position_cov_enu, dtype=np.float64)
-    rear_speed = np.asarray(wheels.speeds, dtype=np.float64)[:, 2:4].mean(axis=1)
-    r_vi_prior = np.asarray(mounting.imu_to_vehicle, dtype=np.float64)
-    lever_imu = r_vi_prior.T @ np.asarray(mounting.imu_lever_arm, dtype=np.float64)
-    force_ref = _specific_force_at_reference(imu, lever_imu, imu_t)
-    gyro = np.asarray(imu.gyro, dtype=np.float64)
-    l_gnss = np.asarray(mounting.gnss_lever_arm, dtype=np.float64)
-    l_axle = np.asarray(mounting.rear_axle_lever_arm, dtype=np.float64)
-    g0 = normal_gravity(frame.lat_deg, frame.alt_m)
+@dataclass
+class _Inputs:
+    """The measurements, preprocessed: times in ns from the first GNSS fix, positions in ENU."""
 
-    x, p = _initial_state(gnss_enu, gnss_cov[0], gnss_t, imu_t, force_ref, wheel_t, rear_speed, mounting,
-                          settings)
-    epochs_ns = _epoch_times(gnss_ns, int(imu_ns[-1]), settings.update_rate_hz)
+    imu_ns: np.ndarray
+    gyro: np.ndarray
+    force_ref: np.ndarray  # specific force moved to the reference point, IMU axes
+    gnss_ns: np.ndarray
+    gnss_enu: np.ndarray
+    gnss_cov: np.ndarray
+    gnss_velocity: np.ndarray | None
+    gnss_velocity_cov: np.ndarray | None
+    wheel_t: np.ndarray  # seconds
+    rear_speed: np.ndarray
+    yaw_rate: np.ndarray | None
+    l_gnss: np.ndarray
+    l_axle: np.ndarray
+    g0: float
+
+
+@dataclass
+class _Smoothed:
+    times_ns: np.ndarray  # relative to the first GNSS fix, excluding 0
+    positions: np.ndarray
+    r_wv: np.ndarray  # (N, 3, 3) vehicle -> ENU
+    velocities: np.ndarray
+    first: _State
+    final: _State
+    counts: dict[str, int]
+
+
+def _smooth(inputs: _Inputs, x: _State, p: np.ndarray, end_ns: int, settings: FusionSettings) -> _Smoothed:
+    """The forward error-state Kalman filter from time 0 to end_ns, then the RTS pass backward."""
+    x = x.copy()
+    imu_ns, gyro, force_ref, gnss_ns = inputs.imu_ns, inputs.gyro, inputs.force_ref, inputs.gnss_ns
+    gnss_enu, gnss_cov, wheel_t, rear_speed = inputs.gnss_enu, inputs.gnss_cov, inputs.wheel_t, inputs.rear_speed
+    l_gnss, l_axle, g0 = inputs.l_gnss, inputs.l_axle, inputs.g0
+    epochs_ns = _epoch_times(gnss_ns, end_ns, settings.update_rate_hz)
     epochs = epochs_ns * 1e-9
     gnss_at = {int(t): i for i, t in enumerate(gnss_ns)}
     epoch_speed = _interpolate_with_gaps(epochs, wheel_t, rear_speed, settings.wheel_max_gap_s)
-    epoch_yaw_rate = (np.full(len(epochs), np.nan) if wheels.yaw_rate is None else
-                      _interpolate_with_gaps(epochs, wheel_t, np.asarray(wheels.yaw_rate, dtype=np.float64),
+    epoch_yaw_rate = (np.full(len(epochs), np.nan) if inputs.yaw_rate is None else
+                      _interpolate_with_gaps(epochs, wheel_t, np.asarray(inputs.yaw_rate, dtype=np.float64),
                                              settings.wheel_max_gap_s))
 
     # piecewise-constant IMU input: interval j = [imu_t[j], imu_t[j+1]] uses the mean of its two samples
     gyro_mid = 0.5 * (gyro[1:] + gyro[:-1])
     force_mid = 0.5 * (force_ref[1:] + force_ref[:-1])
-    knots_ns = np.union1d(imu_ns[(imu_ns > 0) & (imu_ns < imu_ns[-1])], epochs_ns)
+    knots_ns = np.union1d(imu_ns[(imu_ns > 0) & (imu_ns < end_ns)], epochs_ns)
     knots = knots_ns * 1e-9
     segment_start = np.concatenate([[0], knots_ns[:-1]])
     segment_imu = np.clip(np.searchsorted(imu_ns, segment_start, side="right") - 1, 0, len(imu_ns) - 2)
@@ -368,13 +382,13 @@ def fuse_trajectory(gnss: GnssFixes, imu: ImuSamples, wheels: WheelSpeeds,
             h[:, _TH] = -skew(lever_world)
             h[:, _MU] = -r_wv @ skew(l_gnss)
             update(gnss_enu[i] - (x.p + lever_world), h, gnss_cov[i], settings.gate_chi2, "gnss_position")
-            if gnss.velocity_enu is not None and np.all(np.isfinite(gnss.velocity_enu[i])):
+            if inputs.gnss_velocity is not None and np.all(np.isfinite(inputs.gnss_velocity[i])):
                 r_wv = x.r_wi @ x.r_iv
                 arm_velocity = r_wv @ (skew(w_vehicle) @ l_gnss)
                 h = np.zeros((3, N_STATES))
                 h[:, _V] = np.eye(3)
                 h[:, _TH] = -skew(arm_velocity)
-                update(gnss.velocity_enu[i] - (x.v + arm_velocity), h, gnss.velocity_cov_enu[i],
+                update(inputs.gnss_velocity[i] - (x.v + arm_velocity), h, inputs.gnss_velocity_cov[i],
                        settings.gate_chi2, "gnss_velocity")
 
         speed = epoch_speed[epoch - 1]
@@ -422,15 +436,60 @@ def fuse_trajectory(gnss: GnssFixes, imu: ImuSamples, wheels: WheelSpeeds,
     correction = (correction_start[interval_index] * (1.0 - fraction[:, None])
                   + correction_end[interval_index] * fraction[:, None])
     r_iv = np.array([s.r_iv for s in smoothed])[interval_index]
-    rotations = Rotation.from_rotvec(correction[:, _TH]) * Rotation.from_matrix(knot_r @ r_iv)
-    positions = np.concatenate([[smoothed[0].p], knot_p + correction[:, _P]])
-    quaternions = np.concatenate([Rotation.from_matrix(smoothed[0].r_wi @ smoothed[0].r_iv).as_quat()[None],
-                                  rotations.as_quat()])
+    r_wv = Rotation.from_rotvec(correction[:, _TH]).as_matrix() @ knot_r @ r_iv
+    return _Smoothed(times_ns=knots_ns, positions=knot_p + correction[:, _P], r_wv=r_wv,
+                     velocities=knot_v + correction[:, _V], first=smoothed[0], final=smoothed[-1], counts=counts)
+
+
+def fuse_trajectory(gnss: GnssFixes, imu: ImuSamples, wheels: WheelSpeeds,
+                    mounting: VehicleMounting = VehicleMounting(),
+                    settings: FusionSettings = FusionSettings(),
+                    origin: LocalFrame | None = None) -> FusionResult:
+    """Forward error-state Kalman filter over the IMU, then an RTS smoother; poses come out at every IMU
+    sample and Kalman epoch, from the first GNSS fix to the last IMU sample. The ENU origin defaults to
+    the first GNSS fix."""
+    for name, times in (("gnss", gnss.times_ns), ("imu", imu.times_ns), ("wheel", wheels.times_ns)):
+        if len(times) < 2 or np.any(np.diff(np.asarray(times, dtype=np.int64)) <= 0):
+            raise ValueError(f"{name} times must be at least 2 and strictly increasing")
+    frame = origin or LocalFrame(float(gnss.lat_deg[0]), float(gnss.lon_deg[0]), float(gnss.alt_m[0]))
+    t_ref = int(gnss.times_ns[0])
+    imu_ns = np.asarray(imu.times_ns, dtype=np.int64) - t_ref
+    gnss_ns = np.asarray(gnss.times_ns, dtype=np.int64) - t_ref
+    imu_t, gnss_t = imu_ns * 1e-9, gnss_ns * 1e-9
+    wheel_t = (np.asarray(wheels.times_ns, dtype=np.int64) - t_ref) * 1e-9
+    gnss_enu = frame.geodetic_to_enu(gnss.lat_deg, gnss.lon_deg, gnss.alt_m)
+    gnss_cov = np.asarray(gnss.position_cov_enu, dtype=np.float64)
+    rear_speed = np.asarray(wheels.speeds, dtype=np.float64)[:, 2:4].mean(axis=1)
+    r_vi_prior = np.asarray(mounting.imu_to_vehicle, dtype=np.float64)
+    lever_imu = r_vi_prior.T @ np.asarray(mounting.imu_lever_arm, dtype=np.float64)
+    force_ref = _specific_force_at_reference(imu, lever_imu, imu_t)
+    gyro = np.asarray(imu.gyro, dtype=np.float64)
+    l_gnss = np.asarray(mounting.gnss_lever_arm, dtype=np.float64)
+    l_axle = np.asarray(mounting.rear_axle_lever_arm, dtype=np.float64)
+    g0 = normal_gravity(frame.lat_deg, frame.alt_m)
+
+    inputs = _Inputs(imu_ns=imu_ns, gyro=gyro, force_ref=force_ref, gnss_ns=gnss_ns, gnss_enu=gnss_enu,
+                     gnss_cov=gnss_cov, gnss_velocity=gnss.velocity_enu, gnss_velocity_cov=gnss.velocity_cov_enu,
+                     wheel_t=wheel_t, rear_speed=rear_speed, yaw_rate=wheels.yaw_rate, l_gnss=l_gnss, l_axle=l_axle,
+                     g0=g0)
+    x, p = _initial_state(gnss_enu, gnss_cov[0], gnss_t, imu_t, force_ref, wheel_t, rear_speed, mounting,
+                          settings)
+    if settings.initial_pass_s > 0.0:
+        # a first pass over the start of the drive finds the initial heading, tilt and biases, so the
+        # full pass starts near the truth and its linearisation holds from the first second
+        x = _smooth(inputs, x, p, min(int(imu_ns[-1]), int(settings.initial_pass_s * 1e9)), settings).first
+        p[_TH, _TH] = np.diag([settings.refined_tilt_sigma, settings.refined_tilt_sigma,
+                               settings.refined_yaw_sigma]) ** 2
+    smoothed = _smooth(inputs, x, p, int(imu_ns[-1]), settings)
+    knots_ns, counts = smoothed.times_ns, smoothed.counts
+    first = smoothed.first
     times_ns = t_ref + np.concatenate([[0], knots_ns])
-    trajectory = Trajectory(times_ns=times_ns, positions=positions, quaternions=quaternions,
-                            origin_lat_deg=frame.lat_deg, origin_lon_deg=frame.lon_deg, origin_alt_m=frame.alt_m)
-    final = smoothed[-1]
-    return FusionResult(trajectory=trajectory,
-                        velocities_enu=np.concatenate([[smoothed[0].v], knot_v + correction[:, _V]]),
+    positions = np.concatenate([[first.p], smoothed.positions])
+    r_wv = np.concatenate([[first.r_wi @ first.r_iv], smoothed.r_wv])
+    trajectory = Trajectory(times_ns=times_ns, positions=positions,
+                            quaternions=Rotation.from_matrix(r_wv).as_quat(), origin_lat_deg=frame.lat_deg,
+                            origin_lon_deg=frame.lon_deg, origin_alt_m=frame.alt_m)
+    final = smoothed.final
+    return FusionResult(trajectory=trajectory, velocities_enu=np.concatenate([[first.v], smoothed.velocities]),
                         accel_bias=final.ba, gyro_bias=final.bg, wheel_scale=final.k,
                         imu_to_vehicle=final.r_iv.T, counts=counts)

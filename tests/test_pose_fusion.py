@@ -39,30 +39,39 @@ class SimulatedDrive:
     wheels: WheelSpeeds
 
 
-def simulate_drive(duration_s: float, gnss_sigma_h: float, gnss_sigma_v: float, seed: int) -> SimulatedDrive:
+def simulate_drive(duration_s: float, gnss_sigma_h: float, gnss_sigma_v: float, seed: int,
+                   standstill_s: float = 0.0) -> SimulatedDrive:
     """A smooth curved 3-D drive at ~10 m/s with grades up to 10 % and a little bank, and its sensor readings:
     GNSS 10 Hz (noise, antenna lever arm), IMU 100 Hz (bias, noise, gravity, lever arm, mounting rotation),
-    wheel speeds 50 Hz (noise, +1.2 % scale error). Only the rear axle moves without side slip."""
+    wheel speeds 50 Hz (noise, +1.2 % scale error). Only the rear axle moves without side slip. The car may
+    first stand still; the road's shape is a function of the distance travelled."""
     rng = np.random.default_rng(seed)
     dt = 1e-3
     t = np.arange(0.0, duration_s + dt / 2, dt)
 
-    def attitude(t):
-        yaw = 0.6 + 0.5 * np.sin(2 * np.pi * t / 40.0) + 0.3 * np.sin(2 * np.pi * t / 17.0 + 1.0)
-        grade = 0.075 * np.sin(2 * np.pi * t / 30.0) + 0.025 * np.sin(2 * np.pi * t / 11.0)
-        roll = 0.02 * np.sin(2 * np.pi * t / 13.0)
+    def speed_at(t):
+        ramp = np.clip((t - standstill_s) / 4.0, 0.0, 1.0)
+        return (10.0 + 1.5 * np.sin(2 * np.pi * t / 25.0)) * ramp * ramp * (3.0 - 2.0 * ramp)
+
+    speed = speed_at(t)
+    distance = np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * dt)])
+
+    def attitude(s):
+        yaw = 0.6 + 0.5 * np.sin(2 * np.pi * s / 400.0) + 0.3 * np.sin(2 * np.pi * s / 170.0 + 1.0)
+        grade = 0.075 * np.sin(2 * np.pi * s / 300.0) + 0.025 * np.sin(2 * np.pi * s / 110.0)
+        roll = 0.02 * np.sin(2 * np.pi * s / 130.0)
         return Rotation.from_euler("ZYX", np.column_stack([yaw, -np.arctan(grade), roll]))
 
-    def axle_velocity(t):
-        speed = 10.0 + 1.5 * np.sin(2 * np.pi * t / 25.0)
-        return attitude(t).apply(np.array([1.0, 0.0, 0.0])) * speed[:, None]
+    def axle_velocity(t, s):
+        return attitude(s).apply(np.array([1.0, 0.0, 0.0])) * speed_at(t)[:, None]
 
     h = 1e-4
-    r_wv = attitude(t)
-    omega = (attitude(t - h).inv() * attitude(t + h)).as_rotvec() / (2 * h)  # vehicle frame
+    r_wv = attitude(distance)
+    before, after = distance - speed_at(t - h) * h, distance + speed_at(t + h) * h
+    omega = (attitude(before).inv() * attitude(after)).as_rotvec() / (2 * h)  # vehicle frame
     omega_dot = np.gradient(omega, dt, axis=0)
-    v_axle = axle_velocity(t)
-    a_axle = (axle_velocity(t + h) - axle_velocity(t - h)) / (2 * h)
+    v_axle = axle_velocity(t, distance)
+    a_axle = (axle_velocity(t + h, after) - axle_velocity(t - h, before)) / (2 * h)
     p_axle = np.concatenate([[np.zeros(3)], np.cumsum(0.5 * (v_axle[1:] + v_axle[:-1]) * dt, axis=0)])
     l_axle, l_imu, l_gnss = MOUNTING.rear_axle_lever_arm, MOUNTING.imu_lever_arm, MOUNTING.gnss_lever_arm
     p_ref = p_axle - r_wv.apply(l_axle)
@@ -184,6 +193,18 @@ def test_metre_level_gnss_stays_bounded_and_smooth():
     error = estimate - drive.truth.interpolate(times)[0]
     assert np.abs(error).max() < 1.5
     assert np.abs(np.diff(error, axis=0)).max() < 0.01  # metres per 10 ms
+
+
+def test_a_standing_start_gets_its_heading_once_the_car_moves():
+    drive = simulate_drive(60.0, gnss_sigma_h=1.5, gnss_sigma_v=2.0, seed=8, standstill_s=8.0)
+    result = fuse_trajectory(drive.gnss, drive.imu, drive.wheels, MOUNTING)
+    errors = pose_errors(result.trajectory, drive.truth)
+    assert errors["horizontal_m"] < 0.4 and errors["vertical_m"] < 0.3 and errors["yaw_deg"] < 0.5, errors
+    standing = drive.truth.times_ns[100:8000:100]
+    position, _ = result.trajectory.interpolate(standing)
+    position = drive.truth.local_frame.ecef_to_enu(result.trajectory.local_frame.enu_to_ecef(position))
+    assert np.linalg.norm(position - drive.truth.interpolate(standing)[0], axis=1).max() < 0.5
+    assert np.ptp(position, axis=0).max() < 0.05  # it stands still, whatever the GNSS noise says
 
 
 def test_gnss_outliers_are_rejected_and_counted():
