@@ -120,3 +120,5 @@ def test_raw_frames_in_the_log_are_delivered_as_jpeg(tmp_path):
 def test_a_missing_log_is_an_error(tmp_path):
     with pytest.raises(FileNotFoundError):
         play(tmp_path / "nope.mcap", None)
+    with pytest.raises(ValueError, match="needs `device`"):
+        play("", None)

@@ -6,7 +6,7 @@ now), and every frame and mask is released when its moment comes, its sensor tim
 host monotonic clock (as an OAK's are). Several simulated sensors given the same origin and start time
 stay in step. A record already more than two frame periods late is dropped (counted), like a camera
 whose consumer fell behind. Raw frames are JPEG-encoded when the camera's encoding is jpeg; other
-frames go out as logged.
+frames go out as logged. The stream ends with the log.
 """
 
 from __future__ import annotations
@@ -38,6 +38,8 @@ def sim_frames(config: CameraConfig, stop: threading.Event, health: HealthCounte
                start_mono_ns: int | None = None, log_origin_ns: int | None = None,
                ) -> Iterator[CameraFrame | SemanticMask]:
     """This camera's frames and masks from the log at config.device, paced as described above."""
+    if not config.device:
+        raise ValueError(f"camera {config.name}: the sim backend needs `device`: the drive log (.mcap) to play")
     path = Path(config.device)
     if not path.is_file():
         raise FileNotFoundError(f"camera {config.name}: sim log {path} does not exist")
