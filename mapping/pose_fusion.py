@@ -142,13 +142,13 @@ def normal_gravity(lat_deg: float, alt_m: float) -> float:
 
 def _specific_force_at_reference(imu: ImuSamples, lever_arm_imu: np.ndarray, seconds: np.ndarray) -> np.ndarray:
     """Removes the centripetal and tangential accelerations between the IMU and the reference point."""
-    gyro = imu.gyro
-    window = 5  # the angular acceleration comes from a 50 ms moving average of the gyro at 100 Hz
-    kernel = np.ones(window) / window
+    gyro = np.asarray(imu.gyro, dtype=np.float64)
+    window = max(1, round(0.05 / float(np.median(np.diff(seconds)))))  # angular acceleration from a 50 ms
+    kernel = np.ones(window) / window  # moving average of the gyro
     smooth = np.stack([np.convolve(gyro[:, k], kernel, mode="same") for k in range(3)], axis=1)
     angular_accel = np.gradient(smooth, seconds, axis=0)
     centripetal = np.cross(gyro, np.cross(gyro, lever_arm_imu))
-    return imu.accel - np.cross(angular_accel, lever_arm_imu) - centripetal
+    return np.asarray(imu.accel, dtype=np.float64) - np.cross(angular_accel, lever_arm_imu) - centripetal
 
 
 def _gravity_enu(position: np.ndarray, g0: float) -> np.ndarray:
