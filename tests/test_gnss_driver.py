@@ -6,10 +6,12 @@ garbage interleaved, and unplugging/replugging the port (a symlink that vanishes
 
 from __future__ import annotations
 
+import fcntl
 import math
 import os
 import pty
 import select
+import termios
 import threading
 import time
 import tty
@@ -56,6 +58,18 @@ class PtyReceiver:
             _, writable, _ = select.select([], [self.master], [], 0.5)
             if writable:
                 view = view[os.write(self.master, view[:4096]):]
+
+
+    def wait_drained(self, timeout_s: float = 20.0) -> None:
+        """Until the driver has read every byte written: the slave's input queue stays empty for 0.1 s
+        (the kernel moves written bytes into that queue asynchronously)."""
+        deadline = time.monotonic() + timeout_s
+        empty_since = None
+        while empty_since is None or time.monotonic() - empty_since < 0.1:
+            assert time.monotonic() < deadline, "the driver stopped reading"
+            queued = int.from_bytes(fcntl.ioctl(self.slave, termios.FIONREAD, bytes(4)), "little")
+            empty_since = (empty_since or time.monotonic()) if queued == 0 else None
+            time.sleep(0.01)
 
 
 class DriverThread:
