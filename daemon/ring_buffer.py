@@ -86,9 +86,14 @@ def _futex_wait(address: int, expected: int, timeout_s: float) -> None:
                   ctypes.c_uint32(expected & 0xFFFFFFFF), ctypes.byref(ts), None, ctypes.c_int(0))
 
 
-def _futex_wake(address: int) -> None:
-    _libc.syscall(ctypes.c_long(_SYS_FUTEX), ctypes.c_void_p(address), ctypes.c_int(_FUTEX_WAKE),
-                  ctypes.c_int(2**31 - 1), None, None, ctypes.c_int(0))
+def _futex_wake_args(address: int) -> tuple:
+    """syscall arguments that wake every waiter on `address` (built once: ctypes objects are slow to make)."""
+    return (ctypes.c_long(_SYS_FUTEX), ctypes.c_void_p(address), ctypes.c_int(_FUTEX_WAKE),
+            ctypes.c_int(2**31 - 1))
+
+
+def _futex_wake(wake_args: tuple) -> None:
+    _libc.syscall(*wake_args)
 
 
 def _align(n: int) -> int:
@@ -146,6 +151,7 @@ class _Mapping:
         self.dq = memoryview(self.data).cast("Q")
         self.db = memoryview(self.data)
         self.commit_address = ctypes.addressof(ctypes.c_char.from_buffer(self.header)) + 8 * _W_COMMIT
+        self.wake_args = _futex_wake_args(self.commit_address)
 
     def snapshot(self) -> tuple[int, int, int, int]:
         """(commit, head, next_seq, last_pos) of one consistent commit."""
@@ -195,7 +201,7 @@ def retire(path: str) -> None:
             pass
         return
     m.q[_W_RETIRED] = 1
-    _futex_wake(m.commit_address)
+    _futex_wake(m.wake_args)
     try:
         os.unlink(path)
     except FileNotFoundError:
@@ -270,7 +276,7 @@ class RingWriter:
         q[d], q[d + 1], q[d + 2] = head, next_seq, last_pos
         q[_W_COMMIT] = c
         self._commit, self.head, self.next_seq, self.last_pos = c, head, next_seq, last_pos
-        _futex_wake(self._m.commit_address)
+        _futex_wake(self._m.wake_args)
 
     def _record_total(self, pos: int) -> int:
         return self._m.dq[((pos % self.capacity) >> 3) + 1]
