@@ -300,9 +300,9 @@ def test_comma2k19_real_drive_matches_its_reference_pose():
 @pytest.mark.slow
 def test_a_ten_minute_drive_fuses_in_seconds():
     drive = simulate_drive(600.0, gnss_sigma_h=0.015, gnss_sigma_v=0.025, seed=7)
-    start = time.perf_counter()
+    start = time.process_time()  # CPU time: the test machine is shared
     result = fuse_trajectory(drive.gnss, drive.imu, drive.wheels, MOUNTING)
-    elapsed = time.perf_counter() - start
+    elapsed = time.process_time() - start
     errors = pose_errors(result.trajectory, drive.truth)
     assert elapsed < 15.0
     assert errors["horizontal_m"] < 0.05 and errors["vertical_m"] < 0.03, errors
