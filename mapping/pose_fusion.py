@@ -1,12 +1,13 @@
 """Fuses GNSS fixes, IMU samples and wheel speeds into a smooth 6-DoF trajectory in a local ENU frame.
 
 An error-state Kalman filter runs the IMU strapdown mechanisation forward and updates at every GNSS fix
-(position, optionally velocity, antenna lever arm) and every wheel-speed sample (rear-axle speed with a
-scale-factor state, zero lateral and vertical velocity, optional yaw rate); a Rauch-Tung-Striebel pass
-then smooths the whole window backward. States (19 errors): position, velocity, attitude of the IMU frame
-(world-frame angles), accelerometer bias, gyro bias, wheel scale error, IMU-to-vehicle misalignment.
+(position, optionally velocity, antenna lever arm) and at 20 Hz epochs with the wheel speeds interpolated
+there (rear-axle speed with a scale-factor state, zero lateral and vertical velocity, optional yaw rate);
+a Rauch-Tung-Striebel pass then smooths the whole window backward, and poses come out at IMU rate. A
+first pass over the first minute refines the initial state. States (19 errors): position, velocity,
+attitude of the IMU frame (world-frame angles), accelerometer bias, gyro bias, wheel scale error,
+IMU-to-vehicle misalignment.
 """
-
 import math
 from dataclasses import dataclass, field
 
@@ -46,7 +47,8 @@ class ImuSamples:
 
 @dataclass(frozen=True)
 class WheelSpeeds:
-    """Wheel speeds in m/s, columns front-left, front-right, rear-left, rear-right; optional yaw rate."""
+    """Wheel speeds in m/s, columns front-left, front-right, rear-left, rear-right (the rear pair is used:
+    it moves without side slip); optional yaw rate."""
 
     times_ns: np.ndarray  # (N,) int64
     speeds: np.ndarray  # (N, 4)
