@@ -8,6 +8,7 @@ first pass over the first minute refines the initial state. States (19 errors): 
 attitude of the IMU frame (world-frame angles), accelerometer bias, gyro bias, wheel scale error,
 IMU-to-vehicle misalignment.
 """
+
 import math
 from dataclasses import dataclass, field
 
