@@ -91,6 +91,13 @@ def utc_ns(year: int, month: int, day: int, hour: int, minute: int, second: int,
     return (days * 86_400 + hour * 3600 + minute * 60 + second) * NS_PER_S + nano
 
 
+def _checked(*values: float) -> None:
+    """Finite and not negative (altitudes excepted by the caller), or the field is bad."""
+    for v in values:
+        if not (math.isfinite(v) and v >= 0.0):
+            raise ValueError(f"bad value {v}")
+
+
 def _time_of_day_ns(t: dt.time | None) -> int:
     if t is None:
         raise ValueError("no time of day")
@@ -226,11 +233,14 @@ class GnssDecoder:
         if gga.altitude is None:
             raise ValueError("GGA fix without altitude")
         altitude = float(gga.altitude) + (float(gga.geo_sep) if gga.geo_sep else 0.0)
+        _checked(abs(altitude))
         sensor_time = self._nmea_utc_ns(time_of_day)
         if sensor_time is None:
             self._drop("no_date")
             return out
         hdop = float(gga.horizontal_dil) if gga.horizontal_dil else math.nan
+        if not math.isnan(hdop):
+            _checked(hdop)
         sigma = hdop * HDOP_ERROR_BY_QUALITY.get(quality, 4.0)
         if math.isfinite(sigma):
             hdop_cov, hdop_type = covariance_diagonal(sigma, sigma, 2.0 * sigma), 1
@@ -253,8 +263,10 @@ class GnssDecoder:
         sig_lat, sig_lon, sig_alt = gst.std_dev_latitude, gst.std_dev_longitude, gst.std_dev_altitude
         if sig_lat is None or sig_lon is None or sig_alt is None:
             raise ValueError("GST without latitude/longitude/altitude sigmas")
+        _checked(float(sig_lat), float(sig_lon), float(sig_alt))
         major, minor, orientation = gst.std_dev_major, gst.std_dev_minor, gst.orientation
         if major is not None and minor is not None and orientation is not None:
+            _checked(float(major), float(minor), abs(float(orientation)))
             cov = covariance_from_ellipse(float(major), float(minor), float(orientation), float(sig_alt))
             cov_type = 3
         else:
