@@ -43,7 +43,8 @@ HEALTH_PERIOD_S = 1.0
 DISK_CHECK_PERIOD_S = 0.5
 DISK_CHECK_BYTES = 16 * 1024 * 1024
 SUBSCRIBE_RETRY_S = 0.5
-IDLE_SLEEP_S = 0.002
+IDLE_SLEEP_S = 0.005
+DRAIN_LIMIT_S = 10.0  # at stop: longest time spent writing what is still waiting in the rings
 READ_BURST = 256  # most messages taken from one topic before the next topic gets its turn
 log = logging.getLogger(__name__)
 
@@ -282,8 +283,22 @@ def logged_topics(config: CarConfig) -> list[str]:
     return sorted(name for name, t in topic_table(config).items() if t.logged)
 
 
+def _read_round(rec: Recorder, subscribers: dict[str, bus.Subscriber]) -> int:
+    """Write what each subscriber has waiting (at most READ_BURST per topic); the number written."""
+    got = 0
+    for topic, sub in subscribers.items():
+        for _ in range(READ_BURST):
+            msg = sub.read(timeout_s=0, copy=True)
+            if msg is None:
+                break
+            rec.write(topic, msg)
+            got += 1
+        rec.set_lost(topic, sub.lost)
+    return got
+
+
 def run(config: CarConfig, output_dir: Path, stop: threading.Event) -> Recorder:
-    """Record until `stop` is set; the open segment is closed on the way out."""
+    """Record until `stop` is set, then write what is still waiting in the rings and close the segment."""
     rec = Recorder(config, output_dir)
     anchor_pub = bus.open_publisher(config, TIME_ANCHOR)
     health_pub = bus.open_publisher(config, health_topic(PROCESS))
@@ -308,19 +323,14 @@ def run(config: CarConfig, output_dir: Path, stop: threading.Event) -> Recorder:
                 mono, utc = time.monotonic_ns(), time.time_ns()
                 anchor_pub.publish(TimeAnchor(sensor_time_ns=mono, host_mono_ns=mono, utc_ns=utc))
                 health_pub.publish(rec.health_message())
-            got = 0
-            for topic, sub in subscribers.items():
-                for _ in range(READ_BURST):
-                    msg = sub.read(timeout_s=0, copy=True)
-                    if msg is None:
-                        break
-                    rec.write(topic, msg)
-                    got += 1
-                rec.set_lost(topic, sub.lost)
+            got = _read_round(rec, subscribers)
             rec.rotate_if_due()
             rec.check_disk()
             if not got:
                 stop.wait(IDLE_SLEEP_S)
+        drain_until = time.monotonic() + DRAIN_LIMIT_S
+        while _read_round(rec, subscribers) and time.monotonic() < drain_until:
+            rec.rotate_if_due()
     finally:
         rec.close_segment()
         health_pub.publish(rec.health_message())
