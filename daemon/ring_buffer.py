@@ -67,6 +67,7 @@ _W_TAIL = 40
 _W_SLOTS = PAGE // 8  # slot i at _W_SLOTS + 8 * i: pid, start time, read position, flags
 _SLOT_LOSSLESS = 1
 
+_READ_SPIN_S = 50e-6  # a waiting reader re-checks this long before sleeping: saves a futex round trip
 _READ_POLL_SLICE_S = 0.05  # longest single futex wait: bounds how late a reader notices a retired ring
 _WRITER_WAIT_MAX_SLEEP_S = 0.0005  # lossless writer's poll for slow readers
 _FUTEX_WAIT, _FUTEX_WAKE = 0, 1  # not FUTEX_PRIVATE: the word is shared between processes
@@ -281,24 +282,28 @@ class RingWriter:
     def _record_total(self, pos: int) -> int:
         return self._m.dq[((pos % self.capacity) >> 3) + 1]
 
-    def _wait_for_lossless_readers(self, boundary: int, timeout_s: float | None) -> None:
-        """Block until no live lossless reader still has unread records before `boundary`."""
+    def _lossless_readers_behind(self, limit: int) -> list[int]:
+        """Header word indices of the reader slots whose lossless reader has not read up to `limit`."""
+        q = self._m.q
+        pids = q[_W_SLOTS:_W_SLOTS + 8 * MAX_READER_SLOTS:8].tolist()
+        return [w for w in (_W_SLOTS + 8 * i for i, pid in enumerate(pids) if pid)
+                if q[w + 3] & _SLOT_LOSSLESS and q[w + 2] < limit]
+
+    def _wait_for_lossless_readers(self, limit: int, timeout_s: float | None) -> None:
+        """Block until no live lossless reader still has unread records before position `limit`."""
+        if limit <= 0:
+            return
         q = self._m.q
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         sleep_s = 0.00002
         while True:
-            blocking = []
-            for i in range(MAX_READER_SLOTS):
-                w = _W_SLOTS + 8 * i
-                pid = q[w]
-                if pid and q[w + 3] & _SLOT_LOSSLESS and q[w + 2] < boundary:
-                    blocking.append(w)
-            if not blocking or all(not _alive(q[w], q[w + 1]) for w in blocking):
+            behind = self._lossless_readers_behind(limit)
+            if not behind or all(not _alive(q[w], q[w + 1]) for w in behind):
                 return
             if deadline is not None and time.monotonic() >= deadline:
-                behind = min(q[w + 2] for w in blocking)
-                raise TimeoutError(f"{self.label}: a lossless reader is still at byte {behind}, "
-                                   f"{boundary - behind} B short of what the next write overwrites")
+                furthest = min(q[w + 2] for w in behind)
+                raise TimeoutError(f"{self.label}: a lossless reader is still at byte {furthest}, "
+                                   f"{limit - furthest} B short of what the next write overwrites")
             time.sleep(sleep_s)
             sleep_s = min(2 * sleep_s, _WRITER_WAIT_MAX_SLEEP_S)
 
@@ -477,6 +482,7 @@ class RingReader:
     def read(self, timeout_s: float | None = None, *, copy: bool = False) -> Record | None:
         """The next record, waiting up to timeout_s (None: forever; 0: no wait); None on timeout."""
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        spin_until = 0.0
         while True:
             m = self._m
             q, dq, cap = m.q, m.dq, m.capacity
@@ -489,13 +495,14 @@ class RingReader:
                     if self._reopen(deadline):
                         continue
                     return None
-                if deadline is None:
-                    _futex_wait(m.commit_address, commit, _READ_POLL_SLICE_S)
-                    continue
-                remaining = deadline - time.monotonic()
+                remaining = _READ_POLL_SLICE_S if deadline is None else deadline - time.monotonic()
                 if remaining <= 0:
                     return None
-                _futex_wait(m.commit_address, commit, min(remaining, _READ_POLL_SLICE_S))
+                now = time.perf_counter()
+                if not spin_until:
+                    spin_until = now + _READ_SPIN_S
+                if now >= spin_until:
+                    _futex_wait(m.commit_address, commit, min(remaining, _READ_POLL_SLICE_S))
                 continue
             off = pos % cap
             i = off >> 3
