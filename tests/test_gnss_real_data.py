@@ -13,11 +13,11 @@ import math
 from pathlib import Path
 
 import pytest
-from test_gnss_driver import DriverThread, PtyReceiver
 
 from daemon.messages import GnssFix
 from daemon.topics import GNSS_FIX, IMU
 from drivers.gnss.gnss_messages import utc_ns
+from tests.test_gnss_driver import DriverThread, PtyReceiver
 
 DATA = Path("/work/shared/data")
 EARTH_RADIUS_M = 6_378_137.0

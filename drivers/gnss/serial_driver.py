@@ -185,7 +185,13 @@ def main(argv: list[str] | None = None) -> int:
         signal.signal(signum, lambda *_: stop.set())
     health = HealthCounters(process=PROCESS, expected_rate_hz=gnss.rate_hz)
     port = args.port or gnss.port
-    run_gnss_driver(gnss, port, lambda topic, msg: publishers[topic].publish(msg), stop, health)
+    try:
+        stats = run_gnss_driver(gnss, port, lambda topic, msg: publishers[topic].publish(msg), stop, health)
+    finally:
+        for publisher in publishers.values():
+            publisher.close()
+    log.info("gnss driver stopped: published %d, rejected %d, errors %d; framer %s; decoder %s",
+             health.published, health.rejected, health.errors, stats.framer, stats.decoder)
     return 0
 
 
