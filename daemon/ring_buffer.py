@@ -371,6 +371,10 @@ class RingWriter:
         self._ring = None
         m.close()
 
+    def __del__(self) -> None:  # a dropped writer must not keep the ring claimed for this process
+        if hasattr(self, "_m"):
+            self.close()
+
 
 @dataclass(slots=True)
 class Record:
@@ -545,3 +549,6 @@ class RingReader:
     def close(self) -> None:
         self._release_slot()
         self._m.close()
+
+    def __del__(self) -> None:  # a dropped lossless reader must not hold the writer back
+        self._release_slot()
