@@ -132,6 +132,8 @@ def test_esf_raw_time_tags_unwrap_their_24_bit_counter():
 
     times = [decoder.decode(esf_raw(tag), 0)[0].sensor_time_ns for tag in ((1 << 24) - 256, 0, 256)]
     assert [t - times[0] for t in times] == [0, 10_000_000, 20_000_000]
+    decoder.flush()  # port closed: a replugged receiver restarts its clock, that is not a wrap
+    assert decoder.decode(esf_raw(256), 0)[0].sensor_time_ns == 10_000_000
 
 
 def test_esf_ins_is_not_taken_for_a_specific_force():

@@ -155,8 +155,15 @@ class GnssDecoder:
         return self._decode_ubx(frame.data, host_mono_ns)
 
     def flush(self) -> list[GnssFix | ImuSample]:
-        """Publish what waits for a later message (a GGA waiting for its GST): the stream has ended."""
-        return self._flush_pending(None)
+        """The stream has ended (port closed): publish the GGA still waiting for its GST, drop half IMU
+        samples and forget the IMU clock, which restarts if the receiver does."""
+        out = self._flush_pending(None)
+        for _ in self._imu_pending:
+            self._drop("imu_unpaired")
+        self._imu_pending.clear()
+        self._esf_raw_last_tick = None
+        self._esf_raw_wraps = 0
+        return out
 
     # ---- bookkeeping --------------------------------------------------------------------------------
     def _reject(self, kind: str, exc: BaseException | None = None) -> None:
