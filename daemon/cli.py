@@ -6,10 +6,13 @@ import argparse
 import importlib
 import sys
 
-# name -> (module with main(argv), one-line help). The only place a subcommand is declared.
+# name -> ("module[:function]" taking argv (default: main), one-line help): the only place a subcommand is declared.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "check-config": ("daemon.check_config", "validate a car config file and print the resolved config"),
     "log-info": ("daemon.log_info", "summarise MCAP log files: topics, counts, time span, truncation"),
+    "run": ("daemon.daemon_main:run_main", "run the daemon on the car's live sensors (what systemd starts)"),
+    "replay": ("daemon.daemon_main:replay_main", "run the daemon with a log player instead of the drivers"),
+    "status-server": ("daemon.status_server", "serve the status endpoint alone (the daemon starts it itself)"),
 }
 
 
@@ -25,8 +28,9 @@ def main(argv: list[str] | None = None) -> int:
     name, rest = argv[0], argv[1:]
     if name not in SUBCOMMANDS:
         parser.error(f"unknown command {name!r} (choose from {', '.join(SUBCOMMANDS)})")
-    module = importlib.import_module(SUBCOMMANDS[name][0])
-    return int(module.main(rest) or 0)
+    module_name, _, function = SUBCOMMANDS[name][0].partition(":")
+    entry = getattr(importlib.import_module(module_name), function or "main")
+    return int(entry(rest) or 0)
 
 
 if __name__ == "__main__":

@@ -117,7 +117,8 @@ class CanSignals(_Strict):
     wheel_speed_rl: str
     wheel_speed_rr: str
     yaw_rate: str | None = None
-    speed_unit: Literal["m/s", "km/h"] = "km/h"
+    speed_unit: Literal["m/s", "km/h", "rad/s"] = "km/h"  # rad/s: wheel angular rate, times wheel_radius_m
+    wheel_radius_m: float = Field(0.33, gt=0)
     yaw_rate_unit: Literal["rad/s", "deg/s"] = "deg/s"
 
     @field_validator("wheel_speed_fl", "wheel_speed_fr", "wheel_speed_rl", "wheel_speed_rr", "yaw_rate")
@@ -134,6 +135,7 @@ class CanConfig(_Strict):
     bitrate: int | None = Field(500000, gt=0)
     dbc_file: str
     signals: CanSignals
+    options: dict[str, str | int | float | bool] = {}  # extra python-can bus arguments (e.g. udp_multicast port)
 
 
 class SensorsConfig(_Strict):

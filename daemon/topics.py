@@ -65,7 +65,7 @@ POSE = "pose"
 TIME_ANCHOR = "time_anchor"
 
 # Processes that publish a health topic besides one camera driver per camera ("camera_<name>").
-HEALTH_PROCESSES = ("lidar", "gnss", "can", "recorder", "mapper", "replay", "pose_fusion")
+HEALTH_PROCESSES = ("lidar", "gnss", "can", "recorder", "mapper", "replay", "pose_fusion", "supervisor", "status")
 
 
 def topic_table(config: CarConfig) -> dict[str, Topic]:

@@ -1,0 +1,60 @@
+"""`roadlog run` (the car's daemon, live drivers) and `roadlog replay` (the same daemon fed by a log player)."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+
+from daemon.bus import unlink_all
+from daemon.config import ConfigError, load_config
+from daemon.process_table import process_table
+from daemon.supervisor import Supervisor
+
+
+def _serve(supervisor: Supervisor, config) -> int:
+    def stop(signum, _frame):
+        print(f"roadlog: signal {signal.Signals(signum).name}, shutting down", file=sys.stderr, flush=True)
+        supervisor.stop_event.set()
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    try:
+        return supervisor.run()
+    finally:
+        unlink_all(config)
+
+
+def run_main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="roadlog run", description="Run the daemon on the car's live sensors.")
+    parser.add_argument("--config", required=True, help="car config YAML")
+    parser.add_argument("--output-dir", help="log and map folder (default: recorder.output_dir)")
+    parser.add_argument("--no-record", action="store_true", help="do not record logs")
+    args = parser.parse_args(argv)
+    try:
+        config = load_config(args.config)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    table = process_table(config, args.config, "live", record=not args.no_record, output_dir=args.output_dir)
+    return _serve(Supervisor(config, table), config)
+
+
+def replay_main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="roadlog replay",
+                                     description="Run the daemon with the drivers replaced by a log player.")
+    parser.add_argument("logs", nargs="+", help="MCAP segments to play")
+    parser.add_argument("--config", required=True, help="car config YAML")
+    parser.add_argument("--rate", default="1.0", help="playback speed factor, or 'max' (lossless, as fast as "
+                                                     "the mapper takes it)")
+    parser.add_argument("--output-dir", help="log and map folder (default: recorder.output_dir)")
+    parser.add_argument("--no-record", action="store_true", help="do not record the replayed messages again")
+    args = parser.parse_args(argv)
+    try:
+        config = load_config(args.config)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    table = process_table(config, args.config, "replay", replay_logs=tuple(args.logs), replay_rate=args.rate,
+                          record=not args.no_record, output_dir=args.output_dir)
+    return _serve(Supervisor(config, table, exit_when_done=True), config)
