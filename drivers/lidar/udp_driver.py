@@ -1,0 +1,325 @@
+"""The Lidar driver process: every Ouster UDP packet that holds together goes to `lidar/packets`, as received.
+
+Datagrams are received in batches (wait for the first, let more gather for `batch_period_s`) into one
+(N, packet size) buffer, each with its kernel arrival time, and decoded together
+(`drivers.lidar.ouster_decoder`) to validate them and follow the sensor's own packet numbering
+(frame id, measurement id). A datagram of the wrong size or whose header does not hold together is
+counted as rejected and not published: it is not sensor data. Packets missing from the numbering
+are counted as dropped, each run of them as one sequence gap; a jump too large to be a loss is
+taken as a sensor restart. Pixels are not looked at here (no point clouds in this process), so that
+it keeps up with the socket. Only Ouster sensors have a decoder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import select
+import signal
+import socket
+import struct
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from daemon.config import LidarConfig, load_config, resolve_path
+from daemon.health import HealthCounters
+from daemon.messages import LidarPacket
+from daemon.topics import LIDAR_PACKETS, health_topic
+from drivers.lidar.ouster_decoder import count_missing_packets, decode_packets, newest_packet, packet_sequence
+from drivers.lidar.ouster_metadata import OusterMetadata, parse_metadata
+from drivers.lidar.ouster_packet_layout import OusterPacketLayout, packet_layout
+
+PROCESS = "lidar"
+# Linux socket options Python's socket module does not name (asm-generic/socket.h).
+SO_RCVBUFFORCE = 33  # SO_RCVBUF beyond net.core.rmem_max, with CAP_NET_ADMIN
+SO_TIMESTAMPNS = 35  # kernel receive time (CLOCK_REALTIME) as ancillary data
+SO_RXQ_OVFL = 40  # datagrams the kernel dropped because the receive buffer was full, as ancillary data
+_ANCILLARY_BYTES = socket.CMSG_SPACE(16) + socket.CMSG_SPACE(4)
+_TIMESPEC = struct.Struct("=qq")
+_DROP_COUNT = struct.Struct("=I")
+RESTART_AFTER_S = 60.0  # a numbering jump of more than this many seconds of packets is a sensor restart
+
+Publish = Callable[[str, object], None]
+
+
+@dataclass
+class LidarDriverStats:
+    """What the driver saw, beyond the generic health counters."""
+
+    receive_buffer_bytes: int = 0  # SO_RCVBUF the kernel granted (it doubles what was asked, then caps)
+    datagrams: int = 0
+    packets: int = 0  # published
+    wrong_size: int = 0
+    bad_header: int = 0
+    invalid_columns: int = 0  # columns the sensor flagged as holding no data, in published packets
+    missing_packets: int = 0
+    gaps: int = 0
+    restarts: int = 0
+    kernel_drops: int = 0  # the socket's overflow count (SO_RXQ_OVFL), as last reported by the kernel
+    socket_errors: int = 0
+    batches: int = 0
+    largest_batch: int = 0
+
+    def summary(self) -> str:
+        return " ".join(f"{f.name}={getattr(self, f.name)}" for f in dataclasses.fields(self))
+
+
+@dataclass
+class ReceiveBuffer:
+    """Rows of one batch of datagrams: bytes (truncated to the row), real lengths, arrival times."""
+
+    rows: np.ndarray  # (N, packet_size) uint8
+    sizes: np.ndarray  # (N,) int64, the datagram's real length (MSG_TRUNC)
+    arrival_ns: np.ndarray  # (N,) int64, host CLOCK_MONOTONIC at arrival
+    views: list[memoryview] = field(repr=False)
+
+    @classmethod
+    def allocate(cls, capacity: int, row_bytes: int) -> ReceiveBuffer:
+        rows = np.zeros((capacity, row_bytes), np.uint8)
+        return cls(rows, np.zeros(capacity, np.int64), np.zeros(capacity, np.int64), [memoryview(r) for r in rows])
+
+
+@dataclass
+class PacketLossCounter:
+    """Packets missing from the sensor's packet numbering (see ouster_decoder.packet_sequence), across batches."""
+
+    layout: OusterPacketLayout
+    restart_after_packets: int
+    newest: int | None = None
+    missing: int = 0
+    gaps: int = 0
+    restarts: int = 0
+
+    def _ahead(self, sequence: np.ndarray, reference: int) -> np.ndarray:
+        modulus = self.layout.frame_id_modulus * self.layout.window_packets[1]
+        step = (sequence - reference) % modulus
+        return np.where(step > modulus // 2, step - modulus, step)
+
+    def add(self, sequence: np.ndarray) -> int | None:
+        """Count the losses up to this batch's newest packet; returns the jump (packets) when the
+        numbering restarted instead."""
+        if len(sequence) == 0:
+            return None
+        jump = None
+        if self.newest is not None:
+            furthest = int(self._ahead(sequence, self.newest).max())
+            if furthest > self.restart_after_packets or furthest < -self.layout.window_packets[1]:
+                self.restarts += 1
+                self.newest, jump = None, furthest
+        reference = int(sequence[0]) if self.newest is None else self.newest
+        ahead = np.unique(self._ahead(sequence, reference))
+        self.gaps += int(np.count_nonzero(np.diff(ahead[ahead > 0], prepend=0) > 1))
+        self.missing += count_missing_packets(sequence, self.layout, self.newest)
+        self.newest = newest_packet(sequence, self.layout, self.newest)
+        return jump
+
+
+def open_lidar_socket(bind_address: str, port: int, receive_buffer_bytes: int) -> tuple[socket.socket, int]:
+    """A non-blocking UDP socket bound to (bind_address, port) with kernel arrival times and overflow
+    counts, and the receive buffer the kernel granted (SO_RCVBUFFORCE when allowed, else SO_RCVBUF,
+    which the kernel caps at net.core.rmem_max)."""
+    sock = socket.socket(socket.AF_INET6 if ":" in bind_address else socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, receive_buffer_bytes)
+        except PermissionError:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, receive_buffer_bytes)
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
+        sock.bind((bind_address, port))
+    except OSError as exc:
+        sock.close()
+        raise OSError(exc.errno, f"cannot listen for lidar packets on UDP {bind_address}:{port}: {exc.strerror}") \
+            from None
+    sock.setblocking(False)
+    return sock, sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+
+
+def _receive_queued(sock: socket.socket, buf: ReceiveBuffer, start: int, mono_minus_real_ns: int,
+                    stats: LidarDriverStats, health: HealthCounters) -> int:
+    """Receive the datagrams already queued into rows start.. of `buf`; returns the rows filled."""
+    for i in range(start, len(buf.views)):
+        try:
+            size, ancillary, _, _ = sock.recvmsg_into([buf.views[i]], _ANCILLARY_BYTES, socket.MSG_TRUNC)
+        except BlockingIOError:
+            return i
+        except OSError as exc:
+            stats.socket_errors += 1
+            health.count_error(f"receiving: {exc}")
+            return i
+        arrival_ns = 0
+        for level, kind, data in ancillary:
+            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(data) >= _TIMESPEC.size:
+                seconds, nanoseconds = _TIMESPEC.unpack_from(data)
+                arrival_ns = seconds * 1_000_000_000 + nanoseconds + mono_minus_real_ns
+            elif level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(data) >= _DROP_COUNT.size:
+                stats.kernel_drops = _DROP_COUNT.unpack_from(data)[0]
+        buf.sizes[i] = size
+        buf.arrival_ns[i] = arrival_ns or time.monotonic_ns()
+    return len(buf.views)
+
+
+def _gather_batch(sock: socket.socket, buf: ReceiveBuffer, batch_period_s: float, stats: LidarDriverStats,
+                  health: HealthCounters) -> int:
+    """Rows of `buf` filled with what arrives within batch_period_s (or until it is full)."""
+    deadline = time.monotonic() + batch_period_s
+    mono_minus_real_ns = time.monotonic_ns() - time.time_ns()
+    n = _receive_queued(sock, buf, 0, mono_minus_real_ns, stats, health)
+    while n < len(buf.views):
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            break
+        time.sleep(remaining)  # let datagrams gather in the kernel's buffer
+        n = _receive_queued(sock, buf, n, mono_minus_real_ns, stats, health)
+    return n
+
+
+def _count_rejects(buf: ReceiveBuffer, n: int, accepted: np.ndarray, layout: OusterPacketLayout,
+                   wrong_size: int, bad_header: int, health: HealthCounters) -> None:
+    health.rejected += wrong_size + bad_header
+    if wrong_size:
+        sizes = buf.sizes[:n][buf.sizes[:n] != layout.packet_size]
+        health.last_error = (f"{wrong_size} datagram(s) of the wrong size ({sizes[0]} B; a {layout.profile} "
+                             f"packet is {layout.packet_size} B)")
+    if bad_header:
+        right_size = np.flatnonzero(buf.sizes[:n] == layout.packet_size)
+        first = np.setdiff1d(right_size, accepted)[0]
+        health.last_error = (f"{bad_header} packet(s) with a bad header (packet type, serial number, frame or "
+                             f"measurement ids), first: {bytes(buf.rows[first, :16]).hex()}...")
+
+
+def _handle_batch(buf: ReceiveBuffer, n: int, layout: OusterPacketLayout, prod_sn: int | None, publish: Publish,
+                  health: HealthCounters, stats: LidarDriverStats, loss: PacketLossCounter) -> None:
+    """Decode one batch, publish its good packets in arrival order, count the rest and the losses."""
+    batch = decode_packets(buf.rows[:n], layout, sizes=buf.sizes[:n], prod_sn=prod_sn)
+    counts = batch.counts
+    stats.batches += 1
+    stats.largest_batch = max(stats.largest_batch, n)
+    stats.datagrams += n
+    stats.wrong_size += counts.wrong_size
+    stats.bad_header += counts.bad_header
+    stats.invalid_columns += counts.invalid_columns
+    health.received += n
+    if counts.wrong_size or counts.bad_header:
+        _count_rejects(buf, n, batch.packet_index, layout, counts.wrong_size, counts.bad_header, health)
+    p = batch.num_packets
+    if p == 0:
+        return
+    first_valid = np.argmax(batch.column_valid, axis=1)
+    sensor_ns = np.where(batch.column_valid.any(axis=1), batch.timestamp_ns[np.arange(p), first_valid], 0)
+    for i, t in zip(batch.packet_index.tolist(), sensor_ns.tolist(), strict=True):
+        publish(LIDAR_PACKETS, LidarPacket(sensor_time_ns=t, host_mono_ns=int(buf.arrival_ns[i]),
+                                           data=buf.rows[i].tobytes()))
+    health.count_published(p)
+    stats.packets += p
+    jump = loss.add(packet_sequence(batch, layout))
+    if jump is not None:
+        health.count_error(f"packet numbering jumped by {jump} packets: sensor restarted, counting anew")
+    stats.missing_packets, stats.gaps, stats.restarts = loss.missing, loss.gaps, loss.restarts
+    health.dropped, health.sequence_gaps = loss.missing, loss.gaps
+
+
+def _publish_health(publish: Publish, health: HealthCounters, stats: LidarDriverStats) -> None:
+    snap = health.snapshot()
+    detail = stats.summary() + (f"; last error: {health.last_error}" if health.last_error else "")
+    publish(health_topic(PROCESS), dataclasses.replace(snap, detail=detail))
+
+
+def packets_per_second(metadata: OusterMetadata) -> float:
+    """The packet rate the sensor sends: the packets of its column window, fps times a second."""
+    return float(packet_layout(metadata).window_packets[1] * metadata.fps)
+
+
+def run_lidar_driver(
+    config: LidarConfig,
+    metadata: OusterMetadata,
+    publish: Publish,
+    stop: threading.Event,
+    health: HealthCounters,
+    *,
+    batch_packets: int = 256,
+    batch_period_s: float = 0.02,
+    health_period_s: float = 1.0,
+    idle_wait_s: float = 0.1,
+) -> LidarDriverStats:
+    """Receive, validate and publish packets until `stop` is set. Health goes out once listening, then
+    every `health_period_s`. Raises OSError when the socket cannot be bound."""
+    layout = packet_layout(metadata)
+    prod_sn = int(metadata.prod_sn) if metadata.prod_sn.isdigit() else None
+    sock, granted = open_lidar_socket(config.bind_address, config.port, config.receive_buffer_bytes)
+    stats = LidarDriverStats(receive_buffer_bytes=granted)
+    if granted < config.receive_buffer_bytes:
+        health.last_error = (f"receive buffer {granted} B granted of {config.receive_buffer_bytes} B asked "
+                             f"(raise net.core.rmem_max)")
+    loss = PacketLossCounter(layout, round(RESTART_AFTER_S * packets_per_second(metadata)))
+    buf = ReceiveBuffer.allocate(batch_packets, layout.packet_size)
+    poller = select.poll()
+    poller.register(sock, select.POLLIN)
+    try:
+        _publish_health(publish, health, stats)
+        next_health = time.monotonic() + health_period_s
+        while not stop.is_set():
+            now = time.monotonic()
+            if now >= next_health:
+                _publish_health(publish, health, stats)
+                next_health = max(next_health + health_period_s, now)
+            wait_ms = max(0, round(1000 * min(idle_wait_s, next_health - now)))
+            if not poller.poll(wait_ms):
+                continue
+            n = _gather_batch(sock, buf, batch_period_s, stats, health)
+            if n:
+                _handle_batch(buf, n, layout, prod_sn, publish, health, stats, loss)
+    finally:
+        sock.close()
+    _publish_health(publish, health, stats)
+    return stats
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="roadlog Lidar driver: raw Ouster UDP packets onto the bus")
+    parser.add_argument("--config", required=True, help="car config YAML")
+    parser.add_argument("--port", type=int, help="override sensors.lidar.port")
+    parser.add_argument("--bind", help="override sensors.lidar.bind_address")
+    args = parser.parse_args(argv)
+
+    from daemon.bus import open_publisher
+
+    car = load_config(args.config)
+    if car.sensors.lidar is None:
+        parser.error(f"{args.config}: has no sensors.lidar section")
+    overrides = {k: v for k, v in (("port", args.port), ("bind_address", args.bind)) if v is not None}
+    config = car.sensors.lidar.model_copy(update=overrides)
+    if not config.model.startswith("ouster-"):
+        parser.error(f"{args.config}: sensors.lidar.model {config.model!r} is not supported: only Ouster sensors "
+                     f"(ouster-os-128, ouster-os-32) have a packet decoder")
+    metadata_path = resolve_path(args.config, config.metadata_file)
+    try:
+        metadata = parse_metadata(metadata_path)
+        layout = packet_layout(metadata)
+    except (OSError, ValueError) as exc:
+        parser.error(f"{args.config}: sensors.lidar.metadata_file {str(metadata_path)!r}: {exc}")
+    if metadata.columns_per_frame != config.columns_per_frame or metadata.fps != config.rate_hz:
+        print(f"lidar driver: warning: the sensor metadata says {metadata.lidar_mode}, the config "
+              f"{config.columns_per_frame}x{config.rate_hz}; decoding as the metadata says", file=sys.stderr)
+    publishers = {topic: open_publisher(car, topic) for topic in (LIDAR_PACKETS, health_topic(PROCESS))}
+    health = HealthCounters(PROCESS, expected_rate_hz=packets_per_second(metadata))
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        stats = run_lidar_driver(config, metadata, lambda topic, m: publishers[topic].publish(m), stop, health)
+    except OSError as exc:
+        print(f"lidar driver: {exc.strerror or exc}", file=sys.stderr)
+        return 1
+    print(f"lidar driver stopped ({metadata.prod_line} {layout.profile}, {layout.packet_size} B packets): "
+          f"{stats.summary()}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
