@@ -4,6 +4,10 @@ Each topic of `daemon.topics.topic_table` has one ring (`daemon.ring_buffer`) na
 `/dev/shm/<bus.shm_prefix>.<topic with "/" as ".">`, sized by the topic's `ring_bytes`. A message
 travels as its protobuf meta (`message_codec.encode_split`) plus its bulk `data` bytes, which are
 written straight into the ring and handed to readers as a zero-copy view.
+
+One Publisher per topic on the whole machine (a second live one is refused; a restarted one
+continues the sequence). Any number of Subscribers; each is for one thread. A lossless subscriber
+keeps the data of the message it last read intact until its next `read()`.
 """
 
 from __future__ import annotations
