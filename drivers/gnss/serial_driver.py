@@ -7,14 +7,13 @@ backoff and the driver carries on. Health goes out once a second, also while the
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import logging
 import signal
 import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import serial
 
@@ -99,7 +98,7 @@ class _Loop:
         detail = health_detail(self.port, self.port_state, self.framer, self.decoder, self.health.last_error)
         state = "error" if self.port_state == "closed" else snapshot.state
         try:
-            message = dataclasses.replace(snapshot, state=state, detail=detail)
+            message = replace(snapshot, state=state, detail=detail)
             self.publish(topics.health_topic(PROCESS), message)
         except Exception as exc:  # see emit()
             self.health.count_error(f"publish health: {exc!r}")
