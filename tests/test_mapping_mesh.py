@@ -1,0 +1,59 @@
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from mapping.road_mesh import build_road_mesh, locate
+from mapping.scene_data import Trajectory
+
+
+@pytest.fixture(scope="module")
+def curve():
+    t = np.linspace(0, 10, 101)
+    pos = np.stack([4 * t, 6 * np.sin(t / 3), 0.3 * t], 1)
+    return Trajectory(t, pos), build_road_mesh(Trajectory(t, pos), 5.0, 0.2, 0.5)
+
+
+def test_faces_are_equilateral_and_counter_clockwise(curve):
+    _, mesh = curve
+    v = mesh.xy[mesh.faces]
+    sides = np.linalg.norm(v[:, [1, 2, 0]] - v, axis=2)
+    assert np.allclose(sides, 0.2, atol=1e-9)
+    e1, e2 = v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]
+    assert (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0] > 0).all()
+
+
+def test_mesh_covers_the_corridor_and_nothing_beyond(curve):
+    traj, mesh = curve
+    dense = np.stack([np.interp(np.linspace(0, 10, 5000), traj.times, traj.positions[:, k]) for k in range(2)], 1)
+    d_vertex = cKDTree(dense).query(mesh.xy)[0]
+    assert d_vertex.max() <= 5.0 + 0.05
+    rng = np.random.default_rng(1)
+    k = rng.integers(0, len(dense), 4000)
+    normal = np.gradient(dense, axis=0)[k][:, ::-1] * [1, -1]
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    inside = dense[k] + normal * rng.uniform(-4.7, 4.7, (len(k), 1))
+    _, _, ok = locate(mesh, inside)
+    assert ok.all()
+
+
+def test_locate_interpolates_points_exactly(curve):
+    _, mesh = curve
+    rng = np.random.default_rng(2)
+    p = mesh.xy[rng.integers(0, mesh.num_vertices, 5000)] + rng.normal(0, 0.1, (5000, 2))
+    ids, w, ok = locate(mesh, p)
+    assert ok.mean() > 0.9
+    assert w[ok].min() > -1e-9
+    assert np.allclose((mesh.xy[ids[ok]] * w[ok, :, None]).sum(1), p[ok], atol=1e-9)
+
+
+def test_neighbours_are_one_side_apart_and_z0_follows_the_trajectory(curve):
+    traj, mesh = curve
+    nb = mesh.neighbours
+    i, j = np.nonzero(nb >= 0)
+    assert np.allclose(np.linalg.norm(mesh.xy[i] - mesh.xy[nb[i, j]], axis=1), 0.2)
+    assert (nb >= 0).sum(1).max() == 6
+    # z0 = trajectory height at the vertex's along-track position minus the reference height
+    s_traj = traj.along_track()
+    assert np.allclose(mesh.z0, np.interp(mesh.s, s_traj, traj.positions[:, 2]) - 0.5, atol=1e-5)
+    flat = build_road_mesh(traj, 5.0, 0.2, 0.5, flat=True)
+    assert np.ptp(flat.z0) == 0

@@ -1,0 +1,100 @@
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from daemon.config import MapperConfig
+from mapping.map_metrics import elev_mae_gt_cm
+from mapping.reconstruction import reconstruct
+from mapping.road_map import ABLATIONS, new_road_map, variant_for
+from mapping.road_mesh import build_road_mesh
+from mapping.row_sparse_adam import RowSparseAdam
+from tests.synthetic_road_scene import make_scene
+
+CONFIG = MapperConfig(mesh_side_m=0.2, corridor_half_width_m=5.0, keyframe_spacing_m=0.0, threads=1,
+                      window_before_m=20.0, window_after_m=20.0)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene(length_m=20.0, width=96, height=54)
+
+
+@pytest.fixture(scope="module")
+def fast_run(scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("map")
+    result = reconstruct(scene.keyframes, scene.cameras, scene.trajectory, scene.lidar, CONFIG,
+                         scene.reference_height_m, out, gt=scene.gt, holdout_every=5, progress=False)
+    return result, out
+
+
+def test_loss_falls_and_elevation_error_shrinks(scene, fast_run):
+    result, _ = fast_run
+    m = result.metrics
+    assert m["loss_last"] < 0.6 * m["loss_first"]
+    initial = result.road_map
+    before = initial.z_now.copy()
+    initial.z_now[:] = initial.mesh.z0
+    start_cm = elev_mae_gt_cm(initial, scene.gt)
+    initial.z_now[:] = before
+    assert start_cm > 5.0  # the crossfall is not in the trajectory-based z0
+    assert m["elev_mae_gt_cm"] < 0.5 * start_cm
+    assert m["elev_error_cm"] < 0.5 * start_cm
+    assert m["psnr_db"] > 18.0 and m["miou_pct"] > 40.0
+    assert m["keyframes_holdout"] > 0 and m["realtime_factor"] > 0
+
+
+def test_export_writes_readable_rasters_and_meshes(fast_run):
+    result, out = fast_run
+    files = result.files
+    for name in ("bev_rgb_front.png", "bev_rgb_left.png", "bev_semantics.png", "bev_elevation.png",
+                 "bev_elevation.npy", "bev_semantics.npy", "bev.json", "mesh.ply", "mesh.glb",
+                 "checkpoint.pt", "metrics"):
+        assert files[name].exists() and files[name].stat().st_size > 0
+    elevation = np.load(files["bev_elevation.npy"])
+    assert np.isfinite(elevation).mean() > 0.3
+    mesh = trimesh.load(files["mesh.ply"], process=False)
+    assert len(mesh.faces) > 1000 and mesh.visual.vertex_colors.shape[1] == 4
+    state = torch.load(files["checkpoint.pt"])
+    assert state["colour_params"].shape[1] == CONFIG.colour_code_dim and "elevation_mlp" in state
+
+
+@pytest.mark.parametrize("ablation", sorted(ABLATIONS))
+def test_ablation_switches_change_the_parameter_sets(scene, ablation):
+    mesh = build_road_mesh(scene.trajectory, 3.0, 0.5, scene.reference_height_m, flat=variant_for(ablation).flat_init)
+    g = torch.Generator().manual_seed(0)
+    full = new_road_map(mesh, variant_for(None), ["front", "left"], 32, 2, 16, 22, 8, 128, 160.0, 0.5, g)
+    rm = new_road_map(mesh, variant_for(ablation), ["front", "left"], 32, 2, 16, 22, 8, 128, 160.0, 0.5, g)
+    assert full.elevation is not None and full.semantic_logits is not None
+    assert set(dict(full.decoder.named_parameters())) == {f"mlps.{c}.{k}" for c in ("front", "left")
+                                                            for k in ("0.weight", "0.bias", "2.weight", "2.bias")}
+    names = set(dict(rm.decoder.named_parameters()))
+    if ablation == "no-elevation-mlp":
+        assert rm.elevation is None
+    if ablation in ("no-colour-mlps", "rome"):
+        assert names == set() and rm.colour_params.shape[1] == 3
+    if ablation == "embedding":
+        assert "embeddings" in names and not any(n.startswith("mlps") for n in names)
+    if ablation == "no-semantics":
+        assert rm.semantic_logits is None
+    if ablation == "rome":
+        assert np.ptp(rm.mesh.z0) == 0 and rm.elevation is not None
+    else:
+        assert np.ptp(rm.mesh.z0) > 0
+
+
+def test_ablation_runs_report_what_they_lack(scene):
+    cfg = CONFIG.model_copy(update={"epochs": 1})
+    r = reconstruct(scene.keyframes[:24], scene.cameras, scene.trajectory, None, cfg, scene.reference_height_m,
+                    None, ablation="no-semantics", progress=False)
+    assert r.metrics["miou_pct"] is None and r.metrics["elev_error_cm"] is None
+    assert r.metrics["psnr_db"] is not None
+
+
+def test_row_sparse_adam_touches_only_the_rows_used():
+    table = torch.zeros(1000, 4)
+    opt = RowSparseAdam(table, lr=0.1)
+    rows = torch.tensor([3, 500, 999])
+    opt.step(rows, torch.ones(3, 4))
+    assert torch.allclose(table[rows], torch.full((3, 4), -0.1), atol=1e-6)
+    assert table.abs().sum() == pytest.approx(1.2, abs=1e-5) and opt.used == 3
