@@ -112,7 +112,9 @@ class Subscriber:
         return None if record is None else self._decode(record)
 
     def latest(self, *, copy: bool = True) -> object | None:
-        """The newest message if newer than the last one returned, skipping those in between."""
+        """The newest message on the topic (again, if already returned); None if there is none.
+
+        Messages between the last one returned and the newest are skipped (counted in `skipped`)."""
         record = self._ring.latest(copy=copy)
         return None if record is None else self._decode(record)
 

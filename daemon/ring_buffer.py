@@ -127,10 +127,6 @@ def _alive(pid: int, start_ticks: int) -> bool:
     return pid != 0 and process_start_ticks(pid) == start_ticks
 
 
-class RingRetired(Exception):
-    """The ring file was replaced or removed; reopen it by path."""
-
-
 class _Mapping:
     """The open file, its header mapping (read-write) and its data mapping."""
 
@@ -489,7 +485,7 @@ class RingReader:
         spin_until = 0.0
         while True:
             m = self._m
-            q, dq, cap = m.q, m.dq, m.capacity
+            q = m.q
             if self._slot is not None and q[self._slot + 2] != self.pos:
                 q[self._slot + 2] = self.pos
             commit, head, _, _ = m.snapshot()
@@ -508,23 +504,13 @@ class RingReader:
                 if now >= spin_until:
                     _futex_wait(m.commit_address, commit, min(remaining, _READ_POLL_SLICE_S))
                 continue
-            off = pos % cap
-            i = off >> 3
-            seq, total, meta_len, bulk_len = dq[i], dq[i + 1], dq[i + 2], dq[i + 3]
-            if q[_W_RESERVE] > pos + cap:
+            loaded = self._load(m, pos, copy)
+            if loaded is None:  # overtaken: the writer has overwritten this record
                 self.pos = q[_W_TAIL]
                 continue
+            seq, total, meta, bulk = loaded
             if seq == PAD_SEQ:
                 self.pos = pos + total
-                continue
-            meta_off = off + RECORD_HEADER_BYTES
-            meta = bytes(m.db[meta_off:meta_off + meta_len])
-            bulk_off = off + _align(RECORD_HEADER_BYTES + meta_len)
-            bulk = m.db[bulk_off:bulk_off + bulk_len]
-            if copy:
-                bulk = bytes(bulk)
-            if q[_W_RESERVE] > pos + cap:
-                self.pos = q[_W_TAIL]
                 continue
             if seq > self.expected:
                 self.lost += seq - self.expected
@@ -533,14 +519,46 @@ class RingReader:
             self.pos = pos + total
             return Record(seq, meta, bulk, pos, m)
 
-    def latest(self, *, copy: bool = True) -> Record | None:
-        """The newest record if it is newer than what this reader has returned; skips the rest."""
-        _, _, next_seq, last_pos = self._m.snapshot()
-        if last_pos == NO_RECORD or last_pos < self.pos:
+    @staticmethod
+    def _load(m: _Mapping, pos: int, copy: bool) -> tuple[int, int, bytes, memoryview | bytes] | None:
+        """(seq, total, meta, bulk) of the record at `pos`; None if it was overwritten while being read."""
+        cap = m.capacity
+        off = pos % cap
+        i = off >> 3
+        dq, q = m.dq, m.q
+        seq, total, meta_len, bulk_len = dq[i], dq[i + 1], dq[i + 2], dq[i + 3]
+        if q[_W_RESERVE] > pos + cap:
             return None
-        self.skipped += max(0, next_seq - 1 - self.expected)
-        self.pos, self.expected = last_pos, next_seq - 1
-        return self.read(0, copy=copy)
+        if seq == PAD_SEQ:
+            return seq, total, b"", b""
+        meta_off = off + RECORD_HEADER_BYTES
+        meta = bytes(m.db[meta_off:meta_off + meta_len])
+        bulk_off = off + _align(RECORD_HEADER_BYTES + meta_len)
+        bulk = m.db[bulk_off:bulk_off + bulk_len]
+        if copy:
+            bulk = bytes(bulk)
+        if q[_W_RESERVE] > pos + cap:
+            return None
+        return seq, total, meta, bulk
+
+    def latest(self, *, copy: bool = True) -> Record | None:
+        """The newest record in the ring (again, if this reader already returned it); None if there is none.
+
+        Records between the last one returned and the newest are skipped (counted in `skipped`).
+        """
+        while True:
+            m = self._m
+            _, _, next_seq, last_pos = m.snapshot()
+            if last_pos == NO_RECORD:
+                return None
+            if last_pos >= self.pos:
+                self.skipped += max(0, next_seq - 1 - self.expected)
+                self.pos, self.expected = last_pos, next_seq - 1
+                return self.read(0, copy=copy)
+            loaded = self._load(m, last_pos, copy)
+            if loaded is not None:
+                seq, _, meta, bulk = loaded
+                return Record(seq, meta, bulk, last_pos, m)
 
     def backlog_bytes(self) -> int:
         """Bytes written but not yet read by this reader."""

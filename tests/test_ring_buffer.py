@@ -132,8 +132,11 @@ def test_start_positions(path):
     for seq in range(5, 9):
         writer.write(meta_for(seq))
     assert reader.latest().seq == 8
-    assert reader.latest() is None
-    assert (reader.skipped, reader.lost) == (8, 0)
+    assert reader.latest().seq == 8  # again: still the newest
+    assert (reader.skipped, reader.lost, reader.received) == (8, 0, 1)
+    assert reader.read(0) is None
+    assert RingReader(RingWriter(path + ".empty", 16 * PAGE).label).latest() is None
+    retire(path + ".empty")
 
 
 def test_read_timeout_returns_none_after_the_timeout(path):
