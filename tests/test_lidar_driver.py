@@ -227,6 +227,18 @@ def test_a_restarted_sensor_is_counted_anew(tmp_path):
     assert "sensor restarted" in result.health.last_error and result.health.errors == 1
 
 
+def test_a_small_receive_buffer_shortens_the_batches_and_loses_nothing_at_the_sensor_rate(tmp_path):
+    meta = simulated_os128_metadata(2048)  # 1,280 packets/s of 24,896 B
+    layout = packet_layout(meta)
+    config = load_config(write_config(tmp_path, metadata_to_json(meta), receive_buffer_bytes=1 << 20)).sensors.lidar
+    stream = [p.tobytes() for p in frame_packets(layout, range(10))]
+    result = run_in_thread(config, meta, lambda: send_paced(stream, config.port, 1280), len(stream))
+    granted = result.stats.receive_buffer_bytes
+    assert result.stats.batch_period_ms < 20 and result.stats.batch_period_ms == pytest.approx(
+        1000 * granted / (2 * layout.packet_size) / 1280 / 4, rel=1e-3)
+    assert len(result.packets) == len(stream) and result.stats.missing_packets == result.stats.kernel_drops == 0
+
+
 def test_hesai_and_velodyne_configs_exit_with_a_clear_error(tmp_path, capsys):
     meta_json = metadata_to_json(simulated_os128_metadata(1024))
     for model in ("hesai-pandar128", "velodyne-vls128"):

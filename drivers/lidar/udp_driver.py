@@ -52,6 +52,7 @@ class LidarDriverStats:
     """What the driver saw, beyond the generic health counters."""
 
     receive_buffer_bytes: int = 0  # SO_RCVBUF the kernel granted (it doubles what was asked, then caps)
+    batch_period_ms: float = 0.0
     datagrams: int = 0
     packets: int = 0  # published
     wrong_size: int = 0
@@ -235,6 +236,15 @@ def packets_per_second(metadata: OusterMetadata) -> float:
     return float(packet_layout(metadata).window_packets[1] * metadata.fps)
 
 
+def batch_period(receive_buffer_bytes: int, layout: OusterPacketLayout, packets_per_s: float,
+                 longest_s: float) -> float:
+    """How long to let datagrams gather: at most a quarter of the time the receive buffer takes to fill
+    at the sensor's rate, taking each datagram to cost the kernel twice its size (a reassembled or
+    loopback datagram costs up to a power of two above its size)."""
+    fill_s = receive_buffer_bytes / (2 * layout.packet_size) / packets_per_s
+    return min(longest_s, fill_s / 4)
+
+
 def run_lidar_driver(
     config: LidarConfig,
     metadata: OusterMetadata,
@@ -247,16 +257,20 @@ def run_lidar_driver(
     health_period_s: float = 1.0,
     idle_wait_s: float = 0.1,
 ) -> LidarDriverStats:
-    """Receive, validate and publish packets until `stop` is set. Health goes out once listening, then
-    every `health_period_s`. Raises OSError when the socket cannot be bound."""
+    """Receive, validate and publish packets until `stop` is set. Datagrams gather for up to
+    `batch_period_s` (less when the granted receive buffer is small, see batch_period) or until
+    `batch_packets` arrived. Health goes out once listening, then every `health_period_s`. Raises
+    OSError when the socket cannot be bound."""
     layout = packet_layout(metadata)
     prod_sn = int(metadata.prod_sn) if metadata.prod_sn.isdigit() else None
     sock, granted = open_lidar_socket(config.bind_address, config.port, config.receive_buffer_bytes)
-    stats = LidarDriverStats(receive_buffer_bytes=granted)
+    rate = packets_per_second(metadata)
+    period_s = batch_period(granted, layout, rate, batch_period_s)
+    stats = LidarDriverStats(receive_buffer_bytes=granted, batch_period_ms=round(1000 * period_s, 3))
     if granted < config.receive_buffer_bytes:
         health.last_error = (f"receive buffer {granted} B granted of {config.receive_buffer_bytes} B asked "
                              f"(raise net.core.rmem_max)")
-    loss = PacketLossCounter(layout, round(RESTART_AFTER_S * packets_per_second(metadata)))
+    loss = PacketLossCounter(layout, round(RESTART_AFTER_S * rate))
     buf = ReceiveBuffer.allocate(batch_packets, layout.packet_size)
     poller = select.poll()
     poller.register(sock, select.POLLIN)
@@ -271,7 +285,7 @@ def run_lidar_driver(
             wait_ms = max(0, round(1000 * min(idle_wait_s, next_health - now)))
             if not poller.poll(wait_ms):
                 continue
-            n = _gather_batch(sock, buf, batch_period_s, stats, health)
+            n = _gather_batch(sock, buf, period_s, stats, health)
             if n:
                 _handle_batch(buf, n, layout, prod_sn, publish, health, stats, loss)
     finally:
