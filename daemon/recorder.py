@@ -1,8 +1,9 @@
 """The recorder process: every logged topic from the bus into time-named, self-contained MCAP segments.
 
 A segment is written as `roadlog_<UTC start>_<index>.mcap.open` and renamed to `.mcap` once closed; it
-is rotated every `recorder.segment_seconds` or `recorder.segment_bytes`. At start-up every `.open`
-segment a crash or power cut left behind is recovered into a readable `.mcap` (log_format.recover_log).
+is rotated every `recorder.segment_seconds` or `recorder.segment_bytes`; its complete chunks are fsynced
+once a second. At start-up every `.open` segment that a crash or power cut left behind is recovered into
+a readable `.mcap` (log_format.recover_log).
 The disk policy (daemon/disk_policy.py) deletes the oldest closed segments to keep the configured free
 space; when that is not enough the recorder closes its segment, counts what it cannot write per topic,
 and resumes once space returns. Messages written, lost to bus overtaking and dropped for lack of disk
@@ -40,6 +41,7 @@ SEGMENT_SUFFIX = ".mcap"
 OPEN_SUFFIX = ".open"
 RECOVERING_SUFFIX = ".recovering"
 HEALTH_PERIOD_S = 1.0
+SYNC_PERIOD_S = 1.0  # the open segment's complete chunks reach the disk at least this often (power cuts)
 DISK_CHECK_PERIOD_S = 0.5
 DISK_CHECK_BYTES = 16 * 1024 * 1024
 SUBSCRIBE_RETRY_S = 0.5
@@ -130,6 +132,8 @@ class Recorder:
         self.writer: LogWriter | None = None
         self.open_path: Path | None = None
         self.opened_mono = 0.0
+        self._sync_fd: int | None = None
+        self._last_sync = 0.0
         self.segments_closed = 0
         self.segments_deleted = 0
         self.tally = TopicTally()
@@ -148,7 +152,8 @@ class Recorder:
         self.next_index += 1
         self.open_path = self.output_dir / (name + OPEN_SUFFIX)
         self.writer = LogWriter(self.open_path, self.config)
-        self.opened_mono = time.monotonic()
+        self._sync_fd = os.open(self.open_path, os.O_RDONLY)  # fsync through it: LogWriter keeps its file private
+        self.opened_mono = self._last_sync = time.monotonic()
         self._bytes_at_disk_check = 0
         log.info("opened segment %s", self.open_path.name)
 
@@ -158,6 +163,7 @@ class Recorder:
         if writer is None or path is None:
             return None
         self.writer, self.open_path = None, None
+        self._close_sync_fd()
         lost_bus = _delta(self.tally.lost_bus, self._at_last_close.lost_bus)
         dropped = _delta(self.tally.dropped_disk_full, self._at_last_close.dropped_disk_full)
         lost = {t: lost_bus.get(t, 0) + dropped.get(t, 0) for t in sorted(set(lost_bus) | set(dropped))}
@@ -176,6 +182,22 @@ class Recorder:
         self.segments_closed += 1
         log.info("closed segment %s (%d messages)", final.name, sum(writer.counts.values()))
         return final
+
+    def sync_if_due(self) -> None:
+        """Push the open segment's complete chunks to the disk, so a power cut loses at most a second."""
+        if self.writer is None or time.monotonic() - self._last_sync < SYNC_PERIOD_S:
+            return
+        self._last_sync = time.monotonic()
+        try:
+            self.writer.flush()
+            os.fsync(self._sync_fd)
+        except OSError as exc:
+            self.health.count_error(f"syncing {self.open_path.name}: {exc}")
+
+    def _close_sync_fd(self) -> None:
+        if self._sync_fd is not None:
+            os.close(self._sync_fd)
+            self._sync_fd = None
 
     def rotate_if_due(self) -> None:
         """Close a segment open for `segment_seconds` (`write` rotates by size)."""
@@ -252,6 +274,7 @@ class Recorder:
     def _abandon_segment(self) -> None:
         """Drop a segment that could not be written; its `.open` file is recovered when space returns."""
         self.writer, self.open_path = None, None
+        self._close_sync_fd()
 
     def set_lost(self, topic: str, lost: int) -> None:
         """The subscriber's running count of messages the bus overwrote before the recorder read them."""
@@ -325,6 +348,7 @@ def run(config: CarConfig, output_dir: Path, stop: threading.Event) -> Recorder:
                 health_pub.publish(rec.health_message())
             got = _read_round(rec, subscribers)
             rec.rotate_if_due()
+            rec.sync_if_due()
             rec.check_disk()
             if not got:
                 stop.wait(IDLE_SLEEP_S)

@@ -239,6 +239,28 @@ def test_disk_policy_deletes_oldest_closed_segments_then_stops_and_resumes(car, 
     assert set(lost) <= {LIDAR_PACKETS, TIME_ANCHOR, health_topic("recorder")}
 
 
+def test_messages_the_bus_overwrote_before_the_recorder_read_them_are_counted(car, tmp_path):
+    config_path = car()
+    data = yaml.safe_load(config_path.read_text())
+    data["bus"]["ring_bytes"] = {LIDAR_PACKETS: 100_000}  # room for 3 packets
+    config_path.write_text(yaml.safe_dump(data))
+    config = load_config(config_path)
+    out = tmp_path / "logs"
+    lidar = bus.open_publisher(config, LIDAR_PACKETS)
+    rec = RecorderProcess(config_path, out)
+    payload = random.Random(8).randbytes(24_896)
+    for i in range(300):  # a burst far faster than the recorder polls
+        lidar.publish(LidarPacket(sensor_time_ns=i, data=payload))
+    detail = rec.wait_for(lambda d: d["written"].get(LIDAR_PACKETS, 0) + d["lost"].get(LIDAR_PACKETS, 0) == 300)
+    lidar.close()
+    assert detail["lost_bus"][LIDAR_PACKETS] > 0 and detail["lost"] == detail["lost_bus"]
+    assert rec.stop() == 0, rec.stderr
+    segments = sorted(out.glob("*.mcap"))
+    written = [r.message.sensor_time_ns for r in read_log(segments, topics=[LIDAR_PACKETS])]
+    lost = json.loads(read_metadata(segments[-1])["roadlog.counts"]["lost_per_topic"])
+    assert len(written) + lost[LIDAR_PACKETS] == 300 and written == sorted(written) and written[-1] == 299
+
+
 def test_disk_policy_pure_functions():
     gib = disk_policy.GIB
     assert required_free_bytes(100 * gib, 5.0, 10.0) == 10 * gib
