@@ -26,6 +26,7 @@ from daemon.process_table import ProcessSpec
 from daemon.topics import health_topic
 
 MAX_BACKOFF_S = 30.0
+EXIT_CONFIG_ERROR = 2  # a process that exits with this cannot work with this config: never restarted
 CRASH_LOOP_RESTARTS = 3  # this many restarts of one process ...
 CRASH_LOOP_WINDOW_S = 60.0  # ... within this window: the daemon is unhealthy (systemd's watchdog starves)
 STARTUP_GRACE_S = 20.0
@@ -136,6 +137,11 @@ class Supervisor:
             child.last_exit = code
             if code == 0 and not child.spec.restart_on_success:
                 child.state = "finished"
+                return
+            if code == EXIT_CONFIG_ERROR:
+                child.state = "failed"
+                child.last_reason = "configuration error (exit 2): not restarted, see its log"
+                print(f"supervisor: {child.spec.name} {child.last_reason}", file=sys.stderr, flush=True)
                 return
             self._schedule_restart(child, f"exited with {code}")
             return

@@ -79,6 +79,20 @@ def test_crashed_process_is_restarted_with_backoff_and_recorded(config, tmp_path
         thread.join(30)
 
 
+def test_configuration_error_is_not_restarted(config):
+    cfg, path = config
+    sup = Supervisor(cfg, [_spec("lidar", path, "bad-config", after=0.2), _spec("gnss", path)], env=ENV)
+    thread = _run_in_thread(sup)
+    try:
+        assert _wait(lambda: sup.children["lidar"].state == "failed")
+        time.sleep(1.5)
+        assert sup.children["lidar"].restarts == 0 and sup.children["lidar"].last_exit == 2
+        assert sup.children["gnss"].state == "running"
+    finally:
+        sup.stop_event.set()
+        thread.join(30)
+
+
 def test_hung_process_is_killed_and_restarted(config):
     cfg, path = config
     spec = _spec("can", path, "hang", after=0.5, heartbeat_s=1.0)

@@ -15,7 +15,7 @@ def main() -> int:
     parser = argparse.ArgumentParser()
     parser.add_argument("--config", required=True)
     parser.add_argument("--name", required=True)
-    parser.add_argument("--behaviour", default="ok", choices=["ok", "crash", "hang", "done", "slow-stop"])
+    parser.add_argument("--behaviour", default="ok", choices=["ok", "crash", "hang", "done", "slow-stop", "bad-config"])
     parser.add_argument("--after", type=float, default=1.0)
     parser.add_argument("--marker", default="")
     args = parser.parse_args()
@@ -32,6 +32,8 @@ def main() -> int:
                 return 3
             if args.behaviour == "done":
                 return 0
+            if args.behaviour == "bad-config":
+                return 2
             if args.behaviour == "hang":
                 time.sleep(3600)
         health.count_published(10)
