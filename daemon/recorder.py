@@ -64,9 +64,10 @@ def _segment_index(name: str) -> int | None:
 
 
 def closed_segments(output_dir: Path) -> list[disk_policy.Segment]:
-    """The closed segments in `output_dir`, oldest first (name order)."""
+    """The closed segments in `output_dir`, oldest first: by index, which a clock set back cannot reorder."""
+    paths = output_dir.glob(f"{SEGMENT_PREFIX}*{SEGMENT_SUFFIX}")
     out = []
-    for p in sorted(output_dir.glob(f"{SEGMENT_PREFIX}*{SEGMENT_SUFFIX}")):
+    for p in sorted(paths, key=lambda p: (_segment_index(p.name) or 0, p.name)):
         try:
             out.append(disk_policy.Segment(p, p.stat().st_size))
         except FileNotFoundError:

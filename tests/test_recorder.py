@@ -279,3 +279,6 @@ def test_segment_names_sort_by_time(tmp_path):
         (tmp_path / n).write_bytes(b"x")
     (tmp_path / (segment_name(t, 12) + OPEN_SUFFIX)).write_bytes(b"x")
     assert [s.path.name for s in closed_segments(tmp_path)] == names
+    after_clock_reset = segment_name(t - 86400_000_000_000, 13)  # the clock went back a day
+    (tmp_path / after_clock_reset).write_bytes(b"x")
+    assert [s.path.name for s in closed_segments(tmp_path)] == names + [after_clock_reset]
