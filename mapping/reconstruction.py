@@ -228,12 +228,13 @@ class _Optimisation:
             total.backward()
         for opt in self.optimisers:
             opt.step()
-        update = np.arange(len(ids)) if self.faithful else self.lookup[touched]
+        update = self.lookup[touched]
         rows = torch.from_numpy(ids[update])
-        if codes.grad is not None:
-            self.colour_opt.step(rows, codes.grad[update])
-        if self.semantic_opt is not None and logits_v.grad is not None:
-            self.semantic_opt.step(rows, logits_v.grad[update])
+        grad = codes.grad if codes.grad is not None else torch.zeros_like(codes)
+        self.colour_opt.step(rows, grad[update])
+        if self.semantic_opt is not None:
+            g = logits_v.grad if logits_v.grad is not None else torch.zeros_like(logits_v)
+            self.semantic_opt.step(rows, g[update])
         rm.z_now[ids] = z.detach().numpy()
         rm.observed[touched] += 1
         return {k: float(v.detach()) for k, v in terms.items()}
@@ -303,6 +304,9 @@ def reconstruct(
                 history.append(sum(terms.values()))
                 bar.set_postfix(loss=f"{history[-1]:.4f}")
                 bar.update()
+    opt.colour_opt.flush()
+    if opt.semantic_opt is not None:
+        opt.semantic_opt.flush()
     road_map.refresh_elevation()
     train_s = time.perf_counter() - start
     drive_s = trajectory.duration_s
