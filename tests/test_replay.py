@@ -184,7 +184,7 @@ def test_rate_one_takes_the_recorded_time(configs, tmp_path):
     assert proc.wait(timeout=20) == 0, proc.stderr.read()
     assert len(got) == 151
     took = (got[-1][0] - got[0][0]) / 1e9
-    assert 1.4 < took < 1.7, took
+    assert 1.4 < took < 1.8, took
     stamped = (got[-1][1].host_mono_ns - got[0][1].host_mono_ns) / 1e9
     assert 1.45 < stamped < 1.6, stamped
 
