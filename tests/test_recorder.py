@@ -43,11 +43,14 @@ def write_config(tmp_path: Path, **recorder) -> Path:
 class RecorderProcess:
     """`python -m daemon.recorder` with a health subscriber to follow what it did."""
 
+    started: list[subprocess.Popen] = []  # killed at the end of each test, whatever happened
+
     def __init__(self, config_path: Path, output_dir: Path, env: dict[str, str] | None = None):
         self.config = load_config(config_path)
         self.proc = subprocess.Popen([sys.executable, "-m", "daemon.recorder", "--config", str(config_path),
                                       "--output-dir", str(output_dir)], cwd=ROOT,
                                      env=dict(os.environ, **(env or {})), stderr=subprocess.PIPE, text=True)
+        self.started.append(self.proc)
         self.health = bus.open_subscriber(self.config, health_topic("recorder"), start="next", wait_s=20)
         self.detail = self.wait_for(lambda d: True)
 
@@ -83,6 +86,11 @@ def car(tmp_path):
         return paths["config"]
 
     yield make
+    while RecorderProcess.started:
+        proc = RecorderProcess.started.pop()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
     if "config" in paths:
         bus.unlink_all(load_config(paths["config"]))
 

@@ -31,6 +31,13 @@ from daemon.topics import CAN_FRAMES, IMU, LIDAR_PACKETS, POSE, TIME_ANCHOR, cam
 
 ROOT = Path(__file__).resolve().parents[1]
 DRIVE_TOPICS = (camera_topic("front_wide"), LIDAR_PACKETS, IMU, CAN_FRAMES)
+STARTED: list[subprocess.Popen] = []  # killed at the end of each test, whatever happened
+
+
+def start(*args: str) -> subprocess.Popen:
+    proc = subprocess.Popen([sys.executable, "-m", *args], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    STARTED.append(proc)
+    return proc
 
 
 def write_config(tmp_path: Path, extra_camera: bool = False, **bus_settings) -> Path:
@@ -54,6 +61,11 @@ def configs():
         return path
 
     yield make
+    while STARTED:
+        proc = STARTED.pop()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
     for config in made:
         bus.unlink_all(config)
 
@@ -63,8 +75,7 @@ def without_bus_stamps(msg) -> object:
 
 
 def run_replay(config_path: Path, logs: list[Path], *args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "daemon.replay", "--config", str(config_path), *args,
-                             *map(str, logs)], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    return start("daemon.replay", "--config", str(config_path), *args, *map(str, logs))
 
 
 def collect(subs: dict[str, bus.Subscriber], expected: dict[str, int], proc: subprocess.Popen | None = None,
@@ -94,8 +105,7 @@ def test_a_recorded_drive_replays_unchanged(configs, tmp_path):
     out = tmp_path / "logs"
     for t in DRIVE_TOPICS:
         bus.open_publisher(config, t).close()
-    recorder = subprocess.Popen([sys.executable, "-m", "daemon.recorder", "--config", str(config_path),
-                                 "--output-dir", str(out)], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    recorder = start("daemon.recorder", "--config", str(config_path), "--output-dir", str(out))
     with bus.open_subscriber(config, health_topic("recorder"), wait_s=20) as health:
         assert health.read(timeout_s=20) is not None  # recording
         rng = random.Random(5)
