@@ -22,7 +22,7 @@ import os
 import socket
 import struct
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -41,7 +41,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from daemon import message_codec
-from daemon.config import CarConfig, config_to_yaml
+from daemon.config import CarConfig, config_to_yaml, resolve_path
 from daemon.messages import MESSAGE_TYPE_BY_NAME, CameraFrame, GnssFix, SemanticMask, VehiclePose
 from daemon.topics import calibration_topic, topic_table
 
@@ -193,7 +193,8 @@ class LogWriter:
     """Writes messages of the car's topics into one self-contained MCAP file."""
 
     def __init__(self, path: str | Path, config: CarConfig, metadata: dict[str, str] | None = None,
-                 compression: str | None = None, chunk_size: int = 4 * 1024 * 1024):
+                 compression: str | None = None, chunk_size: int = 4 * 1024 * 1024,
+                 config_path: str | Path | None = None):
         self.path = Path(path)
         self.config = config
         self._topics = topic_table(config)
@@ -214,19 +215,24 @@ class LogWriter:
             "start_time_utc_ns": str(time.time_ns()),
             "start_mono_ns": str(time.monotonic_ns()),
         }
+        if config.sensors.lidar is not None and config_path is not None:
+            try:  # the Lidar's own calibration file, so the segment decodes on its own
+                meta["lidar_metadata"] = resolve_path(config_path, config.sensors.lidar.metadata_file).read_text()
+            except OSError as exc:
+                meta["lidar_metadata_error"] = str(exc)
         meta.update(metadata or {})
         self._writer.add_metadata(METADATA_NAME, meta)
         self._write_calibrations()
 
-    def _schema_id(self, name: str, data: bytes) -> int:
+    def _schema_id(self, name: str, data: bytes) -> int:  # data is only built for a new channel
         if name not in self._schemas:
             self._schemas[name] = self._writer.register_schema(name=name, encoding="protobuf", data=data)
         return self._schemas[name]
 
-    def _channel_id(self, topic: str, schema_name: str, schema_bytes: bytes, type_name: str) -> int:
+    def _channel_id(self, topic: str, schema_name: str, schema_bytes: Callable[[], bytes], type_name: str) -> int:
         cid = self._channels.get(topic)
         if cid is None:
-            sid = self._schema_id(schema_name, schema_bytes)
+            sid = self._schema_id(schema_name, schema_bytes())
             cid = self._writer.register_channel(topic=topic, message_encoding="protobuf", schema_id=sid,
                                                 metadata={"roadlog.type": type_name})
             self._channels[topic] = cid
@@ -242,7 +248,7 @@ class LogWriter:
             proto.R.extend([1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0])
             topic = calibration_topic(cam.name)
             cid = self._channel_id(topic, "foxglove.CameraCalibration",
-                                   _file_descriptor_set(CameraCalibration.DESCRIPTOR.file), "CameraCalibration")
+                                   lambda: _file_descriptor_set(CameraCalibration.DESCRIPTOR.file), "CameraCalibration")
             self._writer.add_message(cid, log_time=0, data=proto.SerializeToString(), publish_time=0)
 
     def write(self, topic: str, message: object) -> None:
@@ -256,12 +262,13 @@ class LogWriter:
         type_name = type(message).__name__
         if proto is not None:
             data = proto.SerializeToString()
-            cid = self._channel_id(topic, proto.DESCRIPTOR.full_name, _file_descriptor_set(proto.DESCRIPTOR.file),
-                                   type_name)
+            cid = self._channel_id(
+                topic, proto.DESCRIPTOR.full_name, lambda: _file_descriptor_set(proto.DESCRIPTOR.file), type_name)
         else:
             data = message_codec.encode(message)
-            cid = self._channel_id(topic, message_codec.schema_name(type(message)),
-                                   message_codec.schema_data(type(message)), type_name)
+            cid = self._channel_id(
+                topic, message_codec.schema_name(type(message)),
+                lambda: message_codec.schema_data(type(message)), type_name)
         self._writer.add_message(cid, log_time=int(message.host_mono_ns), data=data,
                                  publish_time=int(message.sensor_time_ns), sequence=int(message.seq) & 0xFFFFFFFF)
         self.counts[topic] = self.counts.get(topic, 0) + 1

@@ -47,6 +47,7 @@ def file_descriptor(message_type: type) -> descriptor_pb2.FileDescriptorProto:
     return fdp
 
 
+@functools.cache
 def schema_data(message_type: type) -> bytes:
     """A serialized FileDescriptorSet: the MCAP schema record's data for encoding "protobuf"."""
     fds = descriptor_pb2.FileDescriptorSet()
