@@ -158,6 +158,7 @@ class VehicleConfig(_Strict):
     reference_height_m: float = Field(0.0, ge=0, le=5)  # reference point height above the ground
     wheel_base_m: float = Field(2.8, gt=0)
     track_width_m: float = Field(1.6, gt=0)
+    rear_axle_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # rear axle centre in the vehicle frame
 
 
 class BusConfig(_Strict):
