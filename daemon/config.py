@@ -256,6 +256,11 @@ def resolve_path(config_file: str | Path, value: str) -> Path:
     return p if p.is_absolute() else (Path(config_file).resolve().parent / p)
 
 
+def data_dir(config: CarConfig, config_file: str | Path, override: str | Path | None = None) -> Path:
+    """The folder for log segments and maps: the override, else recorder.output_dir (relative to the config)."""
+    return Path(override) if override else resolve_path(config_file, config.recorder.output_dir)
+
+
 def load_config(path: str | Path) -> CarConfig:
     """Read and validate a YAML car config; any problem raises ConfigError with one clear message."""
     path = Path(path)

@@ -59,5 +59,5 @@ def process_table(
     if config.mapper.enabled:
         table.append(ProcessSpec("mapper", "mapping.mapping_worker", cfg + out, heartbeat_s=120.0,
                                  stop_timeout_s=map_stop_timeout_s, restart_on_success=False))
-    table.append(ProcessSpec("status", "daemon.status_server", cfg, heartbeat_s=0.0))
+    table.append(ProcessSpec("status", "daemon.status_server", cfg + out, heartbeat_s=0.0))
     return table

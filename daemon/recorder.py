@@ -29,7 +29,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from daemon import bus, disk_policy
-from daemon.config import CarConfig, ConfigError, load_config, resolve_path
+from daemon.config import CarConfig, ConfigError, data_dir, load_config
 from daemon.health import HealthCounters
 from daemon.log_format import LogWriter, recover_log
 from daemon.messages import TimeAnchor
@@ -123,8 +123,9 @@ def _delta(now: dict[str, int], before: dict[str, int]) -> dict[str, int]:
 class Recorder:
     """The recorder's state: the open segment, the disk state and the per-topic tallies."""
 
-    def __init__(self, config: CarConfig, output_dir: Path):
+    def __init__(self, config: CarConfig, output_dir: Path, config_path: str | Path | None = None):
         self.config = config
+        self.config_path = config_path
         self.rc = config.recorder
         self.output_dir = output_dir
         output_dir.mkdir(parents=True, exist_ok=True)
@@ -152,7 +153,7 @@ class Recorder:
         name = segment_name(time.time_ns(), self.next_index)
         self.next_index += 1
         self.open_path = self.output_dir / (name + OPEN_SUFFIX)
-        self.writer = LogWriter(self.open_path, self.config)
+        self.writer = LogWriter(self.open_path, self.config, config_path=self.config_path)
         self._sync_fd = os.open(self.open_path, os.O_RDONLY)  # fsync through it: LogWriter keeps its file private
         self.opened_mono = self._last_sync = time.monotonic()
         self._bytes_at_disk_check = 0
@@ -321,9 +322,9 @@ def _read_round(rec: Recorder, subscribers: dict[str, bus.Subscriber]) -> int:
     return got
 
 
-def run(config: CarConfig, output_dir: Path, stop: threading.Event) -> Recorder:
+def run(config: CarConfig, output_dir: Path, stop: threading.Event, config_path: str | Path | None = None) -> Recorder:
     """Record until `stop` is set, then write what is still waiting in the rings and close the segment."""
-    rec = Recorder(config, output_dir)
+    rec = Recorder(config, output_dir, config_path)
     anchor_pub = bus.open_publisher(config, TIME_ANCHOR)
     health_pub = bus.open_publisher(config, health_topic(PROCESS))
     wanted = logged_topics(config)
@@ -377,11 +378,11 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(exc, file=sys.stderr)
         return 2
-    output_dir = Path(args.output_dir) if args.output_dir else resolve_path(args.config, config.recorder.output_dir)
+    output_dir = data_dir(config, args.config, args.output_dir)
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    rec = run(config, output_dir, stop)
+    rec = run(config, output_dir, stop, args.config)
     log.info("stopped: %d segments closed, %d messages written, %d lost", rec.segments_closed,
               sum(rec.tally.written.values()), sum(rec.tally.lost().values()))
     return 0

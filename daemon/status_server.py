@@ -22,16 +22,16 @@ from pathlib import Path
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
-from daemon.config import CarConfig, load_config
+from daemon.config import CarConfig, data_dir, load_config
 from daemon.messages import DriverHealth
 from daemon.topics import topic_table
 
 PREVIEWS = ("rgb", "semantics", "elevation")
 
 
-def preview_dir(config: CarConfig) -> Path:
+def preview_dir(data_folder: Path) -> Path:
     """Where the mapping worker writes its latest previews (and the status server reads them)."""
-    return Path(config.recorder.output_dir) / "map" / "previews"
+    return Path(data_folder) / "map" / "previews"
 
 
 def required_processes(config: CarConfig) -> list[str]:
@@ -170,7 +170,7 @@ class _BoardCollector:
         yield from (lost, written, restarts)
 
 
-def make_handler(config: CarConfig, board: HealthBoard, registry: CollectorRegistry):
+def make_handler(config: CarConfig, board: HealthBoard, registry: CollectorRegistry, data_folder: Path):
     previews = {f"/preview/{name}.png": name for name in PREVIEWS}
 
     class Handler(BaseHTTPRequestHandler):
@@ -203,7 +203,7 @@ def make_handler(config: CarConfig, board: HealthBoard, registry: CollectorRegis
             elif path == "/metrics":
                 self._send(200, generate_latest(registry), "text/plain; version=0.0.4; charset=utf-8")
             elif path in previews:
-                file = preview_dir(config) / f"{previews[path]}.png"
+                file = preview_dir(data_folder) / f"{previews[path]}.png"
                 try:
                     body = file.read_bytes()
                 except OSError:
@@ -223,11 +223,12 @@ def make_handler(config: CarConfig, board: HealthBoard, registry: CollectorRegis
     return Handler
 
 
-def make_server(config: CarConfig, board: HealthBoard, port: int | None = None) -> ThreadingHTTPServer:
+def make_server(config: CarConfig, board: HealthBoard, data_folder: Path, port: int | None = None
+                ) -> ThreadingHTTPServer:
     registry = CollectorRegistry()
     registry.register(_BoardCollector(board))
     server = ThreadingHTTPServer((config.status.bind_address, config.status.port if port is None else port),
-                                 make_handler(config, board, registry))
+                                 make_handler(config, board, registry, data_folder))
     server.daemon_threads = True
     return server
 
@@ -236,11 +237,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="roadlog-status", description=__doc__)
     parser.add_argument("--config", required=True)
     parser.add_argument("--port", type=int, default=None, help="override the config's port")
+    parser.add_argument("--output-dir", help="log and map folder (default: recorder.output_dir)")
     args = parser.parse_args(argv)
     config = load_config(args.config)
     board = HealthBoard(config)
     board.start()
-    server = make_server(config, board, args.port)
+    server = make_server(config, board, data_dir(config, args.config, args.output_dir), args.port)
     signal.signal(signal.SIGTERM, lambda *_: threading.Thread(target=server.shutdown).start())
     print(f"status endpoint on http://{server.server_address[0]}:{server.server_address[1]}", file=sys.stderr)
     try:

@@ -20,11 +20,11 @@ from tests.daemon_fixtures import private_config
 def served(tmp_path):
     cfg, _ = private_config(tmp_path, recorder={"output_dir": str(tmp_path / "logs")})
     board = HealthBoard(cfg)
-    server = make_server(cfg, board, port=0)
+    server = make_server(cfg, board, tmp_path / "logs", port=0)
     thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
     thread.start()
     base = f"http://127.0.0.1:{server.server_address[1]}"
-    yield cfg, board, base
+    yield cfg, board, base, tmp_path / "logs"
     board.stop()
     server.shutdown()
     server.server_close()
@@ -50,7 +50,7 @@ def _healthy(process, rate=10.0, detail=""):
 
 
 def test_livez_and_readiness_follow_the_drivers(served):
-    cfg, board, base = served
+    cfg, board, base, _ = served
     assert _get(base + "/livez")[0] == 200
     code, _, body = _get(base + "/readyz")
     assert code == 503 and "no health yet" in body.decode()
@@ -65,7 +65,7 @@ def test_livez_and_readiness_follow_the_drivers(served):
 
 
 def test_status_json_and_metrics(served):
-    cfg, board, base = served
+    cfg, board, base, _ = served
     for process in required_processes(cfg):
         board.update(_healthy(process))
     board.update(_healthy("recorder", detail=json.dumps(
@@ -87,13 +87,13 @@ def test_status_json_and_metrics(served):
 
 
 def test_previews_and_404s(served):
-    cfg, _, base = served
+    cfg, _, base, data = served
     assert _get(base + "/preview/rgb.png")[0] == 404  # nothing mapped yet
     import cv2
 
-    preview_dir(cfg).mkdir(parents=True)
+    preview_dir(data).mkdir(parents=True)
     ok, png = cv2.imencode(".png", np.full((8, 8, 3), 200, np.uint8))
-    (preview_dir(cfg) / "rgb.png").write_bytes(png.tobytes())
+    (preview_dir(data) / "rgb.png").write_bytes(png.tobytes())
     code, ctype, body = _get(base + "/preview/rgb.png")
     assert code == 200 and ctype == "image/png" and body == png.tobytes()
     for path in ["/nope", "/preview/../../car.yaml", "/preview/%2e%2e/rgb.png", "/status/",
@@ -106,7 +106,7 @@ def test_previews_and_404s(served):
 
 
 def test_board_reads_health_from_the_bus(served):
-    cfg, board, base = served
+    cfg, board, base, _ = served
     board.start()
     pub = open_publisher(cfg, health_topic("gnss"))
     deadline = time.monotonic() + 10
