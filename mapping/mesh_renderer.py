@@ -115,8 +115,11 @@ def rasterise(
     out = torch.full((hs * ws,), -1, dtype=torch.int64)
     if len(faces) == 0:
         return out.reshape(hs, ws).numpy()
-    used, local = np.unique(faces, return_inverse=True)
-    local = local.reshape(-1, 3)
+    if len(vertices_world) > 3 * faces.size:  # project only the vertices these faces use
+        used, local = np.unique(faces, return_inverse=True)
+        local = local.reshape(-1, 3)
+    else:
+        used, local = np.arange(len(vertices_world)), faces
     cam = torch.from_numpy(to_camera(T_world_camera, vertices_world[used]).astype(np.float32))
     uv, valid = project(cam, camera)
     g = (uv - torch.tensor([ox, oy], dtype=uv.dtype)) / stride

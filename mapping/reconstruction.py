@@ -35,7 +35,7 @@ from mapping.mesh_renderer import (
     walk_to_surface,
     world_rays,
 )
-from mapping.road_map import RoadMap, WindowIndex, new_road_map, pixel_weights, variant_for
+from mapping.road_map import RoadMap, WindowIndex, new_road_map, variant_for
 from mapping.road_mesh import RoadMesh, build_road_mesh, locate
 from mapping.row_sparse_adam import RowSparseAdam
 from mapping.scene_data import CameraModel, GroundTruth, Keyframe, Trajectory
@@ -54,7 +54,7 @@ class FastPathSettings:
     samples_per_image: int = 16384  # pixels rendered per image per visit (a jittered grid)
     elevation_lattice_m: float = 0.5  # residual MLP lattice; 0 = at every vertex
     proxy_side_m: float = 0.8  # coarse mesh rasterised to find what each pixel sees
-    lidar_vertices_per_step: int = 4096  # Lidar-supervised vertices drawn from the window per step
+    lidar_vertices_per_step: int = 16384  # Lidar-supervised vertices per step, from the stretch in view
     newton_steps: int = 1  # ray / fine-surface refinements after the proxy hit
 
 
@@ -171,12 +171,15 @@ class _Optimisation:
             sup = [self.exact_supervision(kf, faces) for kf in batch]
         else:
             sup = [self.fast_supervision(kf, s_lo, s_hi) for kf in batch]
+        touched = np.unique(np.concatenate([s.tri.ravel() for s in sup]))
+        if not self.faithful and len(touched):  # Lidar over the stretch the batch sees (same lattice cells)
+            seen_s = self.map.mesh.s[touched]
+            s_lo, s_hi = max(s_lo, float(seen_s.min())), min(s_hi, float(seen_s.max()))
         a, b = np.searchsorted(self.lidar_s, [s_lo, s_hi])
         lidar_sel = self.lidar_order[a:b]
         if not self.faithful and len(lidar_sel) > self.fast.lidar_vertices_per_step:
             lidar_sel = self.rng.choice(lidar_sel, self.fast.lidar_vertices_per_step, replace=False)
         lidar_ids = self.lidar_ids[lidar_sel]
-        touched = np.unique(np.concatenate([s.tri.ravel() for s in sup]))
         ids = window if self.faithful else np.unique(np.concatenate([touched, lidar_ids]))
         self.lookup[ids] = np.arange(len(ids))
         try:
@@ -192,30 +195,34 @@ class _Optimisation:
         logits_v = None
         if rm.semantic_logits is not None:
             logits_v = rm.semantic_logits[ids].clone().requires_grad_(True)
-        rgb_parts, target_parts, logit_parts, label_parts = [], [], [], []
-        for cam_name in dict.fromkeys(s.camera.name for s in sup):
-            cam_sup = [s for s in sup if s.camera.name == cam_name and len(s.pixels)]
-            if not cam_sup:
-                continue
-            local = [self.lookup[s.tri] for s in cam_sup]
-            rows = np.arange(len(ids)) if self.faithful else np.unique(np.concatenate(local).ravel())
-            colours = rm.decoder.decode(codes[rows], cam_name)
-            for s, loc in zip(cam_sup, local, strict=True):
-                w = pixel_weights(rm, s.keyframe, s.camera, s.pixels, s.tri, z[loc])
-                pos = loc if self.faithful else np.searchsorted(rows, loc)
-                rgb_parts.append((colours[pos] * w[..., None]).sum(1))
-                target_parts.append(torch.from_numpy(s.keyframe.image.reshape(-1, 3)[s.pixels]).float() / 255)
-                if logits_v is not None:
-                    logit_parts.append((logits_v[loc] * w[..., None]).sum(1))
-                    label_parts.append(torch.from_numpy(s.keyframe.semantics.ravel()[s.pixels].astype(np.int64)))
+        sup = [s for s in sup if len(s.pixels)]
         terms: dict[str, torch.Tensor] = {}
-        if rgb_parts:
-            rgb = torch.cat(rgb_parts)
-            terms["rgb"] = w_cfg.rgb * losses.colour_l1(rgb, torch.cat(target_parts), torch.ones(len(rgb), dtype=bool))
-        if logit_parts:
-            lg = torch.cat(logit_parts)
-            terms["semantics"] = w_cfg.semantics * losses.semantic_ce(lg, torch.cat(label_parts),
-                                                                      torch.ones(len(lg), dtype=bool))
+        if sup:
+            # all batch pixels at once: rays, triangles relative to their camera, targets
+            tri = np.concatenate([s.tri for s in sup])
+            loc = self.lookup[tri]
+            origins = np.concatenate([np.repeat(s.keyframe.T_world_camera[None, :3, 3], len(s.pixels), 0) for s in sup])
+            rays = np.concatenate([world_rays(s.keyframe.T_world_camera, pixel_rays(s.camera)[s.pixels]) for s in sup])
+            rel_xy = torch.from_numpy((rm.mesh.xy[tri] - origins[:, None, :2]).astype(np.float32))
+            rel_z = z[loc] - torch.from_numpy(origins[:, 2:3].astype(np.float32))
+            w, _ = ray_triangle_weights(torch.from_numpy(rays.astype(np.float32)),
+                                        torch.cat([rel_xy, rel_z[..., None]], -1))
+            colour_rows, offset, pos = [], 0, np.empty_like(loc)
+            sample_cam = np.concatenate([[s.camera.name] * len(s.pixels) for s in sup])
+            for cam_name in dict.fromkeys(s.camera.name for s in sup):
+                mine = sample_cam == cam_name
+                rows = np.arange(len(ids)) if self.faithful else np.unique(loc[mine])
+                colour_rows.append(rm.decoder.decode(codes[rows], cam_name))
+                pos[mine] = offset + np.searchsorted(rows, loc[mine])
+                offset += len(rows)
+            rgb = (torch.cat(colour_rows)[pos] * w[..., None]).sum(1)
+            target = np.concatenate([s.keyframe.image.reshape(-1, 3)[s.pixels] for s in sup])
+            everywhere = torch.ones(len(rgb), dtype=torch.bool)
+            terms["rgb"] = w_cfg.rgb * losses.colour_l1(rgb, torch.from_numpy(target).float() / 255, everywhere)
+            if logits_v is not None:
+                logits = (logits_v[loc] * w[..., None]).sum(1)
+                labels = np.concatenate([s.keyframe.semantics.ravel()[s.pixels] for s in sup]).astype(np.int64)
+                terms["semantics"] = w_cfg.semantics * losses.semantic_ce(logits, torch.from_numpy(labels), everywhere)
         if rm.elevation is not None:
             if len(lidar_ids):
                 terms["elevation"] = w_cfg.elevation * losses.elevation_l1(

@@ -27,6 +27,7 @@ class RowSparseAdam:
         self.last = torch.zeros(0, dtype=torch.int64)  # global step of each row's last update
         self.used = 0
         self.t = 0  # global step count
+        self._cum = torch.zeros(0, _EXACT_IDLE + 1, dtype=torch.float64)
 
     def _slots(self, rows: torch.Tensor) -> torch.Tensor:
         new = rows[self.slot[rows] < 0]
@@ -53,16 +54,29 @@ class RowSparseAdam:
         rows, s, last, k = rows[idle], s[idle], last[idle], k[idle].to(self.m.dtype)
         m, v = self.m[s], self.v[s]
         r = b1 / b2**0.5
-        j = torch.arange(1, _EXACT_IDLE + 1, dtype=self.m.dtype)
-        step = (last[:, None] + j[None, :]).to(self.m.dtype)  # global index of each idle step
-        bias = (1 - b2**step).sqrt() / (1 - b1**step)
-        series = ((r**j) * bias * (j <= k[:, None])).sum(1)
+        cum = self._idle_sums(until)
+        head = cum[last, k.clamp(max=_EXACT_IDLE).long()]
         extra = (k - _EXACT_IDLE).clamp(min=0)
-        series = series + bias[:, -1] * r ** (_EXACT_IDLE + 1) * (1 - r**extra) / (1 - r)
+        first_tail = (last + _EXACT_IDLE + 1).to(torch.float64)
+        tail_bias = (1 - b2**first_tail).sqrt() / (1 - b1**first_tail)
+        series = (head + tail_bias * r ** (_EXACT_IDLE + 1) * (1 - r**extra) / (1 - r)).to(self.m.dtype)
         self.table[rows] -= (self.lr * series)[:, None] * m / (v.sqrt() + self.eps)
         self.m[s] = m * (b1**k)[:, None]
         self.v[s] = v * (b2**k)[:, None]
         self.last[s] = until - 1
+
+    def _idle_sums(self, until: int) -> torch.Tensor:
+        """cum[a, k] = sum_{j=1..k} r^j * bias(a + j): the displacement (in units of lr m / sqrt(v)) of
+        k idle steps after global step a, for a < until and k <= _EXACT_IDLE."""
+        if len(self._cum) < until:
+            b1, b2 = self.betas
+            n = max(until, 2 * len(self._cum), 256)
+            step = torch.arange(n, dtype=torch.float64)[:, None] + torch.arange(1, _EXACT_IDLE + 1)[None, :]
+            bias = (1 - b2**step).sqrt() / (1 - b1**step)
+            r = b1 / b2**0.5
+            terms = (r ** torch.arange(1, _EXACT_IDLE + 1, dtype=torch.float64)) * bias
+            self._cum = torch.cat([torch.zeros(n, 1, dtype=torch.float64), terms.cumsum(1)], 1)
+        return self._cum
 
     def step(self, rows: torch.Tensor, grad: torch.Tensor) -> None:
         """One global step; rows: unique row ids (M,) that have a gradient (M, D)."""
