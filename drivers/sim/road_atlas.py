@@ -207,6 +207,5 @@ def paint_atlas(road: RoadSpec, length: float, rng: np.random.Generator) -> Road
     for c in range(3):
         channel = PALETTE[:, c][material]
         channel *= texture
-        np.clip(channel * 255.0 + 0.5, 0, 255, out=channel)
-        albedo[..., c] = channel
+        albedo[..., c] = cv2.convertScaleAbs(channel, alpha=255.0, beta=0.5)
     return RoadAtlas(s0=0.0, t0=-HALF_WIDTH_M, res=ATLAS_RES_M, albedo=albedo, semantic=classes)

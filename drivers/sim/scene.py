@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from daemon.config import CarConfig
@@ -48,16 +49,16 @@ def _daylight_atlas(world: RoadWorld, sun: np.ndarray) -> np.ndarray:
     grade = np.interp(s, cl.s, cl.grade)
     cross = world.cross
     slope = np.interp(t, cross.t0 + CROSS_STEP_M * np.arange(len(cross.slope)), cross.slope)
-    # normal ~ up - grade * tangent - slope * left normal
+    # normal ~ up - grade * tangent - slope * left normal; shade = ambient + sun * max(0, n . sun)
     l_t = (sun[0] * tx + sun[1] * ty).astype(np.float32)  # sun along the tangent, per row
     l_n = (-sun[0] * ty + sun[1] * tx).astype(np.float32)  # along the left normal
-    dot = sun[2] - (grade * l_t)[:, None] - l_n[:, None] * slope[None, :].astype(np.float32)
-    norm = np.sqrt(1.0 + (grade ** 2)[:, None].astype(np.float32) + (slope ** 2)[None, :].astype(np.float32))
-    shade = light.ambient + light.sun * np.maximum(dot / norm, 0)
-    lit = np.empty_like(atlas.albedo)
-    for c in range(3):
-        lit[..., c] = np.clip(atlas.albedo[..., c] * shade + 0.5, 0, 255)
-    return lit
+    slope32 = slope.astype(np.float32)[None, :]
+    dot = np.float32(sun[2]) - (grade.astype(np.float32) * l_t)[:, None] - l_n[:, None] * slope32
+    norm = 1.0 / np.sqrt(np.float32(1.0) + (grade.astype(np.float32) ** 2)[:, None] + slope32 ** 2)
+    np.multiply(dot, norm, out=dot)
+    np.maximum(dot, 0, out=dot)
+    shade = cv2.convertScaleAbs(dot, alpha=128.0 * light.sun, beta=128.0 * light.ambient)  # 128 = 1.0
+    return cv2.multiply(atlas.albedo, cv2.merge([shade, shade, shade]), scale=1.0 / 128)
 
 
 def build_scene(scenario: Scenario, config: CarConfig, seconds: float, seed: int | None = None) -> Scene:
