@@ -11,8 +11,9 @@ Ground truth (PATH.gt.npz), all in the scenario's local ENU frame:
   albedo (rows, cols, 3) uint8 linear RGB * 255; row i spans y = origin_y + [i, i+1) * res, column j x.
   trajectory_host_mono_ns, trajectory_position_enu (N, 3) of the vehicle reference point,
   trajectory_quaternion_xyzw (N, 4) vehicle -> ENU, at 200 Hz on the log's host monotonic clock;
-  lidar_points_enu (M, 3) float32 true road-surface points hit by the Lidar (noise-free, every
-  LIDAR_GT_EVERY-th scan) and lidar_points_class (M,); host_mono_at_start_ns, utc_start_ns.
+  lidar_points_enu (M, 3) float32 true road-surface points hit by the Lidar inside the grids' corridor
+  (noise-free, every LIDAR_GT_EVERY-th scan) and lidar_points_class (M,); host_mono_at_start_ns,
+  utc_start_ns (the log's host monotonic and UTC clocks at the drive's start).
 """
 
 from __future__ import annotations
@@ -315,9 +316,16 @@ def simulate_drive(scenario: str, seconds: float | None, out: Path, config: CarC
 def _write_ground_truth(scene: Scene, frame: LocalFrame, path: Path, points: list[np.ndarray],
                         classes: list[np.ndarray], utc0: int) -> None:
     ego = scene.ego
-    s_lo = float(ego.s[0]) - 20.0
+    s_lo = max(float(ego.s[0]) - 50.0, 0.0)
     s_hi = min(float(ego.s[-1]) + 60.0, scene.world.length_m)
     grids = ground_truth_grids(scene.world, (s_lo, s_hi))
+    hits = np.concatenate(points) if points else np.zeros((0, 3), np.float32)
+    hit_classes = np.concatenate(classes) if classes else np.zeros(0, np.uint8)
+    rows, cols = grids.elevation.shape
+    j = np.floor((hits[:, 0] - grids.origin_xy[0]) / grids.resolution).astype(np.int64)
+    i = np.floor((hits[:, 1] - grids.origin_xy[1]) / grids.resolution).astype(np.int64)
+    inside = (i >= 0) & (i < rows) & (j >= 0) & (j < cols)
+    inside[inside] = np.isfinite(grids.elevation[i[inside], j[inside]])  # within the mapped corridor
     times = np.arange(0.0, scene.seconds, 1.0 / TRAJECTORY_HZ)
     _, pos = ego.pose(times)
     np.savez(
@@ -333,8 +341,8 @@ def _write_ground_truth(scene: Scene, frame: LocalFrame, path: Path, points: lis
         trajectory_host_mono_ns=HOST_MONO_AT_START_NS + np.rint(times * 1e9).astype(np.int64),
         trajectory_position_enu=pos,
         trajectory_quaternion_xyzw=ego.quaternion_xyzw(times),
-        lidar_points_enu=np.concatenate(points) if points else np.zeros((0, 3), np.float32),
-        lidar_points_class=np.concatenate(classes) if classes else np.zeros(0, np.uint8),
+        lidar_points_enu=hits[inside],
+        lidar_points_class=hit_classes[inside],
         host_mono_at_start_ns=np.array(HOST_MONO_AT_START_NS),
         utc_start_ns=np.array(utc0),
     )
