@@ -23,8 +23,9 @@ def scene():
 @pytest.fixture(scope="module")
 def fast_run(scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("map")
-    result = reconstruct(scene.keyframes, scene.cameras, scene.trajectory, scene.lidar, CONFIG,
-                         scene.reference_height_m, out, gt=scene.gt, holdout_every=5, progress=False)
+    result = reconstruct(scene.keyframes, scene.cameras, scene.trajectory, scene.lidar,
+                         CONFIG.model_copy(update={"epochs": 10}), scene.reference_height_m, out, gt=scene.gt,
+                         holdout_every=5, progress=False)
     return result, out
 
 
@@ -38,7 +39,7 @@ def test_loss_falls_and_elevation_error_shrinks(scene, fast_run):
     start_cm = elev_mae_gt_cm(initial, scene.gt)
     initial.z_now[:] = before
     assert start_cm > 5.0  # the crossfall is not in the trajectory-based z0
-    assert m["elev_mae_gt_cm"] < 0.75 * start_cm  # 40 steps; it reaches ~1 cm with 20 epochs
+    assert m["elev_mae_gt_cm"] < 0.75 * start_cm  # 80 steps; it reaches ~1 cm with 20 epochs
     assert m["elev_error_cm"] < 0.75 * start_cm
     assert m["psnr_db"] > 18.0 and m["miou_pct"] > 40.0
     assert m["keyframes_holdout"] > 0 and m["realtime_factor"] > 0
