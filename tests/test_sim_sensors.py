@@ -13,7 +13,7 @@ from pyubx2 import UBXReader
 from daemon.config import load_config
 from drivers.sim import can_sim, gnss_sim, imu_sim
 from drivers.sim.camera_renderer import camera_pose, camera_rig, project_points, render_view
-from drivers.sim.camera_response import expose, tone_lut, vignetting_map
+from drivers.sim.camera_response import expose, vignetting_map
 from drivers.sim.lidar_sim import lidar_rig, scan_packets, simulate_scan
 from drivers.sim.road_world import height_st, road_point, surface_height
 from drivers.sim.scenarios import load_scenario
@@ -34,8 +34,7 @@ def city():
 def _image(scene, cam, view, seed=0):
     vignette = vignetting_map(cam.width, cam.height, cam.intrinsics.cx, cam.intrinsics.cy, cam.photometry.vignetting)
     light = scene.scenario.lighting
-    return expose(view.radiance, cam.photometry, vignette, tone_lut(cam.photometry.gamma), light.exposure,
-                  light.noise_scale, np.random.default_rng(seed))
+    return expose(view.radiance, cam.photometry, vignette, light.exposure, light.noise_scale, seed)
 
 
 def _marking_points(scene, s_lo, s_hi):

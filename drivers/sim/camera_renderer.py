@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 
 from daemon.config import CameraConfig
+from drivers.sim.linear_maps import apply_matrix
 from drivers.sim.road_world import albedo_uv, semantic_uv
 from drivers.sim.scene import HEADLIGHT_DIP_DEG, HEADLIGHT_POSITION, Scene
 from drivers.sim.surface_raycast import MAX_RANGE_M, march, refine
@@ -93,9 +94,11 @@ def _ground(scene: Scene, rig: CameraRig, origin: np.ndarray, dirs: np.ndarray
     coarse = march(scene.world, origin, np.ascontiguousarray(grid))
     inverse = np.where(np.isfinite(coarse), 1.0 / coarse, 0.0).astype(np.float32)
     inverse = inverse.reshape(len(rig.coarse_rows), len(rig.coarse_cols))
-    guess = cv2.remap(inverse, rig.upsample_u, rig.upsample_v, cv2.INTER_LINEAR).ravel()
+    guess = cv2.remap(inverse, rig.upsample_u, rig.upsample_v, cv2.INTER_LINEAR)
     t0 = np.where(guess > 1.0 / MAX_RANGE_M, 1.0 / np.maximum(guess, 1e-6), MAX_RANGE_M).astype(np.float32)
-    return refine(scene.world, origin, dirs, t0, iterations=1)
+    # In the image's own (H, W) shape the lookups need no reshaping for OpenCV.
+    t, u, v, hit = refine(scene.world, origin, dirs.reshape(h, w, 3), t0, iterations=1)
+    return t.ravel(), u.ravel(), v.ravel(), hit.ravel()
 
 
 def _cars(rig: CameraRig, cars: CarBoxes, rot: np.ndarray, origin: np.ndarray, dirs: np.ndarray,
@@ -135,9 +138,10 @@ def _cars(rig: CameraRig, cars: CarBoxes, rot: np.ndarray, origin: np.ndarray, d
         pix, t, face = pix[nearer], t[nearer], face[nearer]
         depth[pix] = t
         index[pix] = i
-        normal[pix] = face @ cars.rotation[i].T.astype(np.float32)
-        local_z = ((origin + t[:, None] * dirs[pix]) - cars.centre[i]) @ cars.rotation[i][:, 2]
-        height[pix] = (local_z / cars.half[i][2]).astype(np.float32)
+        normal[pix] = apply_matrix(face, cars.rotation[i])
+        up = cars.rotation[i][:, 2].astype(np.float32)
+        local_z = (origin - cars.centre[i].astype(np.float32)) @ up + t * (dirs[pix] @ up)
+        height[pix] = local_z / np.float32(cars.half[i][2])
     return index, normal, height
 
 
@@ -165,7 +169,7 @@ def render_view(scene: Scene, rig: CameraRig, time_s: float) -> RenderedView:
     h, w = cfg.height, cfg.width
     rot, origin = camera_pose(scene, rig, time_s)
     origin32 = origin.astype(np.float32)
-    dirs = rig.rays @ rot.T.astype(np.float32)
+    dirs = apply_matrix(rig.rays, rot)
     t, u, v, hit = _ground(scene, rig, origin32, dirs)
     np.nan_to_num(u, copy=False)
     np.nan_to_num(v, copy=False)

@@ -9,37 +9,44 @@ import numpy as np
 from daemon.config import CameraPhotometry
 
 LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
-LUT_SIZE = 4096
+ZERO = (0.0, 0.0, 0.0, 0.0)
+ONE = (1.0, 1.0, 1.0, 1.0)
 
 
 def vignetting_map(width: int, height: int, cx: float, cy: float, strength: float) -> np.ndarray:
-    """Relative illumination (H, W, 1): 1 at the principal point, 1 - strength at the farthest corner."""
+    """Relative illumination (H, W, 3): 1 at the principal point, 1 - strength at the farthest corner."""
     u, v = np.meshgrid(np.arange(width, dtype=np.float32) + 0.5, np.arange(height, dtype=np.float32) + 0.5)
     r2 = (u - cx) ** 2 + (v - cy) ** 2
-    return (1.0 - strength * r2 / r2.max())[..., None].astype(np.float32)
+    falloff = (1.0 - strength * r2 / r2.max()).astype(np.float32)
+    return np.repeat(falloff[..., None], 3, axis=2)
 
 
-def tone_lut(gamma: float) -> np.ndarray:
-    """Linear exposure 0..1 (LUT_SIZE steps) -> 8-bit value, sRGB-like 1/2.2 power scaled by gamma."""
-    x = np.linspace(0.0, 1.0, LUT_SIZE, dtype=np.float64)
-    return (255.0 * x ** (1.0 / (2.2 * gamma))).astype(np.float32)
+def colour_matrix(photometry: CameraPhotometry, exposure: float) -> np.ndarray:
+    """3x3 matrix applying exposure, gain and white balance, then saturation about the luma."""
+    s = photometry.saturation
+    saturate = s * np.eye(3) + (1.0 - s) * np.outer(np.ones(3), LUMA)
+    wb = np.diag(np.asarray(photometry.white_balance) * exposure * photometry.gain)
+    return (saturate @ wb).astype(np.float32)
 
 
-def expose(radiance: np.ndarray, photometry: CameraPhotometry, vignette: np.ndarray, lut: np.ndarray,
-           exposure: float, noise_scale: float, rng: np.random.Generator) -> np.ndarray:
-    """Scene radiance (H, W, 3) -> the camera's 8-bit RGB image."""
-    wb = np.asarray(photometry.white_balance, np.float32) * np.float32(exposure * photometry.gain)
-    x = radiance * wb
-    if photometry.saturation != 1.0:
-        y = (x @ LUMA)[..., None]
-        x = y + np.float32(photometry.saturation) * (x - y)
-    x *= vignette
-    index = np.clip(x * (LUT_SIZE - 1), 0, LUT_SIZE - 1).astype(np.int16)
-    value = lut[index]
+def expose(radiance: np.ndarray, photometry: CameraPhotometry, vignette: np.ndarray, exposure: float,
+           noise_scale: float, seed: int) -> np.ndarray:
+    """Scene radiance (H, W, 3) -> the camera's 8-bit RGB image (noise drawn from OpenCV's RNG, seeded)."""
+    x = cv2.transform(radiance, colour_matrix(photometry, exposure))
+    x = cv2.multiply(x, vignette)
+    x = cv2.min(cv2.max(x, ZERO), ONE)  # (a bare float would be a scalar for the first channel only)
+    x = cv2.pow(x, 1.0 / (2.2 * photometry.gamma))
     sigma = photometry.noise_sigma * noise_scale
+    out = np.empty(radiance.shape, np.uint8)
     if sigma > 0:
-        value += rng.standard_normal(value.shape, dtype=np.float32) * np.float32(sigma)
-    return np.clip(value + 0.5, 0, 255).astype(np.uint8)
+        noise = np.empty(radiance.shape, np.float32)
+        cv2.setRNGSeed(seed)
+        cv2.randn(noise, (0.0, 0.0, 0.0), (sigma, sigma, sigma))
+        cv2.scaleAdd(x, 255.0, noise, dst=noise)
+        cv2.convertScaleAbs(cv2.max(noise, ZERO), dst=out)
+    else:
+        cv2.convertScaleAbs(x, dst=out, alpha=255.0)
+    return out
 
 
 def encode_jpeg(rgb: np.ndarray, quality: int) -> bytes:

@@ -19,6 +19,7 @@ from drivers.lidar.ouster_metadata import (
 )
 from drivers.lidar.ouster_packet_layout import OusterPacketLayout, packet_layout
 from drivers.lidar.ouster_xyz import make_xyz_lut
+from drivers.sim.linear_maps import apply_matrices
 from drivers.sim.road_world import albedo_uv, semantic_uv
 from drivers.sim.scene import Scene
 from drivers.sim.surface_raycast import march, refine
@@ -85,9 +86,8 @@ def world_rays(scene: Scene, rig: LidarRig, times: np.ndarray) -> tuple[np.ndarr
     rot_v, pos_v = scene.ego.pose(times)
     rot = rot_v @ rig.sensor_to_vehicle[:3, :3]
     pos = pos_v + rot_v @ rig.sensor_to_vehicle[:3, 3]
-    rot32 = rot.astype(np.float32)
-    dirs = np.einsum("wij,whj->whi", rot32, rig.direction)
-    origins = np.einsum("wij,whj->whi", rot32, rig.offset) + pos.astype(np.float32)[:, None, :]
+    dirs = apply_matrices(rig.direction, rot)
+    origins = apply_matrices(rig.offset, rot) + pos.astype(np.float32)[:, None, :]
     return origins, dirs
 
 
@@ -117,29 +117,41 @@ def _surface(scene: Scene, origins: np.ndarray, dirs: np.ndarray
 
 def _cars(scene: Scene, rig: LidarRig, origins: np.ndarray, dirs: np.ndarray, mid_s: float,
           t: np.ndarray, cls: np.ndarray) -> None:
-    """Let the cars occlude: update distances t and classes in place."""
+    """Let the cars occlude: update distances t and classes in place. Only the columns and beams whose
+    azimuth and elevation can fall within a car's angular extent (seen from mid-sweep) are tested."""
     cars = car_boxes(scene.world, scene.traffic, scene.ego, mid_s)
-    w = dirs.shape[0]
-    centre = origins[w // 2, 0].astype(np.float64)
-    # Azimuth (ENU) of each column's middle beam, to pick the columns that can see a car.
-    col_az = np.arctan2(dirs[:, dirs.shape[1] // 2, 1], dirs[:, dirs.shape[1] // 2, 0])
+    w, h = dirs.shape[:2]
+    centre = origins[w // 2, h // 2].astype(np.float64)
+    middle = dirs[:, h // 2]
+    column_az = np.arctan2(middle[:, 1], middle[:, 0])  # beams stagger +-4.2 degrees about it
+    beam_el = np.arcsin(np.clip(dirs[w // 2, :, 2], -1, 1))  # the car's pitch and roll tilt it a little
+    az_margin, el_margin = np.radians(6.0), np.radians(4.0)
     for i in range(len(cars.centre)):
         d = cars.centre[i] - centre
-        dist = np.linalg.norm(d[:2])
-        if dist > CAR_RANGE_M:
+        if np.linalg.norm(d[:2]) > CAR_RANGE_M:
             continue
-        spread = np.arctan2(np.linalg.norm(cars.half[i][:2]) + 0.5, max(dist, 0.1)) + np.radians(5.0)
-        az = np.arctan2(d[1], d[0])
-        near = np.abs((col_az - az + np.pi) % (2 * np.pi) - np.pi) < (spread if dist > 3 else np.pi)
-        if not near.any():
+        corners = cars.centre[i] + (_BOX_SIGNS * cars.half[i]) @ cars.rotation[i].T - centre
+        flat = np.hypot(corners[:, 0], corners[:, 1])
+        if flat.min() < 0.5:
+            continue  # the sensor is above the car (never: it rides on our own roof)
+        az0 = np.arctan2(d[1], d[0])
+        rel = (np.arctan2(corners[:, 1], corners[:, 0]) - az0 + np.pi) % (2 * np.pi) - np.pi
+        el = np.arctan2(corners[:, 2], flat)
+        off = (column_az - az0 + np.pi) % (2 * np.pi) - np.pi - (rel.max() + rel.min()) / 2
+        cols = np.flatnonzero(np.abs(off) < (rel.max() - rel.min()) / 2 + az_margin)
+        beams = np.flatnonzero((beam_el > el.min() - el_margin) & (beam_el < el.max() + el_margin))
+        if not len(cols) or not len(beams):
             continue
-        o = origins[near].reshape(-1, 3)
-        r = dirs[near].reshape(-1, 3)
-        hit_t, _ = ray_box_hits(o, r, cars.centre[i], cars.rotation[i], cars.half[i])
-        hit_t = hit_t.reshape(-1, dirs.shape[1])
-        closer = hit_t < t[near]
-        t[near] = np.where(closer, hit_t, t[near])
-        cls[near] = np.where(closer, SemanticClass.OBSTACLE, cls[near])
+        sel = np.ix_(cols, beams)
+        hit_t, _ = ray_box_hits(origins[sel].reshape(-1, 3), dirs[sel].reshape(-1, 3), cars.centre[i],
+                                cars.rotation[i], cars.half[i])
+        hit_t = hit_t.reshape(len(cols), len(beams))
+        closer = hit_t < t[sel]
+        t[sel] = np.where(closer, hit_t, t[sel])
+        cls[sel] = np.where(closer, SemanticClass.OBSTACLE, cls[sel])
+
+
+_BOX_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
 
 
 def simulate_scan(scene: Scene, rig: LidarRig, frame_id: int, start_s: float, rng: np.random.Generator

@@ -15,9 +15,12 @@ STEP_TOLERANCE_M = 0.25  # a ray that ends this close to the surface hit a step 
 
 def _gap(world: RoadWorld, origin: np.ndarray, directions: np.ndarray, t: np.ndarray):
     """Height of the ray point above the surface at distance t, and the point's atlas coordinates."""
-    x = origin[..., 0] + t * directions[..., 0]
-    y = origin[..., 1] + t * directions[..., 1]
-    z = origin[..., 2] + t * directions[..., 2]
+    x = t * directions[..., 0]
+    x += origin[..., 0]
+    y = t * directions[..., 1]
+    y += origin[..., 1]
+    z = t * directions[..., 2]
+    z += origin[..., 2]
     u, v = surface_uv(world, x, y)
     return z - height_uv(world, u, v), u, v
 

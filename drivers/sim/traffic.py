@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.sim.ego_trajectory import EgoTrajectory
+from drivers.sim.linear_maps import apply_matrix
 from drivers.sim.road_atlas import lane_centre, lane_forward
 from drivers.sim.road_world import RoadWorld, centreline_frame, height_st, road_point
 
@@ -119,22 +120,20 @@ def ray_box_hits(origin: np.ndarray, directions: np.ndarray, centre: np.ndarray,
     """Distance along each ray to one box (inf where missed) and the hit face's normal in the box frame.
 
     origin (3,) or (N, 3), directions (N, 3) (any length: the distance is in units of the direction)."""
-    rt = rotation.astype(np.float32)
-    o = ((np.asarray(origin, np.float32) - centre.astype(np.float32)) @ rt)
-    d = directions @ rt
+    rt = rotation.T
+    o = apply_matrix(np.atleast_2d(np.asarray(origin, np.float32) - centre.astype(np.float32)), rt)
+    d = apply_matrix(directions, rt)
+    h = half.astype(np.float32)
     with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / d
-        t1 = (-half.astype(np.float32) - o) * inv
-        t2 = (half.astype(np.float32) - o) * inv
+        inv = np.float32(1.0) / d
+        t1 = (-h - o) * inv
+        t2 = (h - o) * inv
     near = np.minimum(t1, t2)
     far = np.maximum(t1, t2)
-    near = np.nan_to_num(near, nan=-np.inf)
-    far = np.nan_to_num(far, nan=np.inf)
     t_enter = near.max(axis=-1)
-    t_exit = far.min(axis=-1)
-    hit = (t_enter <= t_exit) & (t_enter > 0)
-    axis = near.argmax(axis=-1)
+    hit = (t_enter <= far.min(axis=-1)) & (t_enter > 0)
+    rows = np.flatnonzero(hit)
     normal = np.zeros(directions.shape, np.float32)
-    rows = np.arange(len(directions))
+    axis = near[rows].argmax(axis=-1)
     normal[rows, axis] = -np.sign(d[rows, axis])
-    return np.where(hit, t_enter, np.inf).astype(np.float32), normal
+    return np.where(hit, t_enter, np.float32(np.inf)), normal
