@@ -97,7 +97,7 @@ def _ground(scene: Scene, rig: CameraRig, origin: np.ndarray, dirs: np.ndarray
     guess = cv2.remap(inverse, rig.upsample_u, rig.upsample_v, cv2.INTER_LINEAR)
     t0 = np.where(guess > 1.0 / MAX_RANGE_M, 1.0 / np.maximum(guess, 1e-6), MAX_RANGE_M).astype(np.float32)
     # In the image's own (H, W) shape the lookups need no reshaping for OpenCV.
-    t, u, v, hit = refine(scene.world, origin, dirs.reshape(h, w, 3), t0, iterations=1)
+    t, u, v, hit = refine(scene.world, origin, dirs.reshape(h, w, 3), t0, iterations=2)
     return t.ravel(), u.ravel(), v.ravel(), hit.ravel()
 
 

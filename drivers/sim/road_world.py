@@ -181,18 +181,19 @@ def build_world(scenario: Scenario, seed: int | None = None) -> RoadWorld:
 
 # --- lookups (float32, through cv2.remap: bilinear weights in 1/32 steps of a cell) ---------------
 
-def _remap(image: np.ndarray, u: np.ndarray, v: np.ndarray, interpolation: int) -> np.ndarray:
+def _remap(image: np.ndarray, u: np.ndarray, v: np.ndarray, interpolation: int,
+           border: int = cv2.BORDER_REFLECT) -> np.ndarray:
     """cv2.remap for maps of any shape (OpenCV wants 2-D maps under 32767 on a side)."""
     shape = u.shape
     if u.ndim == 2 and max(shape) < 32767:
-        return cv2.remap(image, u, v, interpolation, borderMode=cv2.BORDER_REFLECT)
+        return cv2.remap(image, u, v, interpolation, borderMode=border)
     n = u.size
     width = 4096
     rows = -(-n // width)
     pad = rows * width - n
     uu = np.pad(u.ravel(), (0, pad)).reshape(rows, width)
     vv = np.pad(v.ravel(), (0, pad)).reshape(rows, width)
-    out = cv2.remap(image, uu, vv, interpolation, borderMode=cv2.BORDER_REFLECT)
+    out = cv2.remap(image, uu, vv, interpolation, borderMode=border)
     return out.reshape(rows * width, *out.shape[2:])[:n].reshape(*shape, *out.shape[2:])
 
 
@@ -200,7 +201,7 @@ def road_coordinates(world: RoadWorld, x: np.ndarray, y: np.ndarray) -> tuple[np
     """(s, t) of ENU points (any shape, float32)."""
     u = (np.asarray(x, np.float32) - np.float32(world.lookup_origin[0])) * np.float32(1 / LOOKUP_RES_M)
     v = (np.asarray(y, np.float32) - np.float32(world.lookup_origin[1])) * np.float32(1 / LOOKUP_RES_M)
-    st = _remap(world.lookup_st, u, v, cv2.INTER_LINEAR)
+    st = _remap(world.lookup_st, u, v, cv2.INTER_LINEAR, cv2.BORDER_REPLICATE)  # beyond: the verge goes on
     return st[..., 0], st[..., 1]
 
 
