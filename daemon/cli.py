@@ -12,6 +12,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "log-info": ("daemon.log_info", "summarise MCAP log files: topics, counts, time span, truncation"),
     "run": ("daemon.daemon_main:run_main", "run the daemon on the car's live sensors (what systemd starts)"),
     "replay": ("daemon.daemon_main:replay_main", "run the daemon with a log player instead of the drivers"),
+    "simulate": ("drivers.sim.drive_log", "simulate a drive (city, ramp, night) into a log with ground truth"),
+    "reconstruct": ("mapping.reconstruct_command", "EMIE-MAP road map of drive logs, with the paper's metrics"),
     "status-server": ("daemon.status_server", "serve the status endpoint alone (the daemon starts it itself)"),
 }
 

@@ -1,0 +1,238 @@
+"""From drive logs to the reconstruction's inputs: clock alignment, pose fusion, keyframes, Lidar ground.
+
+Every sensor has its own clock: each topic's stamps are put on the host monotonic clock
+(mapping.sensor_time). The trajectory comes from the log's `pose` topic when it has one, else
+from fusing its GNSS, IMU and wheel speeds (mapping.pose_fusion). Camera frames become keyframes
+every `keyframe_spacing_m` of travel (per camera); their poses are interpolated at the frame time.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from daemon.config import CarConfig, resolve_path
+from daemon.log_format import ReadReport, read_log
+from daemon.messages import (
+    CameraFrame,
+    GnssFix,
+    ImuSample,
+    LidarPacket,
+    SemanticMask,
+    TimeAnchor,
+    VehiclePose,
+    WheelSpeeds,
+)
+from daemon.topics import GNSS_FIX, IMU, LIDAR_PACKETS, POSE, TIME_ANCHOR, WHEEL_SPEEDS, camera_topic, mask_topic
+from drivers.lidar.ouster_metadata import parse_metadata
+from mapping import pose_fusion
+from mapping.lidar_ground import GroundFilter, ground_points, lidar_world_points
+from mapping.local_frame import LocalFrame
+from mapping.scene_data import CameraModel, Keyframe
+from mapping.scene_data import Trajectory as PathTrajectory
+from mapping.sensor_time import ClockMap, fit_clock
+from mapping.trajectory import Trajectory
+
+
+@dataclass
+class DriveInputs:
+    cameras: dict[str, CameraModel]
+    keyframes: list[Keyframe]
+    trajectory: Trajectory  # 6-DoF vehicle reference frame in ENU, host monotonic ns
+    lidar_ground_points: np.ndarray | None
+    clocks: dict[str, ClockMap]  # per topic: its sensor stamps -> host monotonic
+    counts: dict[str, int] = field(default_factory=dict)
+    report: ReadReport | None = None
+
+    @property
+    def path(self) -> PathTrajectory:
+        """The trajectory as the reconstruction takes it (seconds from the drive start, positions)."""
+        t0 = self.trajectory.times_ns[0]
+        return PathTrajectory((self.trajectory.times_ns - t0) / 1e9, self.trajectory.positions)
+
+    @property
+    def drive_s(self) -> float:
+        return float(self.trajectory.times_ns[-1] - self.trajectory.times_ns[0]) / 1e9
+
+
+def camera_models(config: CarConfig) -> dict[str, CameraModel]:
+    return {c.name: CameraModel(c.name, c.intrinsics.matrix(), tuple(c.distortion), c.width, c.height)
+            for c in config.sensors.cameras}
+
+
+def decode_image(frame: CameraFrame) -> np.ndarray:
+    """RGB uint8 pixels of a camera frame (JPEG/PNG or raw)."""
+    if frame.format in ("rgb8", "bgr8", "mono8"):
+        channels = 1 if frame.format == "mono8" else 3
+        img = np.frombuffer(bytes(frame.data), np.uint8).reshape(frame.height, frame.width, channels)
+        if frame.format == "bgr8":
+            img = img[..., ::-1]
+        return np.repeat(img, 3, axis=2) if channels == 1 else np.ascontiguousarray(img)
+    img = cv2.imdecode(np.frombuffer(bytes(frame.data), np.uint8), cv2.IMREAD_COLOR)
+    if img is None:
+        raise ValueError(f"cannot decode {frame.format} frame {frame.seq} of {frame.camera}")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def decode_mask(mask: SemanticMask) -> np.ndarray:
+    img = cv2.imdecode(np.frombuffer(bytes(mask.data), np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"cannot decode mask {mask.seq} of {mask.camera}")
+    return img
+
+
+def _by_sensor_time(messages: list) -> list:
+    """Messages sorted by their sensor time, repeated stamps dropped (arrival order may differ)."""
+    out, last = [], None
+    for m in sorted(messages, key=lambda m: m.sensor_time_ns):
+        if m.sensor_time_ns != last:
+            out.append(m)
+            last = m.sensor_time_ns
+    return out
+
+
+def fuse_log_trajectory(gnss: list[GnssFix], imu: list[ImuSample], wheels: list[WheelSpeeds], config: CarConfig,
+                        origin: LocalFrame | None, clocks: dict[str, ClockMap]) -> Trajectory:
+    """The vehicle trajectory from the log's GNSS, IMU and wheel speeds (host clock)."""
+    if not gnss or not imu or not wheels:
+        raise ValueError(f"pose fusion needs GNSS, IMU and wheel speeds (got {len(gnss)} fixes, {len(imu)} IMU "
+                         f"samples, {len(wheels)} wheel speeds) or a `pose` topic in the log")
+    g = config.sensors.gnss
+    gnss, imu, wheels = _by_sensor_time(gnss), _by_sensor_time(imu), _by_sensor_time(wheels)
+    fixes = pose_fusion.GnssFixes(
+        times_ns=clocks[GNSS_FIX].to_host([m.sensor_time_ns for m in gnss]),
+        lat_deg=np.array([m.latitude_deg for m in gnss]),
+        lon_deg=np.array([m.longitude_deg for m in gnss]),
+        alt_m=np.array([m.altitude_m for m in gnss]),
+        position_cov_enu=np.array([np.reshape(m.position_covariance, (3, 3)) for m in gnss]),
+    )
+    samples = pose_fusion.ImuSamples(
+        times_ns=clocks[IMU].to_host([m.sensor_time_ns for m in imu]),
+        accel=np.array([m.accel_mps2 for m in imu]),
+        gyro=np.array([m.gyro_rps for m in imu]),
+    )
+    yaw = np.array([m.yaw_rate_rps for m in wheels])
+    speeds = pose_fusion.WheelSpeeds(
+        times_ns=clocks[WHEEL_SPEEDS].to_host([m.sensor_time_ns for m in wheels]),
+        speeds=np.array([[m.front_left_mps, m.front_right_mps, m.rear_left_mps, m.rear_right_mps] for m in wheels]),
+        yaw_rate=None if np.all(np.isnan(yaw)) else yaw,
+    )
+    mounting = pose_fusion.VehicleMounting(
+        gnss_lever_arm=np.array(g.antenna_lever_arm_m, float),
+        imu_lever_arm=np.array(g.imu_extrinsics.translation_m, float),
+        rear_axle_lever_arm=np.array(config.vehicle.rear_axle_m, float),
+        imu_to_vehicle=g.imu_extrinsics.rotation_matrix(),
+    )
+    return pose_fusion.fuse_trajectory(fixes, samples, speeds, mounting, origin=origin).trajectory
+
+
+def _pose_trajectory(poses: list[VehiclePose], clock: ClockMap, origin: LocalFrame | None) -> Trajectory:
+    o = origin or LocalFrame(0.0, 0.0, 0.0)
+    return Trajectory(
+        times_ns=clock.to_host([p.sensor_time_ns for p in poses]),
+        positions=np.array([p.position_m for p in poses], float),
+        quaternions=np.array([p.orientation_xyzw for p in poses], float),
+        origin_lat_deg=o.lat_deg, origin_lon_deg=o.lon_deg, origin_alt_m=o.alt_m,
+    )
+
+
+def camera_pose(trajectory: Trajectory, t_ns: int, T_vehicle_camera: np.ndarray) -> np.ndarray:
+    """4x4 T_world_camera at one time."""
+    pos, quat = trajectory.interpolate(np.array([t_ns], np.int64))
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(quat[0]).as_matrix()
+    T[:3, 3] = pos[0]
+    return T @ T_vehicle_camera
+
+
+def load_drive(paths: list[str | Path], config: CarConfig, config_path: str | Path | None = None, *,
+               origin: LocalFrame | None = None, use_lidar: bool = True, keyframe_spacing_m: float | None = None,
+               lidar_every_n_scans: int = 2, ground_filter: GroundFilter | None = None) -> DriveInputs:
+    """Everything the reconstruction needs from the given log segments."""
+    report = ReadReport()
+    cams = [c.name for c in config.sensors.cameras]
+    frames: dict[str, list[CameraFrame]] = defaultdict(list)
+    masks: dict[str, dict[int, SemanticMask]] = defaultdict(dict)
+    gnss, imu, wheels, poses, lidar = [], [], [], [], []
+    wanted = {camera_topic(c) for c in cams} | {mask_topic(c) for c in cams}
+    wanted |= {GNSS_FIX, IMU, WHEEL_SPEEDS, POSE, TIME_ANCHOR}
+    anchors: list[tuple[int, int]] = []
+    if use_lidar and config.sensors.lidar is not None:
+        wanted.add(LIDAR_PACKETS)
+    host_sensor: dict[str, list[tuple[int, int]]] = defaultdict(list)
+    for rec in read_log(paths, topics=wanted, report=report):
+        m = rec.message
+        if isinstance(m, TimeAnchor):
+            anchors.append((m.host_mono_ns, m.utc_ns))
+            continue
+        host_sensor[rec.topic].append((m.host_mono_ns, m.sensor_time_ns))
+        if isinstance(m, CameraFrame):
+            frames[m.camera].append(m)
+        elif isinstance(m, SemanticMask):
+            masks[m.camera][m.sensor_time_ns] = m
+        elif isinstance(m, GnssFix):
+            gnss.append(m)
+        elif isinstance(m, ImuSample):
+            imu.append(m)
+        elif isinstance(m, WheelSpeeds):
+            wheels.append(m)
+        elif isinstance(m, VehiclePose):
+            poses.append(m)
+        elif isinstance(m, LidarPacket):
+            lidar.append(m)
+    clocks = {t: fit_clock([s for _, s in v], [h for h, _ in v], anchors) for t, v in host_sensor.items()}
+    if poses:
+        trajectory = _pose_trajectory(poses, clocks[POSE], origin)
+    else:
+        trajectory = fuse_log_trajectory(gnss, imu, wheels, config, origin, clocks)
+    spacing = config.mapper.keyframe_spacing_m if keyframe_spacing_m is None else keyframe_spacing_m
+    keyframes, counts = [], {"frames": 0, "frames_without_mask": 0, "frames_outside_trajectory": 0}
+    t0 = trajectory.times_ns[0]
+    for cam in config.sensors.cameras:
+        T_vc = cam.extrinsics.matrix()
+        last_s = -np.inf
+        for f in frames.get(cam.name, []):
+            counts["frames"] += 1
+            t = int(clocks[camera_topic(cam.name)].to_host([f.sensor_time_ns])[0])
+            if not trajectory.times_ns[0] <= t <= trajectory.times_ns[-1]:
+                counts["frames_outside_trajectory"] += 1
+                continue
+            s = float(trajectory.distance_at(np.array([t], np.int64))[0])
+            if s - last_s < spacing:
+                continue
+            mask = masks.get(cam.name, {}).get(f.sensor_time_ns)
+            if mask is None:
+                counts["frames_without_mask"] += 1
+                continue
+            last_s = s
+            keyframes.append(Keyframe(cam.name, (t - t0) / 1e9, camera_pose(trajectory, t, T_vc), decode_image(f),
+                                      decode_mask(mask)))
+    keyframes.sort(key=lambda k: k.timestamp)
+    ground = None
+    if lidar and config.sensors.lidar is not None:
+        meta_path = resolve_path(config_path or ".", config.sensors.lidar.metadata_file)
+        ground = lidar_ground_from_packets(lidar, clocks[LIDAR_PACKETS], parse_metadata(meta_path),
+                                           config, trajectory, lidar_every_n_scans, ground_filter or GroundFilter(
+                                               corridor_half_width_m=config.mapper.corridor_half_width_m))
+        counts["lidar_packets"] = len(lidar)
+        counts["lidar_ground_points"] = len(ground)
+    counts["keyframes"] = len(keyframes)
+    return DriveInputs(camera_models(config), keyframes, trajectory, ground, clocks, counts, report)
+
+
+def lidar_ground_from_packets(packets: list[LidarPacket], clock: ClockMap, metadata, config: CarConfig,
+                              trajectory: Trajectory, every_n_scans: int, settings: GroundFilter) -> np.ndarray:
+    """Ground points of every n-th Lidar scan (a scan = the packets of one frame id)."""
+    per_scan = metadata.packets_per_frame
+    T_vl = config.sensors.lidar.extrinsics.matrix()
+    out = []
+    for start in range(0, len(packets), per_scan * every_n_scans):
+        chunk = [bytes(p.data) for p in packets[start:start + per_scan]]
+        world = lidar_world_points(chunk, clock, metadata, T_vl, trajectory, settings)
+        out.append(ground_points(world, trajectory, config.vehicle.reference_height_m, settings))
+    return np.concatenate(out) if out else np.zeros((0, 3))

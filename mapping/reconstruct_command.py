@@ -1,0 +1,143 @@
+"""`roadlog reconstruct LOG... --out DIR`: EMIE-MAP on recorded drive logs, with the paper's metrics.
+
+The car's config comes from the logs' own metadata unless --config names one. With --gt (a simulated
+drive's PATH.gt.npz) the map is also measured against the truth: `elev_mae_gt_cm` against the true
+elevation grid and `miou_pct` against the true semantic grid (bird's-eye view, cells the map observed);
+without it `miou_pct` compares rendered semantics with the segmentation masks of held-out frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from daemon.config import CarConfig, ConfigError, config_to_yaml, load_config, parse_config
+from daemon.log_format import read_metadata
+from mapping.drive_inputs import DriveInputs, load_drive
+from mapping.local_frame import LocalFrame
+from mapping.map_metrics import confusion, miou_pct, observed_triangles
+from mapping.reconstruction import ReconstructionResult, reconstruct
+from mapping.road_map import ABLATIONS, RoadMap
+from mapping.scene_data import GroundTruth
+from mapping.semantic_classes import NUM_MAP_CLASSES
+
+
+@dataclass(frozen=True)
+class DriveTruth:
+    """A simulated drive's ground truth (drivers/sim writes it beside the log)."""
+
+    origin: LocalFrame
+    elevation: GroundTruth
+    semantic: np.ndarray  # (H, W) uint8 class ids on the elevation grid
+    lidar_points: np.ndarray  # (N, 3) true road-surface points hit by the Lidar
+
+    @staticmethod
+    def load(path: str | Path) -> DriveTruth:
+        gt = np.load(path)
+        origin_xy = tuple(float(v) for v in gt["grid_origin_xy"])
+        res = float(gt["grid_resolution_m"])
+        return DriveTruth(LocalFrame(*(float(v) for v in gt["enu_origin_lat_lon_alt"])),
+                          GroundTruth(gt["elevation"].astype(np.float32), origin_xy, res),
+                          gt["semantic"], gt["lidar_points_enu"])
+
+
+def bev_miou_vs_truth(road_map: RoadMap, truth: DriveTruth) -> float | None:
+    """mIoU (%) of the map's semantics against the true grid, over true cells the map observed."""
+    if road_map.semantic_logits is None:
+        return None
+    g = truth.elevation
+    h, w = truth.semantic.shape
+    ii, jj = np.mgrid[0:h:2, 0:w:2]  # every other 5 cm cell: 10 cm, the mesh resolution
+    xy = np.stack([g.origin_xy[0] + jj.ravel() * g.resolution_m, g.origin_xy[1] + ii.ravel() * g.resolution_m], 1)
+    ids, wt, ok = observed_triangles(road_map, xy)
+    if not ok.any():
+        return None
+    logits = road_map.semantic_logits.detach().numpy()
+    pred = (logits[ids[ok]] * wt[ok][..., None]).sum(1).argmax(1)
+    true = truth.semantic[ii.ravel()[ok], jj.ravel()[ok]]
+    valid = true < NUM_MAP_CLASSES
+    return miou_pct(confusion(pred[valid], true[valid], np.ones(valid.sum(), bool)))
+
+
+def config_from_logs(paths: list[str]) -> tuple[CarConfig, Path]:
+    """The car config recorded in the first log, and a file holding its Lidar metadata (if recorded)."""
+    meta = read_metadata(paths[0]).get("roadlog", {})
+    if "config" not in meta:
+        raise ConfigError(f"{paths[0]}: no recorded config in the log metadata; pass --config")
+    import yaml
+
+    config = parse_config(yaml.safe_load(meta["config"]), f"{paths[0]} (recorded config)")
+    folder = Path(tempfile.mkdtemp(prefix="roadlog-reconstruct-"))
+    if config.sensors.lidar is not None and "lidar_metadata" in meta:
+        (folder / Path(config.sensors.lidar.metadata_file).name).write_text(meta["lidar_metadata"])
+        config = config.model_copy(update={"sensors": config.sensors.model_copy(update={
+            "lidar": config.sensors.lidar.model_copy(update={"metadata_file": Path(
+                config.sensors.lidar.metadata_file).name})})})
+    return config, folder / "car.yaml"
+
+
+def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_path: Path, *,
+                       truth: DriveTruth | None = None, use_lidar: bool = True, ablation: str | None = None,
+                       faithful: bool = False, progress: bool = True) -> tuple[ReconstructionResult, DriveInputs]:
+    started = time.perf_counter()
+    drive = load_drive(logs, config, config_path, origin=truth.origin if truth else None, use_lidar=use_lidar)
+    lidar = drive.lidar_ground_points if use_lidar else None
+    result = reconstruct(drive.keyframes, drive.cameras, drive.path, lidar, config.mapper,
+                         config.vehicle.reference_height_m, out_dir=out, ablation=ablation,
+                         gt=truth.elevation if truth else None, faithful=faithful, progress=progress)
+    metrics = result.metrics
+    if truth is not None:
+        metrics["miou_mask_pct"] = metrics.get("miou_pct")
+        metrics["miou_pct"] = bev_miou_vs_truth(result.road_map, truth)
+        if lidar is None:  # Elev-error still needs Lidar ground points: the true ones
+            from mapping.map_metrics import elev_error_cm
+
+            metrics["elev_error_cm"] = elev_error_cm(result.road_map, truth.lidar_points)
+    wall = time.perf_counter() - started
+    metrics.update(drive_s=drive.drive_s, wall_s=wall, rtf=drive.drive_s / wall if wall > 0 else None,
+                   peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+                   vertices=result.road_map.mesh.num_vertices, inputs=drive.counts, logs=[str(p) for p in logs],
+                   lidar_supervision=lidar is not None)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
+    (out / "config.yaml").write_text(config_to_yaml(config))
+    return result, drive
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="roadlog reconstruct", description=__doc__.split("\n\n")[0])
+    parser.add_argument("logs", nargs="+", help="MCAP drive log segments")
+    parser.add_argument("--out", required=True, type=Path, help="output folder")
+    parser.add_argument("--config", help="car config (default: the one recorded in the logs)")
+    parser.add_argument("--gt", help="ground truth PATH.gt.npz of a simulated drive")
+    parser.add_argument("--no-lidar", action="store_true", help="no Lidar elevation supervision")
+    parser.add_argument("--ablation", choices=sorted(ABLATIONS), help="switch off one part of EMIE-MAP")
+    parser.add_argument("--faithful", action="store_true", help="the paper's full computation (slow)")
+    args = parser.parse_args(argv)
+    try:
+        if args.config:
+            config, config_path = load_config(args.config), Path(args.config)
+        else:
+            config, config_path = config_from_logs(args.logs)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    truth = DriveTruth.load(args.gt) if args.gt else None
+    result, _ = run_reconstruction(args.logs, args.out, config, config_path, truth=truth,
+                                   use_lidar=not args.no_lidar, ablation=args.ablation, faithful=args.faithful)
+    keys = ("psnr_db", "psnr_train_db", "miou_pct", "elev_error_cm", "elev_mae_gt_cm", "drive_s", "wall_s", "rtf",
+            "peak_rss_mb", "vertices")
+    print(json.dumps({k: result.metrics.get(k) for k in keys}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
