@@ -8,6 +8,7 @@ import sys
 
 # name -> ("module[:function]" taking argv (default: main), one-line help): the only place a subcommand is declared.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("daemon.demo", "simulate a drive, run the daemon on it (replay, record, map), print what happened"),
     "check-config": ("daemon.check_config", "validate a car config file and print the resolved config"),
     "log-info": ("daemon.log_info", "summarise MCAP log files: topics, counts, time span, truncation"),
     "run": ("daemon.daemon_main:run_main", "run the daemon on the car's live sensors (what systemd starts)"),

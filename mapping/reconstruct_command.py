@@ -42,8 +42,8 @@ class DriveTruth:
     @staticmethod
     def load(path: str | Path) -> DriveTruth:
         gt = np.load(path)
-        origin_xy = tuple(float(v) for v in gt["grid_origin_xy"])
         res = float(gt["grid_resolution_m"])
+        origin_xy = tuple(float(v) + res / 2 for v in gt["grid_origin_xy"])  # the file gives cell corners
         return DriveTruth(LocalFrame(*(float(v) for v in gt["enu_origin_lat_lon_alt"])),
                           GroundTruth(gt["elevation"].astype(np.float32), origin_xy, res),
                           gt["semantic"], gt["lidar_points_enu"])

@@ -263,7 +263,7 @@ def simulate_drive(scenario: str, seconds: float | None, out: Path, config: CarC
     tasks = _tasks(scene, np.random.default_rng([seed, 7]))
     summary.setup_s = time.monotonic() - started
     cam_rng = np.random.default_rng([seed, 8])
-    writer = LogWriter(out, config, metadata)
+    writer = LogWriter(out, config, metadata, config_path=config_file)
 
     def flush(before_ns: int) -> None:
         while pending and pending[0][0] < before_ns:
