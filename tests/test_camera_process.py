@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 import time
@@ -33,9 +34,9 @@ def write_config(tmp_path: Path, camera_update: dict) -> Path:
     return path
 
 
-def read_all(sub, until_exit: subprocess.Popen, timeout_s: float = 20.0) -> list:
+def read_all(sub, until_exit: subprocess.Popen, timeout_s: float = 20.0, expect: int | None = None) -> list:
     out, deadline = [], time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
+    while time.monotonic() < deadline and (expect is None or len(out) < expect):
         msg = sub.read(timeout_s=0.2, copy=True)
         if msg is not None:
             out.append(msg)
@@ -53,9 +54,13 @@ def run_camera(config_path: Path, *extra: str):
         frames = bus.open_subscriber(car, camera_topic("front_left"), start="oldest", wait_s=20)
         masks = bus.open_subscriber(car, mask_topic("front_left"), start="oldest", wait_s=5)
         health = bus.open_subscriber(car, health_topic("camera_front_left"), start="oldest", wait_s=5)
-        got_frames = read_all(frames, proc)
+        got_frames = read_all(frames, proc, expect=N)
+        time.sleep(1.5)
+        stayed_up = proc.poll() is None  # a camera does not exit at the end of its input (sim) ...
+        if stayed_up:
+            proc.send_signal(signal.SIGTERM)  # ... it stops when told to
         out, err = proc.communicate(timeout=20)
-        return proc.returncode, out, err, got_frames, read_all(masks, proc, 1), read_all(health, proc, 1)
+        return proc.returncode, out, err, got_frames, read_all(masks, proc, 1), read_all(health, proc, 1), stayed_up
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -74,8 +79,9 @@ def test_sim_camera_process_plays_its_log_onto_the_bus(tmp_path):
                                                               cv2.imencode(".jpg", img)[1].tobytes()))
             log.write(mask_topic("front_left"), SemanticMask(i, t, t, "front_left", "png",
                                                              cv2.imencode(".png", img[:, :, 0])[1].tobytes()))
-    code, out, err, frames, masks, health = run_camera(config_path)
+    code, out, err, frames, masks, health, stayed_up = run_camera(config_path)
     assert code == 0, err
+    assert stayed_up
     assert len(frames) == N and len(masks) == N and f"received={2 * N} published={2 * N}" in out
     assert [f.seq for f in frames] == list(range(N))
     assert [f.sensor_time_ns - frames[0].sensor_time_ns for f in frames] == [i * PERIOD_NS for i in range(N)]
@@ -93,7 +99,7 @@ def test_opencv_camera_process_with_a_device_override(tmp_path):
         writer.write(np.full((360, 640, 3), 15 * i, np.uint8))
     writer.release()
     config_path = write_config(tmp_path, {"backend": "opencv", "device": "/dev/video_absent"})
-    code, out, err, frames, masks, health = run_camera(config_path, "--device", str(video))
+    code, out, err, frames, masks, health, _ = run_camera(config_path, "--device", str(video))
     assert code == 0, err
     assert len(frames) == N and not masks
     assert [f.sensor_time_ns for f in frames] == [i * PERIOD_NS for i in range(N)]

@@ -104,6 +104,11 @@ def main(argv: list[str] | None = None) -> int:
     frames = open_frame_source(config, stop, health, start_mono_ns=args.start_mono_ns,
                                log_origin_ns=args.log_origin_ns)
     run_camera_driver(config, frames, lambda t, m: publishers[t].publish(m), stop, health)
+    if config.backend == "sim":
+        # the simulated drive is over; a camera does not exit (the supervisor would replay the drive):
+        # stay up, reporting health, until told to stop
+        while not stop.wait(1.0):
+            publishers[health_topic(process)].publish(health.snapshot())
     print(f"camera {config.name} stopped: received={health.received} published={health.published} "
           f"dropped={health.dropped} errors={health.errors}", flush=True)
     return 0

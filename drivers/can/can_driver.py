@@ -53,7 +53,8 @@ class CanDriverStats:
 
 def open_can_bus(config: CanConfig, **bus_kwargs: object) -> can.BusABC:
     """A python-can bus for the configured interface and channel (extra keywords go to can.Bus)."""
-    kwargs: dict[str, object] = {"interface": config.interface, "channel": config.channel, **bus_kwargs}
+    kwargs: dict[str, object] = {"interface": config.interface, "channel": config.channel, **config.options,
+                                 **bus_kwargs}
     if config.bitrate is not None:
         kwargs["bitrate"] = config.bitrate
     return can.Bus(**kwargs)
