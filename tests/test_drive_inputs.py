@@ -5,7 +5,6 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from daemon.config import load_config
-from drivers.sim.drive_log import simulate_drive
 from mapping.drive_inputs import load_drive
 from mapping.reconstruct_command import DriveTruth
 from tests.daemon_fixtures import REPO
@@ -14,10 +13,9 @@ CONFIG = REPO / "configs" / "sim.yaml"
 
 
 @pytest.fixture(scope="module")
-def drive(tmp_path_factory):
-    out = tmp_path_factory.mktemp("drive") / "city.mcap"
+def drive(city_drive):
+    out = city_drive
     config = load_config(CONFIG)
-    simulate_drive("city", 5.0, out, config, seed=3)
     truth = DriveTruth.load(out.with_name("city.gt.npz"))
     return load_drive([out], config, CONFIG, origin=truth.origin), truth, out
 

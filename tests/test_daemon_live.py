@@ -1,0 +1,186 @@
+"""The whole daemon (`roadlog run`) on the simulator's live mode: UDP Lidar, GNSS on a pseudo-terminal, CAN on
+udp_multicast, sim cameras. Status and metrics over HTTP, every message logged, a killed driver restarted,
+a killed daemon's open segment recovered at the next start."""
+
+import json
+import os
+import random
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import urllib.error
+import urllib.request
+import uuid
+from collections import Counter
+from pathlib import Path
+
+import pytest
+import yaml
+
+from daemon.bus import unlink_all
+from daemon.config import load_config
+from daemon.log_format import ReadReport, read_log
+from drivers.can.can_driver import open_can_bus
+from drivers.sim.live_drive import open_gnss_pty, run_live_drive
+from tests.daemon_fixtures import REPO
+
+DRIVER_TOPICS = ("lidar/packets", "can/frames", "wheel_speeds", "camera/front_wide", "mask/front_wide",
+                 "camera/front_left", "camera/front_right")
+
+
+def _free_port(kind=socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _get(port: int, path: str):
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=3) as r:
+            return r.status, r.read()
+    except urllib.error.HTTPError as e:
+        return e.code, e.read()
+    except OSError:
+        return None, b""
+
+
+def _wait(predicate, timeout: float, what: str):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.2)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+class Daemon:
+    def __init__(self, config_path: Path, status_port: int):
+        self.config_path, self.port = config_path, status_port
+        self.proc: subprocess.Popen | None = None
+
+    def start(self):
+        self.proc = subprocess.Popen([sys.executable, "-m", "daemon.cli", "run", "--config", str(self.config_path)],
+                                     cwd=REPO, start_new_session=True)
+
+    def status(self) -> dict:
+        code, body = _get(self.port, "/status")
+        return json.loads(body) if code == 200 else {}
+
+    def drivers_up(self) -> bool:
+        procs = self.status().get("processes", {})
+        return all(name in procs for name in ("lidar", "gnss", "can", "recorder", "camera_front_wide",
+                                              "camera_front_left", "camera_front_right"))
+
+    def stop(self, sig=signal.SIGTERM, timeout=60):
+        if self.proc and self.proc.poll() is None:
+            os.killpg(self.proc.pid, sig)
+            self.proc.wait(timeout)
+
+
+@pytest.fixture
+def live_setup(tmp_path, city_drive):
+    pty = open_gnss_pty()
+    data = yaml.safe_load((REPO / "configs" / "sim.yaml").read_text())
+    data["bus"] = {"shm_prefix": f"t{uuid.uuid4().hex[:10]}"}
+    s = data["sensors"]
+    for cam in s["cameras"]:
+        cam["device"] = str(city_drive)
+    s["lidar"].update(port=_free_port(socket.SOCK_DGRAM), metadata_file=str(REPO / "configs" / s["lidar"][
+        "metadata_file"]))
+    s["gnss"]["port"] = pty.path
+    s["can"].update(dbc_file=str(REPO / "configs" / s["can"]["dbc_file"]),
+                    options={"port": random.randint(40000, 49000)})
+    data["recorder"].update(output_dir=str(tmp_path / "logs"), segment_seconds=3.0)
+    data["mapper"]["enabled"] = False
+    data["status"]["port"] = _free_port()
+    path = tmp_path / "car.yaml"
+    path.write_text(yaml.safe_dump(data))
+    config = load_config(path)
+    daemon = Daemon(path, data["status"]["port"])
+    yield config, daemon, pty, tmp_path / "logs"
+    daemon.stop(signal.SIGKILL)
+    pty.close()
+    unlink_all(config)
+
+
+def _play(config, drive: Path, pty, stop=None):
+    bus = open_can_bus(config.sensors.can)
+    try:
+        return run_live_drive(drive, lidar_address=("127.0.0.1", config.sensors.lidar.port), gnss_fd=pty.master_fd,
+                              can_bus=bus, stop=stop, rate=1.0)
+    finally:
+        bus.shutdown()
+
+
+def _counts(paths) -> tuple[Counter, ReadReport]:
+    report, counts = ReadReport(), Counter()
+    for rec in read_log(paths, report=report):
+        counts[rec.topic] += 1
+    return counts, report
+
+
+def test_daemon_logs_every_message_restarts_drivers_and_recovers_segments(live_setup, city_drive):
+    config, daemon, pty, logs = live_setup
+    daemon.start()
+    _wait(lambda: _get(daemon.port, "/livez")[0] == 200, 60, "the status endpoint")
+    _wait(daemon.drivers_up, 90, "every driver's first health report")
+    stats = _play(config, city_drive, pty)
+    assert stats.errors == 0
+    time.sleep(2.0)  # the sim cameras play their own copy of the drive, started with their process
+
+    # status and metrics over HTTP while running
+    doc = daemon.status()
+    lidar = doc["processes"]["lidar"]
+    assert lidar["published"] == stats.lidar_packets and lidar["dropped"] == 0 and lidar["rejected"] == 0
+    assert doc["recorder"]["lost"] == {}
+    code, metrics = _get(daemon.port, "/metrics")
+    assert code == 200 and b'roadlog_published_total{process="lidar"}' in metrics
+    assert _get(daemon.port, "/nothing/../status")[0] == 404
+
+    # kill -9 one driver: it is restarted, the others keep their process
+    procs = doc["supervisor"]["processes"]
+    can_pid, lidar_pid = procs["can"]["pid"], procs["lidar"]["pid"]
+    os.kill(can_pid, signal.SIGKILL)
+    def can_restarted():
+        can = daemon.status().get("supervisor", {}).get("processes", {}).get("can", {})
+        return can.get("restarts") == 1 and can.get("state") == "running" and can.get("pid") != can_pid
+
+    _wait(can_restarted, 30, "the CAN driver's restart")
+    procs = daemon.status()["supervisor"]["processes"]
+    assert procs["can"]["pid"] != can_pid and procs["lidar"]["pid"] == lidar_pid and procs["lidar"]["restarts"] == 0
+
+    daemon.stop(signal.SIGTERM)
+    assert daemon.proc.returncode == 0
+    segments = sorted(logs.glob("*.mcap"))
+    assert len(segments) >= 2 and not list(logs.glob("*.open"))  # rotated every 3 s, all closed
+    logged, report = _counts(segments)
+    assert not report.incomplete_files
+    sent, _ = _counts([city_drive])
+    for topic in DRIVER_TOPICS:
+        assert logged[topic] == sent[topic], topic
+    assert logged["gnss/fix"] >= sent["gnss/fix"] - 1  # the receiver's first epoch may precede its time fix
+    assert logged["imu"] == sent["imu"]
+
+    # kill -9 the whole daemon mid-segment: the next start recovers the open segment
+    daemon.start()
+    _wait(daemon.drivers_up, 90, "the drivers after a restart")
+    stop = threading.Event()
+    player = threading.Thread(target=_play, args=(config, city_drive, pty, stop))
+    player.start()
+    _wait(lambda: list(logs.glob("*.mcap.open")), 30, "an open segment")
+    time.sleep(1.0)
+    daemon.stop(signal.SIGKILL)
+    stop.set()
+    player.join(30)
+    open_segments = list(logs.glob("*.mcap.open"))
+    assert open_segments
+    daemon.start()
+    _wait(lambda: not list(logs.glob("*.mcap.open")), 60, "the recovery of the open segment")
+    daemon.stop(signal.SIGTERM)
+    recovered = logs / open_segments[0].name.removesuffix(".open")
+    counts, report = _counts([recovered])
+    assert report.files[0].complete and counts["lidar/packets"] > 0
