@@ -34,10 +34,11 @@ from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from google.protobuf import descriptor_pb2
 from google.protobuf.descriptor import FileDescriptor
+from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
-from mcap.records import Channel, Message, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel, Chunk, Message, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
 from daemon import message_codec
@@ -352,10 +353,32 @@ def decode_record(schema: Schema | None, channel: Channel, message: Message) -> 
 
 
 def _iter_complete_file(path: Path, report: FileReport, topics: set[str] | None, start_ns, end_ns):
+    """Messages of a closed file in log-time order: chunks taken by start time, each chunk's messages
+    released once no later chunk can hold an earlier one (a plain tuple heap: cheaper than mcap's own)."""
     with open(path, "rb") as f:
-        reader = make_reader(f)
-        yield from reader.iter_messages(topics=topics, starting_at=start_ns,
-                                                             ending_before=end_ns, log_time_order=True)
+        summary = make_reader(f).get_summary()
+        chunks = sorted((c for c in summary.chunk_indexes
+                         if (start_ns is None or c.message_end_time >= start_ns)
+                         and (end_ns is None or c.message_start_time < end_ns)),
+                        key=lambda c: (c.message_start_time, c.chunk_start_offset))
+        wanted = {cid for cid, ch in summary.channels.items() if topics is None or ch.topic in topics}
+        heap: list = []
+        counter = 0
+        for k, index in enumerate(chunks):
+            f.seek(index.chunk_start_offset + 1 + 8)
+            for record in breakup_chunk(Chunk.read(ReadDataStream(f))):
+                if not isinstance(record, Message) or record.channel_id not in wanted:
+                    continue
+                if (start_ns is not None and record.log_time < start_ns) or (
+                        end_ns is not None and record.log_time >= end_ns):
+                    continue
+                heapq.heappush(heap, (record.log_time, counter, record))
+                counter += 1
+            release_before = chunks[k + 1].message_start_time if k + 1 < len(chunks) else None
+            while heap and (release_before is None or heap[0][0] < release_before):
+                record = heapq.heappop(heap)[2]
+                channel = summary.channels[record.channel_id]
+                yield summary.schemas.get(channel.schema_id), channel, record
 
 
 def _iter_truncated_file(path: Path, report: FileReport, topics: set[str] | None, start_ns, end_ns,
