@@ -653,6 +653,7 @@ class MappingWorker:
         self.journal["finished"] = True
         self._save_journal()
         shutil.rmtree(self.spool.folder)  # every window is in the tiles and the final map
+        self.spool.chunks = []
         log.info("final map in %s (%d windows done, %d failed)", out, self.state.windows_done,
                  self.state.windows_failed)
         health_stop.set()
