@@ -47,8 +47,8 @@ class KeyframeSpool:
         for path in sorted(self.folder.glob("chunk-*.bin")):
             first = last = None
             for arrival, _, _, _ in self._records(path):
-                first = arrival if first is None else first
-                last = arrival
+                first = arrival if first is None else min(first, arrival)
+                last = arrival if last is None else max(last, arrival)
             if first is None:
                 path.unlink()
                 continue
@@ -72,6 +72,7 @@ class KeyframeSpool:
         record = _HEADER.pack(len(name), len(meta), len(bulk), arrival_ns) + name + bytes(meta)
         self._file.write(record)
         self._file.write(bulk)
+        chunk.first_ns = min(chunk.first_ns, arrival_ns)  # topics are read in turns: arrivals interleave
         chunk.last_ns = max(chunk.last_ns, arrival_ns)
         chunk.bytes += len(record) + len(bulk)
 
@@ -102,7 +103,7 @@ class KeyframeSpool:
             pos = end
 
     def read(self, first_ns: int, last_ns: int, topics: set[str]) -> Iterator[tuple[int, str, object]]:
-        """(arrival ns, topic, message) of the given topics that arrived in [first_ns, last_ns], in order."""
+        """(arrival ns, topic, message) of the given topics that arrived in [first_ns, last_ns], in spool order."""
         self.flush()
         for chunk in list(self.chunks):
             if chunk.last_ns < first_ns or chunk.first_ns > last_ns:

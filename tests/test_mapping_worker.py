@@ -142,6 +142,7 @@ def _wait_for(predicate, timeout_s: float, what: str, proc: subprocess.Popen | N
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(900)
 def test_worker_maps_as_data_arrives_survives_kill_9_and_writes_the_final_map(city_drive, tmp_path):
     data = tmp_path / "data"
     config, config_path = private_config(tmp_path, mapper=SMALL_WINDOWS, recorder={"output_dir": str(data)})
