@@ -7,11 +7,14 @@ from __future__ import annotations
 import numpy as np
 
 from mapping.road_map import NO_LABEL, RoadMap, WindowIndex, render_view
+from mapping.mesh_renderer import sampled_pixels
 from mapping.road_mesh import locate
 from mapping.scene_data import CameraModel, GroundTruth, Keyframe, Trajectory
 from mapping.semantic_classes import NUM_MAP_CLASSES, ROAD_SURFACE_CLASSES
 
 TRAIN_VIEWS_EVALUATED = 12
+EVAL_STRIDE = 2  # views are rendered and compared at every 2nd pixel row and column
+BEHIND_CAMERA_M = 10.0  # the cameras look forward: faces further behind the view's trajectory point are not drawn
 
 
 def psnr_db(rendered: np.ndarray, observed: np.ndarray, mask: np.ndarray) -> float | None:
@@ -78,20 +81,27 @@ def evaluate_views(
     trajectory: Trajectory,
     window_before_m: float,
     window_after_m: float,
+    stride: int = EVAL_STRIDE,
 ) -> tuple[float | None, np.ndarray]:
-    """Mean per-view PSNR on road pixels and the summed semantic confusion matrix."""
+    """Mean per-view PSNR on road pixels and the summed semantic confusion matrix, over the pixels that
+    see the mapped surface (faces whose vertices were all supervised)."""
     windows = WindowIndex.of(road_map.mesh)
+    mapped = (road_map.observed[road_map.mesh.faces] > 0).all(1)
     psnrs, conf = [], np.zeros((NUM_MAP_CLASSES, NUM_MAP_CLASSES), np.int64)
     road = np.array(ROAD_SURFACE_CLASSES)
     for kf in views:
         s = float(trajectory.along_track_at(kf.timestamp))
-        view = render_view(road_map, windows.faces(s - window_before_m, s + window_after_m), kf, cameras[kf.camera])
-        road_pixels = view.hit & np.isin(kf.semantics, road)
-        value = psnr_db(view.rgb, kf.image.astype(np.float32) / 255.0, road_pixels)
+        faces = windows.faces(s - min(window_before_m, BEHIND_CAMERA_M), s + window_after_m)
+        camera = cameras[kf.camera]
+        view = render_view(road_map, faces[mapped[faces]], kf, camera, stride)
+        at = sampled_pixels(camera, stride)
+        image, semantics = kf.image.reshape(-1, 3)[at], kf.semantics.ravel()[at]
+        road_pixels = view.hit & np.isin(semantics, road)
+        value = psnr_db(view.rgb, image.astype(np.float32) / 255.0, road_pixels)
         if value is not None:
             psnrs.append(value)
-        labelled = view.hit & (kf.semantics < NUM_MAP_CLASSES) & (view.labels != NO_LABEL)
-        conf += confusion(view.labels, kf.semantics, labelled)
+        labelled = view.hit & (semantics < NUM_MAP_CLASSES) & (view.labels != NO_LABEL)
+        conf += confusion(view.labels, semantics, labelled)
     return (float(np.mean(psnrs)) if psnrs else None), conf
 
 

@@ -27,6 +27,7 @@ from daemon.config import MapperConfig
 from mapping import losses
 from mapping.map_export import export_map
 from mapping.map_metrics import evaluate_map
+from mapping.observation_fit import fit_colours, fit_elevation, semantic_logits_from_counts
 from mapping.mesh_renderer import (
     pixel_rays,
     rasterise,
@@ -40,6 +41,7 @@ from mapping.road_mesh import RoadMesh, build_road_mesh, locate
 from mapping.row_sparse_adam import RowSparseAdam
 from mapping.scene_data import CameraModel, GroundTruth, Keyframe, Trajectory
 from mapping.semantic_classes import NUM_MAP_CLASSES
+from mapping.vertex_observations import VertexObservations, observe_keyframe
 
 
 @dataclass
@@ -51,11 +53,15 @@ class ReconstructionResult:
 
 @dataclass(frozen=True)
 class FastPathSettings:
-    samples_per_image: int = 2048  # pixels rendered per image per visit (a jittered grid)
     elevation_lattice_m: float = 0.5  # residual MLP lattice; 0 = at every vertex
-    proxy_side_m: float = 0.8  # coarse mesh rasterised to find what each pixel sees
-    lidar_vertices_per_step: int = 16384  # Lidar-supervised vertices per step, from the stretch in view
-    newton_steps: int = 1  # ray / fine-surface refinements after the proxy hit
+    elevation_steps: int = 200  # Adam steps of the elevation fit to the Lidar lattice targets
+    elevation_batch: int = 1024  # lattice nodes (and node pairs) per elevation step
+    behind_m: float = 3.0  # a keyframe observes vertices from this far behind its trajectory point ...
+    ahead_m: float = 30.0  # ... to this far ahead
+    colour_encoder_steps: int = 200  # joint encoder/decoder steps on a sample of vertices
+    colour_refine_steps: int = 5  # full-batch steps on every code, decoders fixed
+    colour_batch: int = 4096
+    lr_encoder: float = 0.01
 
 
 def select_keyframes(keyframes: list[Keyframe], trajectory: Trajectory, spacing_m: float) -> list[Keyframe]:
@@ -264,6 +270,38 @@ def _batches(keyframes: list[Keyframe], trajectory: Trajectory, size: int) -> li
     return out
 
 
+def _fit_observations(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraModel],
+                      trajectory: Trajectory, lidar: np.ndarray | None, config: MapperConfig,
+                      fast: FastPathSettings, rng: np.random.Generator, progress: bool) -> list[float]:
+    """The fast path: elevation from the Lidar lattice, then every keyframe's view of every vertex in
+    reach, then semantics and colours fitted to those observations (mapping.observation_fit)."""
+    lr, w = config.learning_rates, config.loss_weights
+    history = []
+    if road_map.elevation is not None and lidar is not None and len(lidar):
+        terms = fit_elevation(road_map, lidar, fast.elevation_lattice_m, fast.elevation_steps, fast.elevation_batch,
+                              lr.elevation_mlp, w.elevation, w.smoothness, rng)
+        history.append(w.elevation * terms["elevation"] + w.smoothness * terms["smoothness"])
+        road_map.refresh_elevation()
+    mesh = road_map.mesh
+    windows = WindowIndex.of(mesh)
+    obs = VertexObservations.empty(mesh.num_vertices, road_map.decoder.camera_names)
+    for kf in tqdm(train, desc="observe", disable=not progress, unit="frame"):
+        s = float(trajectory.along_track_at(kf.timestamp))
+        a, b = np.searchsorted(windows.vertex_s, [s - fast.behind_m, s + fast.ahead_m])
+        ids = windows.vertex_order[a:b]
+        points = np.concatenate([mesh.xy[ids], road_map.z_now[ids, None].astype(np.float64)], 1)
+        observe_keyframe(obs, ids, points, kf, cameras[kf.camera])
+    seen = obs.seen
+    road_map.observed[seen] = obs.colour_count[seen].sum(1).astype(np.int32)
+    if road_map.semantic_logits is not None:
+        labelled = np.nonzero(obs.label_counts.sum(1) > 0)[0]
+        road_map.semantic_logits[torch.from_numpy(labelled)] = semantic_logits_from_counts(obs.label_counts[labelled])
+    if len(seen):
+        history.append(fit_colours(road_map, obs, seen, fast.colour_encoder_steps, fast.colour_refine_steps,
+                                   fast.colour_batch, lr.colour_mlps, fast.lr_encoder, lr.colour_codes, rng))
+    return history
+
+
 def reconstruct(
     keyframes: list[Keyframe],
     cameras: dict[str, CameraModel],
@@ -299,23 +337,27 @@ def reconstruct(
         config.positional_encoding_dim, config.elevation_mlp_layers, config.elevation_mlp_width,
         config.window_before_m + config.window_after_m, 0.0 if faithful else fast.elevation_lattice_m, generator,
     )
-    lidar_ids, lidar_z = lidar_vertex_targets(mesh, lidar_ground_points)
-    opt = _Optimisation(road_map, cameras, config, fast, faithful, lidar_ids, lidar_z, trajectory, rng)
-    batches = _batches(train, trajectory, config.batch_size)
     history = []
     setup_s = time.perf_counter() - start
-    with tqdm(total=config.epochs * len(batches), desc="emie-map", disable=not progress, unit="step") as bar:
-        for _ in range(config.epochs):
-            road_map.refresh_elevation()
-            for b in rng.permutation(len(batches)):
-                terms = opt.step(*batches[b])
-                history.append(sum(terms.values()))
-                bar.set_postfix(loss=f"{history[-1]:.4f}")
-                bar.update()
-    opt.colour_opt.flush()
-    if opt.semantic_opt is not None:
-        opt.semantic_opt.flush()
-    road_map.refresh_elevation()
+    if faithful:
+        lidar_ids, lidar_z = lidar_vertex_targets(mesh, lidar_ground_points)
+        opt = _Optimisation(road_map, cameras, config, fast, faithful, lidar_ids, lidar_z, trajectory, rng)
+        batches = _batches(train, trajectory, config.batch_size)
+        with tqdm(total=config.epochs * len(batches), desc="emie-map", disable=not progress, unit="step") as bar:
+            for _ in range(config.epochs):
+                road_map.refresh_elevation()
+                for b in rng.permutation(len(batches)):
+                    terms = opt.step(*batches[b])
+                    history.append(sum(terms.values()))
+                    bar.set_postfix(loss=f"{history[-1]:.4f}")
+                    bar.update()
+        opt.colour_opt.flush()
+        if opt.semantic_opt is not None:
+            opt.semantic_opt.flush()
+        road_map.refresh_elevation()
+    else:
+        history = _fit_observations(road_map, train, cameras, trajectory, lidar_ground_points, config, fast, rng,
+                                    progress)
     train_s = time.perf_counter() - start
     drive_s = trajectory.duration_s
     metrics = evaluate_map(
@@ -331,7 +373,7 @@ def reconstruct(
         vertices=mesh.num_vertices,
         vertices_observed=int((road_map.observed > 0).sum()),
         loss_first=history[0] if history else None,
-        loss_last=float(np.mean(history[-max(1, len(batches)) :])) if history else None,
+        loss_last=float(np.mean(history[-max(1, len(history) // config.epochs) :])) if history else None,
         optimise_wall_s=train_s,
         setup_wall_s=setup_s,
         step_mean_s=(train_s - setup_s) / max(1, len(history)),

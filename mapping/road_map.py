@@ -11,7 +11,7 @@ import torch
 
 from mapping.colour_mlps import ColourDecoder
 from mapping.elevation_mlp import ElevationMLP
-from mapping.mesh_renderer import pixel_rays, rasterise, ray_triangle_weights, world_rays
+from mapping.mesh_renderer import pixel_rays, rasterise, ray_triangle_weights, sampled_pixels, world_rays
 from mapping.road_mesh import RoadMesh
 from mapping.scene_data import CameraModel, Keyframe
 from mapping.semantic_classes import NUM_MAP_CLASSES
@@ -165,26 +165,29 @@ class RenderedView:
 
 
 @torch.no_grad()
-def render_view(road_map: RoadMap, faces: np.ndarray, keyframe: Keyframe, camera: CameraModel) -> RenderedView:
-    """Exact render (full resolution, z-buffered) of the mesh faces `faces` (indices into mesh.faces)."""
+def render_view(road_map: RoadMap, faces: np.ndarray, keyframe: Keyframe, camera: CameraModel,
+                stride: int = 1) -> RenderedView:
+    """Exact render (z-buffered) of the mesh faces `faces` (indices into mesh.faces) at every `stride`-th
+    pixel row and column: images of shape (H', W') matching `sampled_pixels(camera, stride)`."""
     mesh = road_map.mesh
     tri_all = mesh.faces[faces]
     vertices = np.concatenate([mesh.xy, road_map.z_now[:, None].astype(np.float64)], 1)
-    face_grid = rasterise(vertices, tri_all, camera, keyframe.T_world_camera).ravel()
+    face_grid = rasterise(vertices, tri_all, camera, keyframe.T_world_camera, stride).ravel()
+    h, wd = sampled_pixels(camera, stride).shape
     hit = face_grid >= 0
-    pixels = np.nonzero(hit)[0]
-    tri = tri_all[face_grid[pixels]]
+    local = np.nonzero(hit)[0]
+    pixels = sampled_pixels(camera, stride).ravel()[local]
+    tri = tri_all[face_grid[local]]
     w = pixel_weights(road_map, keyframe, camera, pixels, tri, torch.from_numpy(road_map.z_now[tri]))
     ids, inverse = np.unique(tri, return_inverse=True)
     inverse = inverse.reshape(tri.shape)
-    h, wd = camera.height, camera.width
     rgb = np.zeros((h * wd, 3), np.float32)
     colours = torch.from_numpy(road_map.vertex_colours(camera.name, ids))
-    rgb[pixels] = (colours[inverse] * w[..., None]).sum(1).clamp(0, 1).numpy()
+    rgb[local] = (colours[inverse] * w[..., None]).sum(1).clamp(0, 1).numpy()
     labels = np.full(h * wd, NO_LABEL, np.uint8)
     if road_map.semantic_logits is not None:
         logits = (road_map.semantic_logits[tri] * w[..., None]).sum(1)
-        labels[pixels] = logits.argmax(1).numpy().astype(np.uint8)
+        labels[local] = logits.argmax(1).numpy().astype(np.uint8)
     return RenderedView(rgb.reshape(h, wd, 3), labels.reshape(h, wd), hit.reshape(h, wd))
 
 

@@ -1,0 +1,143 @@
+"""The fast path's optimisation: the EMIE-MAP model fitted to per-vertex observations instead of to
+rendered pixels, with the paper's losses taken per vertex.
+
+- Elevation: the residual MLP is fitted with the L1 Lidar loss and the smoothness loss on the lattice
+  it is evaluated on (`lattice_m`): every lattice node with Lidar ground points nearby takes their mean
+  residual over z0 as its target, the whole drive at once (the elevation is low-frequency, the Lidar
+  dense), in minibatches of nodes.
+- Semantics: the cross-entropy summed over a vertex's observed labels is minimised by the log of its
+  label frequencies, which is where the explicit logits are set (with a small prior).
+- Colour: the per-vertex codes and the per-camera decoders are fitted with the L1 colour loss to the
+  mean colour each camera saw at each vertex. The codes start from a small encoder of those colours
+  (trained jointly with the decoders on a sample of vertices, then applied to every vertex), then all
+  codes are refined directly by a few full-batch steps with the decoders fixed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+
+from mapping.road_map import RoadMap
+from mapping.road_mesh import locate
+from mapping.vertex_observations import VertexObservations
+
+LABEL_PRIOR = 0.1
+_KEY = 1 << 21
+
+
+def semantic_logits_from_counts(counts: np.ndarray) -> torch.Tensor:
+    """Log label frequencies (with a small prior) of (M, C) label counts."""
+    p = (counts + LABEL_PRIOR) / (counts.sum(1, keepdims=True) + LABEL_PRIOR * counts.shape[1])
+    return torch.from_numpy(np.log(p).astype(np.float32))
+
+
+def lidar_lattice_targets(road_map: RoadMap, points: np.ndarray, lattice_m: float):
+    """Lattice nodes (K, 2 int) with Lidar ground points nearby, their mean residual target over z0 (K,),
+    their mean z0 (K,) and their point counts (K,)."""
+    ids, w, ok = locate(road_map.mesh, points[:, :2])
+    ids, w, p = ids[ok], w[ok], points[ok]
+    z0 = (road_map.mesh.z0[ids] * w).sum(1)
+    local = p[:, :2] - np.asarray(road_map.elevation.origin_xy)
+    node = np.rint(local / lattice_m).astype(np.int64)
+    key = (node[:, 0] + _KEY // 2) * _KEY + (node[:, 1] + _KEY // 2)
+    unique, inverse, count = np.unique(key, return_inverse=True, return_counts=True)
+    target = np.bincount(inverse, weights=p[:, 2] - z0) / count
+    z0_node = np.bincount(inverse, weights=z0) / count
+    nodes = np.stack([unique // _KEY - _KEY // 2, unique % _KEY - _KEY // 2], 1)
+    return nodes, target.astype(np.float32), z0_node.astype(np.float32), count
+
+
+def _lattice_edges(nodes: np.ndarray) -> np.ndarray:
+    """(E, 2) index pairs of 4-adjacent nodes among `nodes`."""
+    key = (nodes[:, 0] + _KEY // 2) * _KEY + (nodes[:, 1] + _KEY // 2)
+    order = np.argsort(key)
+    out = []
+    for step in (_KEY, 1):  # +1 in x, +1 in y
+        pos = np.searchsorted(key[order], key + step)
+        pos = np.minimum(pos, len(key) - 1)
+        hit = key[order][pos] == key + step
+        out.append(np.stack([np.nonzero(hit)[0], order[pos[hit]]], 1))
+    return np.concatenate(out)
+
+
+def fit_elevation(road_map: RoadMap, points: np.ndarray, lattice_m: float, steps: int, batch: int, lr: float,
+                  w_elevation: float, w_smooth: float, rng: np.random.Generator) -> dict[str, float]:
+    """Fit the residual MLP to the Lidar ground points (L1) with lattice smoothness; returns final losses."""
+    nodes, target, z0, _ = lidar_lattice_targets(road_map, points, lattice_m)
+    edges = _lattice_edges(nodes)
+    xy = torch.from_numpy((nodes * lattice_m).astype(np.float32))
+    target_t, z0_t = torch.from_numpy(target), torch.from_numpy(z0)
+    opt = torch.optim.Adam(road_map.elevation.parameters(), lr=lr)
+    last = {}
+    for _ in range(steps):
+        pick = rng.choice(len(nodes), batch, replace=False) if len(nodes) > batch else np.arange(len(nodes))
+        e = rng.choice(len(edges), min(len(edges), batch), replace=False) if len(edges) > batch else slice(None)
+        pair = torch.from_numpy(edges[e])
+        r = road_map.elevation(torch.cat([xy[pick], xy[pair[:, 0]], xy[pair[:, 1]]]))  # one MLP pass
+        r_nodes, r_a, r_b = torch.split(r, [len(pick), len(pair), len(pair)])
+        loss_z = (r_nodes - target_t[pick]).abs().mean()
+        loss_s = ((z0_t[pair[:, 0]] + r_a - z0_t[pair[:, 1]] - r_b) ** 2).mean()
+        loss = w_elevation * loss_z + w_smooth * loss_s
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        last = {"elevation": float(loss_z), "smoothness": float(loss_s)}
+    return last
+
+
+def _observation_features(obs: VertexObservations, ids: np.ndarray) -> torch.Tensor:
+    mean = obs.colour_mean(ids)  # (M, C, 3)
+    present = (obs.colour_count[ids] > 0).astype(np.float32)[..., None]
+    return torch.from_numpy(np.concatenate([mean * present, present], 2).reshape(len(ids), -1))
+
+
+def _colour_l1(road_map: RoadMap, codes: torch.Tensor, target: torch.Tensor, present: torch.Tensor,
+               names: list[str]) -> torch.Tensor:
+    total = codes.new_zeros(())
+    for c, name in enumerate(names):
+        err = (road_map.decoder.decode(codes, name) - target[:, c]).abs().sum(1)
+        total = total + (err * present[:, c]).sum()
+    return total / (3 * present.sum()).clamp(min=1)
+
+
+def fit_colours(road_map: RoadMap, obs: VertexObservations, ids: np.ndarray, encoder_steps: int,
+                refine_passes: int, batch: int, lr_decoder: float, lr_encoder: float, lr_codes: float,
+                rng: np.random.Generator) -> float:
+    """Fit the colour codes of vertices `ids` and the decoders (see module docstring); returns the final
+    L1 colour loss."""
+    names = obs.camera_names
+    features = _observation_features(obs, ids)
+    target = torch.from_numpy(obs.colour_mean(ids))
+    present = torch.from_numpy((obs.colour_count[ids] > 0).astype(np.float32))
+    dim = road_map.colour_params.shape[1]
+    encoder = nn.Sequential(nn.Linear(features.shape[1], 64), nn.ReLU(), nn.Linear(64, dim))
+    decoder_params = list(road_map.decoder.parameters())
+    opts = [torch.optim.Adam(encoder.parameters(), lr=lr_encoder)]
+    if decoder_params:
+        opts.append(torch.optim.Adam(decoder_params, lr=lr_decoder))
+    loss = torch.zeros(())
+    for _ in range(encoder_steps):
+        pick = torch.from_numpy(rng.choice(len(ids), min(batch, len(ids)), replace=False))
+        loss = _colour_l1(road_map, encoder(features[pick]), target[pick], present[pick], names)
+        for o in opts:
+            o.zero_grad(set_to_none=True)
+        loss.backward()
+        for o in opts:
+            o.step()
+    with torch.no_grad():
+        codes = encoder(features)
+    codes.requires_grad_(True)
+    code_opt = torch.optim.Adam([codes], lr=lr_codes)
+    for p in decoder_params:
+        p.requires_grad_(False)
+    for _ in range(refine_passes):  # full-batch steps over every vertex's code
+        loss = _colour_l1(road_map, codes, target, present, names)
+        code_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        code_opt.step()
+    for p in decoder_params:
+        p.requires_grad_(True)
+    road_map.colour_params[torch.from_numpy(ids)] = codes.detach()
+    return float(loss)

@@ -1,0 +1,100 @@
+"""What the keyframes saw at each mesh vertex: every vertex within reach of a keyframe is projected into
+it (pinhole + distortion) and reads the image's colour (bilinear) and the mask's label (nearest pixel).
+
+This is the fast path's rendering run backwards: instead of asking which triangle each pixel sees, each
+vertex asks which pixel sees it. Per vertex it accumulates a label histogram (the semantic
+cross-entropy summed over a vertex's observations is minimised by the log of its label frequencies)
+and, per camera, the sum and count of the colours it was seen with (the targets the colour codes and
+the camera decoders are fitted to). Pixels the mask marks as obstacles or unlabelled are not used, so
+cars never reach the map. Every pixel near the vertex counts through the bilinear read; each vertex is
+seen from many keyframes at different sub-pixel positions, which averages out image noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mapping.mesh_renderer import max_r2, to_camera
+from mapping.road_mesh import RoadMesh
+from mapping.scene_data import CameraModel, Keyframe
+from mapping.semantic_classes import NUM_MAP_CLASSES
+
+NEAR_M = 0.5
+
+
+@dataclass
+class VertexObservations:
+    """Accumulated observations of every mesh vertex (rows = vertex ids)."""
+
+    camera_names: list[str]
+    label_counts: np.ndarray  # (N, NUM_MAP_CLASSES) float32
+    colour_sum: np.ndarray  # (N, n_cameras, 3) float32, RGB in [0, 1]
+    colour_count: np.ndarray  # (N, n_cameras) float32
+
+    @staticmethod
+    def empty(num_vertices: int, camera_names: list[str]) -> VertexObservations:
+        c = len(camera_names)
+        return VertexObservations(list(camera_names), np.zeros((num_vertices, NUM_MAP_CLASSES), np.float32),
+                                  np.zeros((num_vertices, c, 3), np.float32), np.zeros((num_vertices, c), np.float32))
+
+    @property
+    def seen(self) -> np.ndarray:
+        """Vertex ids with at least one colour observation."""
+        return np.nonzero(self.colour_count.sum(1) > 0)[0]
+
+    def colour_mean(self, ids: np.ndarray) -> np.ndarray:
+        return self.colour_sum[ids] / np.maximum(self.colour_count[ids], 1.0)[..., None]
+
+
+def project_points(points_world: np.ndarray, camera: CameraModel, T_world_camera: np.ndarray):
+    """Pixel coordinates (M, 2) of world points and which of them are in front and inside the image."""
+    p = to_camera(T_world_camera, points_world)
+    z = p[:, 2]
+    ok = z > NEAR_M
+    zs = np.where(ok, z, 1.0)
+    x, y = p[:, 0] / zs, p[:, 1] / zs
+    r2 = x * x + y * y
+    ok &= r2 <= max_r2(camera)
+    if camera.distorted:
+        k1, k2, p1, p2, k3 = camera.distortion
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        x, y = (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
+                y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
+    (fx, skew, cx), (_, fy, cy) = camera.K[:2].tolist()
+    u, v = fx * x + skew * y + cx, fy * y + cy
+    ok &= (u >= 0) & (u <= camera.width - 1) & (v >= 0) & (v <= camera.height - 1)
+    return np.stack([u, v], 1), ok
+
+
+def bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """(M, C) float32 image values at (M, 2) pixel coordinates inside the image."""
+    h, w = image.shape[:2]
+    u0 = np.minimum(np.floor(uv[:, 0]).astype(np.int64), w - 2)
+    v0 = np.minimum(np.floor(uv[:, 1]).astype(np.int64), h - 2)
+    fu = (uv[:, 0] - u0).astype(np.float32)[:, None]
+    fv = (uv[:, 1] - v0).astype(np.float32)[:, None]
+    flat = image.reshape(h * w, -1)
+    i = v0 * w + u0
+    top = flat[i] * (1 - fu) + flat[i + 1] * fu
+    bottom = flat[i + w] * (1 - fu) + flat[i + w + 1] * fu
+    return top * (1 - fv) + bottom * fv
+
+
+def observe_keyframe(obs: VertexObservations, ids: np.ndarray, points_world: np.ndarray, keyframe: Keyframe,
+                     camera: CameraModel) -> int:
+    """Add one keyframe's view of the vertices `ids` (world positions `points_world`); returns how many
+    vertices it labelled."""
+    uv, ok = project_points(points_world, camera, keyframe.T_world_camera)
+    ids, uv = ids[ok], uv[ok]
+    label = keyframe.semantics[np.rint(uv[:, 1]).astype(np.int64), np.rint(uv[:, 0]).astype(np.int64)]
+    good = label < NUM_MAP_CLASSES
+    ids, uv, label = ids[good], uv[good], label[good].astype(np.int64)
+    if len(ids) == 0:
+        return 0
+    obs.label_counts[ids, label] += 1.0  # ids are unique within one keyframe
+    c = obs.camera_names.index(camera.name)
+    obs.colour_sum[ids, c] += bilinear(keyframe.image, uv) / 255.0
+    obs.colour_count[ids, c] += 1.0
+    return len(ids)
