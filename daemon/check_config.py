@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
-from daemon.config import ConfigError, config_to_yaml, load_config
+from daemon.config import EXIT_CONFIG_ERROR, config_to_yaml, load_config_or_report
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -13,11 +12,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("config", help="path of the car's YAML config")
     parser.add_argument("--quiet", action="store_true", help="print nothing when the config is valid")
     args = parser.parse_args(argv)
-    try:
-        config = load_config(args.config)
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    config = load_config_or_report(args.config)
+    if config is None:
+        return EXIT_CONFIG_ERROR
     if not args.quiet:
         print(config_to_yaml(config), end="")
     return 0

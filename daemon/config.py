@@ -10,6 +10,7 @@ Conventions used everywhere:
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Literal
 
@@ -275,6 +276,19 @@ def load_config(path: str | Path) -> CarConfig:
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: (top level): expected a mapping of sections, got {type(data).__name__}")
     return parse_config(data, str(path))
+
+
+EXIT_CONFIG_ERROR = 2  # a process's exit status for "this config cannot work": the supervisor does not retry
+
+
+def load_config_or_report(path: str | Path) -> CarConfig | None:
+    """For a process's main(): the config, or None once the reason it cannot be used is on stderr
+    (the caller then exits with EXIT_CONFIG_ERROR)."""
+    try:
+        return load_config(path)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return None
 
 
 def config_to_yaml(config: CarConfig) -> str:

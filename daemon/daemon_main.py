@@ -7,7 +7,7 @@ import signal
 import sys
 
 from daemon.bus import unlink_all
-from daemon.config import ConfigError, load_config
+from daemon.config import EXIT_CONFIG_ERROR, load_config_or_report
 from daemon.process_table import process_table
 from daemon.supervisor import Supervisor
 
@@ -31,11 +31,9 @@ def run_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output-dir", help="log and map folder (default: recorder.output_dir)")
     parser.add_argument("--no-record", action="store_true", help="do not record logs")
     args = parser.parse_args(argv)
-    try:
-        config = load_config(args.config)
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    config = load_config_or_report(args.config)
+    if config is None:
+        return EXIT_CONFIG_ERROR
     table = process_table(config, args.config, "live", record=not args.no_record, output_dir=args.output_dir)
     return _serve(Supervisor(config, table), config)
 
@@ -50,11 +48,9 @@ def replay_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output-dir", help="log and map folder (default: recorder.output_dir)")
     parser.add_argument("--no-record", action="store_true", help="do not record the replayed messages again")
     args = parser.parse_args(argv)
-    try:
-        config = load_config(args.config)
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    config = load_config_or_report(args.config)
+    if config is None:
+        return EXIT_CONFIG_ERROR
     table = process_table(config, args.config, "replay", replay_logs=tuple(args.logs), replay_rate=args.rate,
                           record=not args.no_record, output_dir=args.output_dir)
     return _serve(Supervisor(config, table, exit_when_done=True), config)

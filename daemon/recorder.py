@@ -29,7 +29,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from daemon import bus, disk_policy
-from daemon.config import CarConfig, ConfigError, data_dir, load_config
+from daemon.config import EXIT_CONFIG_ERROR, CarConfig, data_dir, load_config_or_report
 from daemon.health import HealthCounters
 from daemon.log_format import LogWriter, recover_log
 from daemon.messages import TimeAnchor
@@ -373,11 +373,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output-dir", help="folder for the segments (default: recorder.output_dir)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s recorder %(levelname)s %(message)s")
-    try:
-        config = load_config(args.config)
-    except ConfigError as exc:
-        print(exc, file=sys.stderr)
-        return 2
+    config = load_config_or_report(args.config)
+    if config is None:
+        return EXIT_CONFIG_ERROR
     output_dir = data_dir(config, args.config, args.output_dir)
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):

@@ -26,7 +26,7 @@ from pathlib import Path
 from mcap.reader import make_reader
 
 from daemon import bus
-from daemon.config import CarConfig, ConfigError, load_config
+from daemon.config import EXIT_CONFIG_ERROR, CarConfig, load_config_or_report
 from daemon.health import HealthCounters
 from daemon.log_format import LogRecord, ReadReport, read_log
 from daemon.process_table import process_table
@@ -242,11 +242,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--end", type=float, default=None, help="seconds from the log start")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s replay %(levelname)s %(message)s")
-    try:
-        config = load_config(args.config)
-    except ConfigError as exc:
-        print(exc, file=sys.stderr)
-        return 2
+    config = load_config_or_report(args.config)
+    if config is None:
+        return EXIT_CONFIG_ERROR
     missing = [p for p in args.logs if not Path(p).is_file()]
     if missing:
         print(f"no such log file: {', '.join(missing)}", file=sys.stderr)

@@ -20,13 +20,12 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-from daemon.config import CarConfig
+from daemon.config import EXIT_CONFIG_ERROR, CarConfig
 from daemon.health import HealthCounters
 from daemon.process_table import ProcessSpec
 from daemon.topics import health_topic
 
 MAX_BACKOFF_S = 30.0
-EXIT_CONFIG_ERROR = 2  # a process that exits with this cannot work with this config: never restarted
 CRASH_LOOP_RESTARTS = 3  # this many restarts of one process ...
 CRASH_LOOP_WINDOW_S = 60.0  # ... within this window: the daemon is unhealthy (systemd's watchdog starves)
 STARTUP_GRACE_S = 20.0

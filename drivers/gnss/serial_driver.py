@@ -19,7 +19,7 @@ import serial
 
 from daemon import topics
 from daemon.bus import open_publisher
-from daemon.config import ConfigError, GnssConfig, load_config
+from daemon.config import EXIT_CONFIG_ERROR, GnssConfig, load_config_or_report
 from daemon.health import HealthCounters
 from daemon.messages import GnssFix
 from drivers.gnss.gnss_messages import GnssDecoder
@@ -168,11 +168,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--port", help="serial port, overriding sensors.gnss.port")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s gnss %(levelname)s %(message)s")
-    try:
-        config = load_config(args.config)
-    except ConfigError as exc:
-        print(exc, file=sys.stderr)
-        return 2
+    config = load_config_or_report(args.config)
+    if config is None:
+        return EXIT_CONFIG_ERROR
     gnss = config.sensors.gnss
     if gnss is None:
         print(f"{args.config}: sensors.gnss is not configured", file=sys.stderr)
