@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mapping.road_map import NO_LABEL, RoadMap, WindowIndex, render_view
 from mapping.mesh_renderer import sampled_pixels
+from mapping.road_map import NO_LABEL, RoadMap, WindowIndex, render_view
 from mapping.road_mesh import locate
 from mapping.scene_data import CameraModel, GroundTruth, Keyframe, Trajectory
 from mapping.semantic_classes import NUM_MAP_CLASSES, ROAD_SURFACE_CLASSES

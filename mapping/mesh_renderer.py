@@ -23,7 +23,6 @@ import cv2
 import numpy as np
 import torch
 
-from mapping.road_mesh import RoadMesh, locate
 from mapping.scene_data import CameraModel
 
 NEAR_M = 0.2  # faces with a vertex closer than this (or behind the camera) are not drawn
@@ -200,30 +199,3 @@ def sampled_pixels(camera: CameraModel, stride: int, offset: tuple[int, int] | N
 
 def world_rays(T_world_camera: np.ndarray, rays_cam: np.ndarray) -> np.ndarray:
     return rays_cam.astype(np.float64) @ T_world_camera[:3, :3].T
-
-
-def walk_to_surface(
-    mesh: RoadMesh,
-    z: np.ndarray,
-    origin: np.ndarray,
-    rays: np.ndarray,
-    start_xy: np.ndarray,
-    iterations: int = 3,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Refine ray hits on the height field: repeatedly intersect each ray with the plane of the triangle
-    under the current guess (Newton's method on ray height minus surface height). Returns the final
-    triangles' vertex ids (P, 3) and which rays converged onto the mesh (P,)."""
-    xy = start_xy.astype(np.float64)
-    ok = np.ones(len(xy), bool)
-    for _ in range(iterations):
-        ids, _, inside = locate(mesh, xy)
-        ok &= inside
-        ids = np.where(ok[:, None], ids, 0)
-        v = np.concatenate([mesh.xy[ids], z[ids][..., None]], -1) - origin  # (P, 3, 3)
-        n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-        den = np.einsum("ij,ij->i", n, rays)
-        t = np.einsum("ij,ij->i", n, v[:, 0]) / np.where(np.abs(den) < 1e-12, 1e-12, den)
-        ok &= (t > 0) & (np.abs(den) >= 1e-12)
-        xy = np.where(ok[:, None], origin[:2] + t[:, None] * rays[:, :2], xy)
-    ids, _, inside = locate(mesh, xy)
-    return ids, ok & inside

@@ -63,14 +63,15 @@ def _lattice_edges(nodes: np.ndarray) -> np.ndarray:
 
 
 def fit_elevation(road_map: RoadMap, points: np.ndarray, lattice_m: float, steps: int, batch: int, lr: float,
-                  w_elevation: float, w_smooth: float, rng: np.random.Generator) -> dict[str, float]:
-    """Fit the residual MLP to the Lidar ground points (L1) with lattice smoothness; returns final losses."""
+                  w_elevation: float, w_smooth: float, rng: np.random.Generator) -> tuple[float, float]:
+    """Fit the residual MLP to the Lidar ground points (L1) with lattice smoothness; returns the weighted
+    loss of the first and the last step."""
     nodes, target, z0, _ = lidar_lattice_targets(road_map, points, lattice_m)
     edges = _lattice_edges(nodes)
     xy = torch.from_numpy((nodes * lattice_m).astype(np.float32))
     target_t, z0_t = torch.from_numpy(target), torch.from_numpy(z0)
     opt = torch.optim.Adam(road_map.elevation.parameters(), lr=lr)
-    last = {}
+    history = []
     for _ in range(steps):
         pick = rng.choice(len(nodes), batch, replace=False) if len(nodes) > batch else np.arange(len(nodes))
         e = rng.choice(len(edges), min(len(edges), batch), replace=False) if len(edges) > batch else slice(None)
@@ -83,8 +84,8 @@ def fit_elevation(road_map: RoadMap, points: np.ndarray, lattice_m: float, steps
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        last = {"elevation": float(loss_z), "smoothness": float(loss_s)}
-    return last
+        history.append(float(loss.detach()))
+    return (history[0], history[-1]) if history else (0.0, 0.0)
 
 
 def _observation_features(obs: VertexObservations, ids: np.ndarray) -> torch.Tensor:
@@ -104,9 +105,9 @@ def _colour_l1(road_map: RoadMap, codes: torch.Tensor, target: torch.Tensor, pre
 
 def fit_colours(road_map: RoadMap, obs: VertexObservations, ids: np.ndarray, encoder_steps: int,
                 refine_passes: int, batch: int, lr_decoder: float, lr_encoder: float, lr_codes: float,
-                rng: np.random.Generator) -> float:
-    """Fit the colour codes of vertices `ids` and the decoders (see module docstring); returns the final
-    L1 colour loss."""
+                rng: np.random.Generator) -> tuple[float, float]:
+    """Fit the colour codes of vertices `ids` and the decoders (see module docstring); returns the L1
+    colour loss of the first and the last step."""
     names = obs.camera_names
     features = _observation_features(obs, ids)
     target = torch.from_numpy(obs.colour_mean(ids))
@@ -117,7 +118,7 @@ def fit_colours(road_map: RoadMap, obs: VertexObservations, ids: np.ndarray, enc
     opts = [torch.optim.Adam(encoder.parameters(), lr=lr_encoder)]
     if decoder_params:
         opts.append(torch.optim.Adam(decoder_params, lr=lr_decoder))
-    loss = torch.zeros(())
+    history = []
     for _ in range(encoder_steps):
         pick = torch.from_numpy(rng.choice(len(ids), min(batch, len(ids)), replace=False))
         loss = _colour_l1(road_map, encoder(features[pick]), target[pick], present[pick], names)
@@ -126,6 +127,7 @@ def fit_colours(road_map: RoadMap, obs: VertexObservations, ids: np.ndarray, enc
         loss.backward()
         for o in opts:
             o.step()
+        history.append(float(loss.detach()))
     with torch.no_grad():
         codes = encoder(features)
     codes.requires_grad_(True)
@@ -137,7 +139,8 @@ def fit_colours(road_map: RoadMap, obs: VertexObservations, ids: np.ndarray, enc
         code_opt.zero_grad(set_to_none=True)
         loss.backward()
         code_opt.step()
+        history.append(float(loss.detach()))
     for p in decoder_params:
         p.requires_grad_(True)
     road_map.colour_params[torch.from_numpy(ids)] = codes.detach()
-    return float(loss)
+    return (history[0], history[-1]) if history else (0.0, 0.0)

@@ -121,6 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-lidar", action="store_true", help="no Lidar elevation supervision")
     parser.add_argument("--ablation", choices=sorted(ABLATIONS), help="switch off one part of EMIE-MAP")
     parser.add_argument("--faithful", action="store_true", help="the paper's full computation (slow)")
+    parser.add_argument("--epochs", type=int, help="optimisation epochs (default: the config's mapper.epochs)")
     args = parser.parse_args(argv)
     try:
         if args.config:
@@ -130,6 +131,8 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if args.epochs is not None:
+        config = config.model_copy(update={"mapper": config.mapper.model_copy(update={"epochs": args.epochs})})
     truth = DriveTruth.load(args.gt) if args.gt else None
     result, _ = run_reconstruction(args.logs, args.out, config, config_path, truth=truth,
                                    use_lidar=not args.no_lidar, ablation=args.ablation, faithful=args.faithful)

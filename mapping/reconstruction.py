@@ -4,12 +4,12 @@ the four losses, then evaluation and export. `reconstruct` is the public entry p
 Two paths compute the same model:
 - faithful: each step takes the whole 160 m window: every window vertex goes through the elevation MLP
   and the colour decoders, every pixel of every batch image is rasterised exactly against the full mesh.
-- fast (default): each step renders a jittered pixel grid (~`samples_per_image` pixels per image; the
-  grid moves every visit so every pixel is used across epochs), finds what each sample sees by
-  rasterising a coarse proxy of the current surface (occlusion included) and refining on the 0.1 m
-  mesh with a few Newton steps along the ray, evaluates the elevation MLP on a `elevation_lattice_m`
-  lattice (bilinear to vertices) and decodes colours only for vertices the samples touch. Per-vertex
-  tables are updated with a row-sparse Adam, so untouched vertices cost nothing.
+- fast (default): the same model fitted to what the keyframes saw at each vertex (each vertex in reach
+  of a keyframe projected into it: mapping.vertex_observations) with the paper's losses taken per
+  vertex: the elevation MLP on a `elevation_lattice_m` lattice against the Lidar ground points, the
+  semantic logits from label frequencies, the colour codes and per-camera decoders against each
+  camera's mean colour (mapping.observation_fit). One pass over the keyframes instead of 5 epochs of
+  rendering; evaluation renders pixels exactly as for the faithful path.
 """
 
 from __future__ import annotations
@@ -27,15 +27,8 @@ from daemon.config import MapperConfig
 from mapping import losses
 from mapping.map_export import export_map
 from mapping.map_metrics import evaluate_map
+from mapping.mesh_renderer import pixel_rays, rasterise, ray_triangle_weights, world_rays
 from mapping.observation_fit import fit_colours, fit_elevation, semantic_logits_from_counts
-from mapping.mesh_renderer import (
-    pixel_rays,
-    rasterise,
-    ray_triangle_weights,
-    sampled_pixels,
-    walk_to_surface,
-    world_rays,
-)
 from mapping.road_map import RoadMap, WindowIndex, new_road_map, variant_for
 from mapping.road_mesh import RoadMesh, build_road_mesh, locate
 from mapping.row_sparse_adam import RowSparseAdam
@@ -98,9 +91,11 @@ class _Supervision:
 
 
 class _Optimisation:
-    def __init__(self, road_map, cameras, config, fast, faithful, lidar_ids, lidar_z, trajectory, rng):
-        self.map, self.cameras, self.config, self.fast, self.faithful = road_map, cameras, config, fast, faithful
-        self.rng = rng
+    """The paper-faithful optimisation: every pixel of every batch image rendered exactly against the
+    whole 160 m window, every window vertex through the MLPs, each step."""
+
+    def __init__(self, road_map, cameras, config, lidar_ids, lidar_z):
+        self.map, self.cameras, self.config = road_map, cameras, config
         self.windows = WindowIndex.of(road_map.mesh)
         self.lidar_ids, self.lidar_z = lidar_ids, lidar_z
         self.lidar_order = np.argsort(road_map.mesh.s[lidar_ids], kind="stable")
@@ -117,16 +112,6 @@ class _Optimisation:
         self.semantic_opt = None
         if road_map.semantic_logits is not None:
             self.semantic_opt = RowSparseAdam(road_map.semantic_logits, lr=lr.semantics)
-        if not faithful:
-            self.proxy = build_road_mesh(trajectory, config.corridor_half_width_m + fast.proxy_side_m,
-                                         fast.proxy_side_m, 0.0)
-            self.proxy_windows = WindowIndex.of(self.proxy)
-            ids, w, ok = locate(road_map.mesh, self.proxy.xy)
-            self.proxy_ids, self.proxy_w, self.proxy_ok = ids, w, ok
-            self.strides = {
-                n: max(1, round(float(np.sqrt(c.width * c.height / fast.samples_per_image))))
-                for n, c in cameras.items()
-            }
 
     # -- what each pixel sees -------------------------------------------------------------------
     def exact_supervision(self, kf: Keyframe, faces: np.ndarray) -> _Supervision:
@@ -139,54 +124,20 @@ class _Optimisation:
         pixels = np.nonzero((grid >= 0) & (labels < NUM_MAP_CLASSES))[0]
         return _Supervision(kf, cam, pixels, tri_all[grid[pixels]])
 
-    def fast_supervision(self, kf: Keyframe, s_lo: float, s_hi: float) -> _Supervision:
-        cam = self.cameras[kf.camera]
-        stride = self.strides[cam.name]
-        offset = (int(self.rng.integers(stride)), int(self.rng.integers(stride)))
-        proxy = self.proxy
-        z_proxy = np.where(
-            self.proxy_ok,
-            (self.map.z_now[np.where(self.proxy_ok[:, None], self.proxy_ids, 0)] * self.proxy_w).sum(1),
-            proxy.z0 + 0.0,
-        )
-        tri_all = proxy.faces[self.proxy_windows.faces(s_lo, s_hi)]
-        vertices = np.concatenate([proxy.xy, z_proxy[:, None]], 1)
-        grid = rasterise(vertices, tri_all, cam, kf.T_world_camera, stride, offset).ravel()
-        pixels = sampled_pixels(cam, stride, offset).ravel()
-        keep = (grid >= 0) & (kf.semantics.ravel()[pixels] < NUM_MAP_CLASSES)
-        pixels, tri_p = pixels[keep], tri_all[grid[keep]]
-        origin = kf.T_world_camera[:3, 3]
-        rays = world_rays(kf.T_world_camera, pixel_rays(cam)[pixels])
-        with torch.no_grad():
-            rel = torch.from_numpy(vertices[tri_p] - origin)
-            _, t = ray_triangle_weights(torch.from_numpy(rays), rel)
-        start = origin[:2] + t.numpy()[:, None] * rays[:, :2]
-        tri, ok = walk_to_surface(self.map.mesh, self.map.z_now, origin, rays, start, self.fast.newton_steps)
-        return _Supervision(kf, cam, pixels[ok], tri[ok])
-
     # -- one optimisation step ------------------------------------------------------------------
     def step(self, batch: list[Keyframe], s_center: float) -> dict[str, float]:
         cfg = self.config
         s_lo, s_hi = s_center - cfg.window_before_m, s_center + cfg.window_after_m
-        window, z = None, None
-        if self.faithful:
-            window = self.windows.vertices(s_lo, s_hi)
-            z = self.map.elevation_of(window)
-            self.map.z_now[window] = z.detach().numpy()
-            faces = self.windows.faces(s_lo, s_hi)
-            sup = [self.exact_supervision(kf, faces) for kf in batch]
-        else:
-            sup = [self.fast_supervision(kf, s_lo, s_hi) for kf in batch]
+        window = self.windows.vertices(s_lo, s_hi)
+        z = self.map.elevation_of(window)
+        self.map.z_now[window] = z.detach().numpy()
+        faces = self.windows.faces(s_lo, s_hi)
+        sup = [self.exact_supervision(kf, faces) for kf in batch]
         touched = np.unique(np.concatenate([s.tri.ravel() for s in sup]))
-        if not self.faithful and len(touched):  # Lidar over the stretch the batch sees (same lattice cells)
-            seen_s = self.map.mesh.s[touched]
-            s_lo, s_hi = max(s_lo, float(seen_s.min())), min(s_hi, float(seen_s.max()))
         a, b = np.searchsorted(self.lidar_s, [s_lo, s_hi])
         lidar_sel = self.lidar_order[a:b]
-        if not self.faithful and len(lidar_sel) > self.fast.lidar_vertices_per_step:
-            lidar_sel = self.rng.choice(lidar_sel, self.fast.lidar_vertices_per_step, replace=False)
         lidar_ids = self.lidar_ids[lidar_sel]
-        ids = window if self.faithful else np.unique(np.concatenate([touched, lidar_ids]))
+        ids = window
         self.lookup[ids] = np.arange(len(ids))
         try:
             result = self._losses(sup, ids, touched, lidar_ids, self.lidar_z[lidar_sel], z)
@@ -217,7 +168,7 @@ class _Optimisation:
             sample_cam = np.concatenate([[s.camera.name] * len(s.pixels) for s in sup])
             for cam_name in dict.fromkeys(s.camera.name for s in sup):
                 mine = sample_cam == cam_name
-                rows = np.arange(len(ids)) if self.faithful else np.unique(loc[mine])
+                rows = np.arange(len(ids))
                 colour_rows.append(rm.decoder.decode(codes[rows], cam_name))
                 pos[mine] = offset + np.searchsorted(rows, loc[mine])
                 offset += len(rows)
@@ -276,11 +227,11 @@ def _fit_observations(road_map: RoadMap, train: list[Keyframe], cameras: dict[st
     """The fast path: elevation from the Lidar lattice, then every keyframe's view of every vertex in
     reach, then semantics and colours fitted to those observations (mapping.observation_fit)."""
     lr, w = config.learning_rates, config.loss_weights
-    history = []
+    first, last = 0.0, 0.0  # summed over the stages: the elevation fit, the colour fit
     if road_map.elevation is not None and lidar is not None and len(lidar):
-        terms = fit_elevation(road_map, lidar, fast.elevation_lattice_m, fast.elevation_steps, fast.elevation_batch,
-                              lr.elevation_mlp, w.elevation, w.smoothness, rng)
-        history.append(w.elevation * terms["elevation"] + w.smoothness * terms["smoothness"])
+        a, b = fit_elevation(road_map, lidar, fast.elevation_lattice_m, fast.elevation_steps, fast.elevation_batch,
+                             lr.elevation_mlp, w.elevation, w.smoothness, rng)
+        first, last = first + a, last + b
         road_map.refresh_elevation()
     mesh = road_map.mesh
     windows = WindowIndex.of(mesh)
@@ -297,9 +248,10 @@ def _fit_observations(road_map: RoadMap, train: list[Keyframe], cameras: dict[st
         labelled = np.nonzero(obs.label_counts.sum(1) > 0)[0]
         road_map.semantic_logits[torch.from_numpy(labelled)] = semantic_logits_from_counts(obs.label_counts[labelled])
     if len(seen):
-        history.append(fit_colours(road_map, obs, seen, fast.colour_encoder_steps, fast.colour_refine_steps,
-                                   fast.colour_batch, lr.colour_mlps, fast.lr_encoder, lr.colour_codes, rng))
-    return history
+        a, b = fit_colours(road_map, obs, seen, fast.colour_encoder_steps, fast.colour_refine_steps,
+                           fast.colour_batch, lr.colour_mlps, fast.lr_encoder, lr.colour_codes, rng)
+        first, last = first + w.rgb * a, last + w.rgb * b
+    return [first, last]
 
 
 def reconstruct(
@@ -341,7 +293,7 @@ def reconstruct(
     setup_s = time.perf_counter() - start
     if faithful:
         lidar_ids, lidar_z = lidar_vertex_targets(mesh, lidar_ground_points)
-        opt = _Optimisation(road_map, cameras, config, fast, faithful, lidar_ids, lidar_z, trajectory, rng)
+        opt = _Optimisation(road_map, cameras, config, lidar_ids, lidar_z)
         batches = _batches(train, trajectory, config.batch_size)
         with tqdm(total=config.epochs * len(batches), desc="emie-map", disable=not progress, unit="step") as bar:
             for _ in range(config.epochs):

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapping.mesh_renderer import max_r2, to_camera
-from mapping.road_mesh import RoadMesh
 from mapping.scene_data import CameraModel, Keyframe
 from mapping.semantic_classes import NUM_MAP_CLASSES
 

@@ -1,0 +1,73 @@
+"""Mapping bench: the default fast path against the paper-faithful computation on the same simulated drive.
+
+Each path runs as its own `roadlog reconstruct` process (so peak RSS is its own) with the ground truth.
+`rtf` is drive seconds over the command's whole wall time (log decoding, Lidar ground filter, fitting,
+evaluation, export); `rtf_optimise` counts only the reconstruction itself. The faithful path is ~100x
+slower than real time here, so by default it runs on the first `--faithful-seconds` of the drive's frames
+(the fast path on the same cut, plus the whole drive). Drives are cached under /tmp/maplab/.
+
+    .venv/bin/python bench/mapping.py [--quick] [--scenario city] [--seconds 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+ROADLOG = str(ROOT / ".venv" / "bin" / "roadlog")
+CACHE = Path("/tmp/maplab")
+KEYS = ("psnr_db", "psnr_train_db", "miou_pct", "miou_mask_pct", "elev_error_cm", "elev_mae_gt_cm", "rtf",
+        "wall_s", "peak_rss_mb", "drive_s", "optimise_wall_s")
+
+
+def drive(scenario: str, seconds: float) -> Path:
+    path = CACHE / f"{scenario}{seconds:g}.mcap"
+    if not path.exists():
+        CACHE.mkdir(parents=True, exist_ok=True)
+        subprocess.run([ROADLOG, "simulate", "--scenario", scenario, "--seconds", str(seconds), "--out", str(path)],
+                       check=True, cwd=ROOT)
+    return path
+
+
+def run(log: Path, out: Path, *extra: str) -> dict:
+    subprocess.run([ROADLOG, "reconstruct", str(log), "--out", str(out), "--config", "configs/sim.yaml",
+                    "--gt", str(log.with_suffix(".gt.npz")), *extra], check=True, cwd=ROOT,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    m = json.loads((out / "metrics.json").read_text())
+    r = {k: m.get(k) for k in KEYS}
+    r["rtf_optimise"] = m["drive_s"] / m["optimise_wall_s"] if m.get("optimise_wall_s") else None
+    return r
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="a 3 s drive, faithful with 1 epoch")
+    parser.add_argument("--scenario", default="city")
+    parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--faithful-epochs", type=int, default=5)
+    args = parser.parse_args()
+    seconds = 3.0 if args.quick else args.seconds
+    log = drive(args.scenario, seconds)
+    with tempfile.TemporaryDirectory() as tmp:
+        fast = run(log, Path(tmp) / "fast")
+        print("fast", json.dumps(fast), flush=True)
+        epochs = 1 if args.quick else args.faithful_epochs
+        faithful = run(log, Path(tmp) / "faithful", "--faithful", "--epochs", str(epochs))
+        print("faithful", json.dumps(faithful), flush=True)
+    out = {"scenario": args.scenario, "drive_s": fast["drive_s"], "faithful_epochs": epochs,
+           "rtf_fast": fast["rtf"], "rtf_faithful": faithful["rtf"],
+           "rtf_optimise_fast": fast["rtf_optimise"], "rtf_optimise_faithful": faithful["rtf_optimise"],
+           "peak_rss_mb_fast": fast["peak_rss_mb"], "peak_rss_mb_faithful": faithful["peak_rss_mb"]}
+    for k in ("psnr_db", "miou_pct", "elev_error_cm", "elev_mae_gt_cm"):
+        out[f"{k}_fast"], out[f"{k}_faithful"] = fast[k], faithful[k]
+    print(json.dumps(out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
