@@ -72,12 +72,13 @@ from mapping.road_map import NO_LABEL
 from mapping.scene_data import Keyframe
 from mapping.scene_data import Trajectory as PathTrajectory
 from mapping.semantic_classes import CLASS_COLOURS
-from mapping.sensor_time import fit_clock
+from mapping.sensor_time import ClockMap, fit_clock
 from mapping.trajectory import Trajectory
 
 PROCESS = "mapper"
 FUSION_MARGIN_S = 20.0  # data kept (and fused) before the oldest unfinished window starts
 FUSION_PERIOD_S = 1.0
+FREE_CLOCK_RATE_FIT_MIN_S = 600.0  # shorter spans: a free-running clock is taken at rate 1
 TILE_M = 40.0
 LIDAR_EVERY_N_SCANS = 2
 WINDOW_ATTEMPTS = 2
@@ -112,7 +113,8 @@ class Odometry:
     def extend(self, trajectory: Trajectory, junction_ns: int) -> None:
         """Replace the knots after `junction_ns` by the trajectory's, continuous at the junction."""
         t = trajectory.times_ns
-        junction = max(int(t[0]), min(junction_ns, int(t[-1])))
+        latest = self.knots_t[-1] if self.knots_t else int(t[-1])  # never skip past what is known
+        junction = max(int(t[0]), min(junction_ns, int(t[-1]), latest))
         keep = [i for i, kt in enumerate(self.knots_t) if kt <= junction]
         if keep and self.knots_t[keep[-1]] >= t[0]:
             j = keep[-1]
@@ -150,6 +152,22 @@ class Odometry:
         span = arr[i] - arr[i - 1]
         f = 0.0 if span <= 0 else (s - arr[i - 1]) / span
         return int(self.knots_t[i - 1] + f * (self.knots_t[i] - self.knots_t[i - 1]))
+
+
+def span_clock(stamps_ns: list[int], host_ns: list[int], anchors: list[tuple[int, int]]) -> ClockMap:
+    """`fit_clock` for the few seconds or minutes the worker holds: a free-running clock keeps rate 1.
+
+    Over a short span the fitted rate of a free-running clock is arrival jitter, not drift (a crystal
+    drifts < 100 ppm: 6 ms a minute), and a rate error stretches that sensor's time axis, so wheel
+    speeds integrate to a wrong distance. The offset is refitted with rate 1 (shortest latency)."""
+    clock = fit_clock(stamps_ns, host_ns, anchors)
+    if clock.kind != "free" or len(stamps_ns) == 0:
+        return clock
+    stamps, host = np.asarray(stamps_ns, np.int64), np.asarray(host_ns, np.int64)
+    if (stamps.max() - stamps.min()) > FREE_CLOCK_RATE_FIT_MIN_S * 1e9:
+        return clock
+    offset = float(np.min(host - host[0] - (stamps - stamps[0]))) + float(host[0])
+    return ClockMap("free", 1.0, offset, int(stamps[0]))
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
@@ -379,7 +397,7 @@ class MappingWorker:
         if len(gnss) < 5 or len(imu) < 20 or len(wheels) < 10:
             return None
         anchors = [(m.host_mono_ns, m.utc_ns) for m in small[TIME_ANCHOR]]
-        clocks = {t: fit_clock([m.sensor_time_ns for m in small[t]], [m.host_mono_ns for m in small[t]], anchors)
+        clocks = {t: span_clock([m.sensor_time_ns for m in small[t]], [m.host_mono_ns for m in small[t]], anchors)
                   for t in (GNSS_FIX, IMU, WHEEL_SPEEDS)}
         if self.origin is None:
             g = min(gnss, key=lambda m: m.sensor_time_ns)
@@ -431,7 +449,7 @@ class MappingWorker:
         by_topic: dict[str, list] = {}
         for _, topic, msg in records:
             by_topic.setdefault(topic, []).append(msg)
-        clocks = {t: fit_clock([m.sensor_time_ns for m in v], [m.host_mono_ns for m in v], anchors)
+        clocks = {t: span_clock([m.sensor_time_ns for m in v], [m.host_mono_ns for m in v], anchors)
                   for t, v in by_topic.items()}
         # the window's trajectory: poses within [t_lo, t_hi], seconds from t_lo
         inside = (traj.times_ns > t_lo) & (traj.times_ns < t_hi)

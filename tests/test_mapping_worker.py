@@ -108,6 +108,9 @@ def test_odometry_stays_continuous_when_a_later_fusion_starts_mid_drive():
     assert odo.distance_m == pytest.approx(5.0 * 19.9, abs=1e-6)
     assert odo.time_at(50.0) == pytest.approx(10e9, abs=1e6)
     assert np.all(np.diff(odo.knots_t) > 0) and np.all(np.diff(odo.knots_s) >= 0)
+    restarted = Odometry(odo.knots_t[:25], odo.knots_s[:25])  # the journal's knots: up to 12 s
+    restarted.extend(_line(10, 20, 5.0), junction_ns=15 * 10**9)  # a fusion after a restart, shorter than the margin
+    assert restarted.distance_m == pytest.approx(5.0 * 19.9, abs=1e-6)
 
 
 # ---- the real worker process on a replayed drive ---------------------------------------------------------
