@@ -31,7 +31,13 @@ from daemon.messages import (
 from daemon.topics import GNSS_FIX, IMU, LIDAR_PACKETS, POSE, TIME_ANCHOR, WHEEL_SPEEDS, camera_topic, mask_topic
 from drivers.lidar.ouster_metadata import parse_metadata
 from mapping import pose_fusion
-from mapping.lidar_ground import GroundFilter, ground_points, lidar_world_points
+from mapping.lidar_ground import (
+    GroundFilter,
+    LidarDecoding,
+    TrajectoryGround,
+    ground_points,
+    lidar_world_points,
+)
 from mapping.local_frame import LocalFrame
 from mapping.scene_data import CameraModel, Keyframe
 from mapping.scene_data import Trajectory as PathTrajectory
@@ -230,9 +236,11 @@ def lidar_ground_from_packets(packets: list[LidarPacket], clock: ClockMap, metad
     """Ground points of every n-th Lidar scan (a scan = the packets of one frame id)."""
     per_scan = metadata.packets_per_frame
     T_vl = config.sensors.lidar.extrinsics.matrix()
+    road = TrajectoryGround.of(trajectory, config.vehicle.reference_height_m)
+    decoding = LidarDecoding.of(metadata)
     out = []
     for start in range(0, len(packets), per_scan * every_n_scans):
         chunk = [bytes(p.data) for p in packets[start:start + per_scan]]
-        world = lidar_world_points(chunk, clock, metadata, T_vl, trajectory, settings)
-        out.append(ground_points(world, trajectory, config.vehicle.reference_height_m, settings))
+        world = lidar_world_points(chunk, clock, decoding, T_vl, trajectory, settings)
+        out.append(ground_points(world, road, settings))
     return np.concatenate(out) if out else np.zeros((0, 3))

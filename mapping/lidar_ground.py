@@ -13,10 +13,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from drivers.lidar.lidar_points import batch_xyz
+from drivers.lidar.lidar_points import XYZLut, batch_xyz
 from drivers.lidar.ouster_decoder import decode_packets
 from drivers.lidar.ouster_metadata import OusterMetadata
-from drivers.lidar.ouster_packet_layout import packet_layout
+from drivers.lidar.ouster_packet_layout import OusterPacketLayout, packet_layout
 from drivers.lidar.ouster_xyz import make_xyz_lut
 from mapping.sensor_time import ClockMap
 from mapping.trajectory import Trajectory
@@ -33,14 +33,25 @@ class GroundFilter:
     voxel_m: float = 0.1  # at most one point per voxel of this size (per scan)
 
 
-def lidar_world_points(packets: list[bytes], clock: ClockMap, metadata: OusterMetadata,
+@dataclass(frozen=True)
+class LidarDecoding:
+    """What decoding one sensor's packets needs, built once per drive."""
+
+    layout: OusterPacketLayout
+    lut: XYZLut
+
+    @staticmethod
+    def of(metadata: OusterMetadata) -> LidarDecoding:
+        return LidarDecoding(packet_layout(metadata), make_xyz_lut(metadata))
+
+
+def lidar_world_points(packets: list[bytes], clock: ClockMap, decoding: LidarDecoding,
                        T_vehicle_lidar: np.ndarray, trajectory: Trajectory, settings: GroundFilter) -> np.ndarray:
     """World points (N, 3) of one batch of packets, motion compensated; columns outside the trajectory dropped."""
-    layout = packet_layout(metadata)
+    layout, lut = decoding.layout, decoding.lut
     batch = decode_packets(packets, layout)
     if batch.num_packets == 0:
         return np.zeros((0, 3))
-    lut = make_xyz_lut(metadata)
     xyz = batch_xyz(batch, lut).astype(np.float64)  # (P, K, H, 3) sensor frame, metres
     rng = batch.range_mm.astype(np.float64) / 1000.0
     ok = batch.column_valid[..., None] & (rng > settings.min_range_m) & (rng < settings.max_range_m)
@@ -61,25 +72,42 @@ def lidar_world_points(packets: list[bytes], clock: ClockMap, metadata: OusterMe
     return world[keep]
 
 
-def ground_points(world: np.ndarray, trajectory: Trajectory, reference_height_m: float,
-                  settings: GroundFilter) -> np.ndarray:
+@dataclass(frozen=True)
+class TrajectoryGround:
+    """The road height under the trajectory, with a 2-D index to find the nearest point (built once per drive)."""
+
+    ground: np.ndarray  # (N, 3) trajectory points moved down to the road
+    tree: cKDTree
+
+    @staticmethod
+    def of(trajectory: Trajectory, reference_height_m: float) -> TrajectoryGround:
+        ground = trajectory.positions.copy()
+        ground[:, 2] -= reference_height_m
+        return TrajectoryGround(ground, cKDTree(ground[:, :2]))
+
+
+def _first_per_cell(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(first index, inverse) of the distinct rows of an int64 cell array, through one int64 key per row."""
+    key = np.zeros(len(cells), np.int64)
+    for k in range(cells.shape[1]):
+        key = key * 2_000_003 + (cells[:, k] + 1_000_001)
+    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+    return first, inverse.ravel()
+
+
+def ground_points(world: np.ndarray, road: TrajectoryGround, settings: GroundFilter) -> np.ndarray:
     """The points of `world` that lie on the road surface (see the module docstring)."""
     if len(world) == 0:
         return world
-    ground = trajectory.positions.copy()
-    ground[:, 2] -= reference_height_m
-    tree = cKDTree(ground[:, :2])
-    dist, idx = tree.query(world[:, :2])
+    ground = road.ground
+    dist, idx = road.tree.query(world[:, :2])
     near = (dist < settings.corridor_half_width_m) & (np.abs(world[:, 2] - ground[idx, 2]) < settings.band_m)
     pts = world[near]
     if len(pts) == 0:
         return pts
-    cells = np.floor(pts[:, :2] / settings.cell_m).astype(np.int64)
-    _, inverse = np.unique(cells, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
+    _, inverse = _first_per_cell(np.floor(pts[:, :2] / settings.cell_m).astype(np.int64))
     cell_min = np.full(inverse.max() + 1, np.inf)
     np.minimum.at(cell_min, inverse, pts[:, 2])
     pts = pts[pts[:, 2] - cell_min[inverse] < settings.above_cell_min_m]
-    voxels = np.floor(pts / settings.voxel_m).astype(np.int64)
-    _, first = np.unique(voxels, axis=0, return_index=True)
+    first, _ = _first_per_cell(np.floor(pts / settings.voxel_m).astype(np.int64))
     return pts[np.sort(first)]
