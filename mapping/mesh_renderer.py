@@ -30,8 +30,12 @@ _MAX_CANDIDATES = 4_000_000  # pixel/face pairs tested at once
 
 
 def to_camera(T_world_camera: np.ndarray, points_world: np.ndarray) -> np.ndarray:
+    """Camera-frame coordinates of (M, 3) world points. Written out per axis rather than as `@`: a
+    (M, 3) x (3, 3) product goes through multi-threaded BLAS, which ran 20x slower on this 2-core machine
+    under load (its threads spin against the other processes)."""
     R, t = T_world_camera[:3, :3], T_world_camera[:3, 3]
-    return (points_world - t) @ R
+    d = points_world - t
+    return d[:, 0:1] * R[0] + d[:, 1:2] * R[1] + d[:, 2:3] * R[2]
 
 
 def distort_normalised(x: torch.Tensor, y: torch.Tensor, distortion) -> tuple[torch.Tensor, torch.Tensor]:
@@ -198,4 +202,5 @@ def sampled_pixels(camera: CameraModel, stride: int, offset: tuple[int, int] | N
 
 
 def world_rays(T_world_camera: np.ndarray, rays_cam: np.ndarray) -> np.ndarray:
-    return rays_cam.astype(np.float64) @ T_world_camera[:3, :3].T
+    r, R = rays_cam.astype(np.float64), T_world_camera[:3, :3]
+    return r[:, 0:1] * R[:, 0] + r[:, 1:2] * R[:, 1] + r[:, 2:3] * R[:, 2]  # r @ R.T without BLAS (see to_camera)

@@ -62,11 +62,14 @@ def _lattice_edges(nodes: np.ndarray) -> np.ndarray:
     return np.concatenate(out)
 
 
-def fit_elevation(road_map: RoadMap, points: np.ndarray, lattice_m: float, steps: int, batch: int, lr: float,
-                  w_elevation: float, w_smooth: float, rng: np.random.Generator) -> tuple[float, float]:
-    """Fit the residual MLP to the Lidar ground points (L1) with lattice smoothness; returns the weighted
-    loss of the first and the last step."""
+def fit_elevation(road_map: RoadMap, points: np.ndarray, lattice_m: float, epochs: float, min_steps: int,
+                  batch: int, lr: float, w_elevation: float, w_smooth: float,
+                  rng: np.random.Generator) -> tuple[float, float]:
+    """Fit the residual MLP to the Lidar ground points (L1) with lattice smoothness, `epochs` passes over
+    the lattice nodes in minibatches of `batch` (at least `min_steps` steps); returns the weighted loss of
+    the first and the last step."""
     nodes, target, z0, _ = lidar_lattice_targets(road_map, points, lattice_m)
+    steps = max(min_steps, int(np.ceil(epochs * len(nodes) / batch)))
     edges = _lattice_edges(nodes)
     xy = torch.from_numpy((nodes * lattice_m).astype(np.float32))
     target_t, z0_t = torch.from_numpy(target), torch.from_numpy(z0)
