@@ -5,11 +5,13 @@ import trimesh
 
 from daemon.config import MapperConfig
 from mapping.map_metrics import elev_mae_gt_cm
+from mapping.observation_fit import fit_elevation, semantic_logits_from_counts
 from mapping.reconstruction import reconstruct
 from mapping.road_map import ABLATIONS, new_road_map, variant_for
 from mapping.road_mesh import build_road_mesh
 from mapping.row_sparse_adam import RowSparseAdam
-from tests.synthetic_road_scene import make_scene
+from mapping.vertex_observations import VertexObservations, observe_keyframe
+from tests.synthetic_road_scene import make_scene, texture
 
 CONFIG = MapperConfig(mesh_side_m=0.2, corridor_half_width_m=5.0, keyframe_spacing_m=0.0, threads=1,
                       window_before_m=20.0, window_after_m=20.0)
@@ -118,3 +120,35 @@ def test_row_sparse_adam_matches_dense_adam_with_idle_rows():
     sparse.flush()
     assert torch.allclose(table, dense.detach(), atol=2e-3)
     assert (table - dense.detach()).abs().mean() < 3e-4
+
+
+def test_vertex_observations_read_the_labels_and_colours_each_vertex_was_seen_with(scene):
+    mesh = build_road_mesh(scene.trajectory, 3.0, 0.2, scene.reference_height_m)
+    z_true = scene.surface.height(mesh.xy[:, 0], mesh.xy[:, 1])
+    points = np.concatenate([mesh.xy, z_true[:, None]], 1)
+    obs = VertexObservations.empty(mesh.num_vertices, sorted(scene.cameras))
+    ids = np.arange(mesh.num_vertices)
+    for kf in scene.keyframes:
+        observe_keyframe(obs, ids, points, kf, scene.cameras[kf.camera])
+    seen = obs.seen
+    assert len(seen) > 0.5 * mesh.num_vertices
+    albedo, label = texture(mesh.xy[seen, 0], mesh.xy[seen, 1])
+    logits = semantic_logits_from_counts(obs.label_counts[seen]).numpy()
+    assert (logits.argmax(1) == label).mean() > 0.9
+    front = obs.colour_count[seen, obs.camera_names.index("front")] > 0
+    grey = obs.colour_mean(seen)[front, obs.camera_names.index("front")].mean(1)
+    assert np.corrcoef(grey, albedo[front].mean(1))[0, 1] > 0.8  # shading and gain differ, not the pattern
+
+
+def test_elevation_fit_to_the_lidar_lattice_recovers_the_crossfall(scene):
+    torch.set_num_threads(1)  # as the fast path runs it (see FastPathSettings.threads)
+    torch.manual_seed(0)
+    mesh = build_road_mesh(scene.trajectory, 5.0, 0.2, scene.reference_height_m)
+    rm = new_road_map(mesh, variant_for(None), sorted(scene.cameras), 32, 2, 16, 22, 8, 128, 40.0, 0.5,
+                      torch.Generator().manual_seed(0))
+    rm.observed[:] = 1
+    start_cm = elev_mae_gt_cm(rm, scene.gt)
+    first, last = fit_elevation(rm, scene.lidar, 0.5, 5.0, 100, 512, 0.01, 1.0, 1.0, np.random.default_rng(0))
+    rm.refresh_elevation()
+    assert last < 0.5 * first
+    assert start_cm > 5.0 and elev_mae_gt_cm(rm, scene.gt) < 0.4 * start_cm
