@@ -43,34 +43,47 @@ def sensor_of(topic: str) -> str:
 
 def map_truth_metrics(map_dir: Path, gt_path: Path) -> dict:
     """Elevation error and semantic mIoU of the final map's rasters against the simulator's truth grids."""
+    from mapping.local_frame import LocalFrame
     from mapping.map_metrics import confusion, miou_pct
     from mapping.semantic_classes import NUM_MAP_CLASSES
 
-    info_path = map_dir / "bev.json"
-    if not info_path.exists():
+    meta_path = map_dir / "metadata.json"
+    if not meta_path.exists() or not (map_dir / "bev_elevation.npy").exists():
         return {}
-    info = json.loads(info_path.read_text())
+    meta = json.loads(meta_path.read_text())
     elevation = np.load(map_dir / "bev_elevation.npy")
     labels = np.load(map_dir / "bev_semantics.npy")
     gt = np.load(gt_path)
-    res, (ox, oy) = float(gt["grid_resolution_m"]), gt["grid_origin_xy"]
     h, w = elevation.shape
     ii, jj = np.mgrid[0:h, 0:w]
-    x = info["origin_xy"][0] + jj * info["resolution_m"]
-    y = info["origin_xy"][1] + ii * info["resolution_m"]
-    gi, gj = np.floor((y - oy) / res).astype(int), np.floor((x - ox) / res).astype(int)  # origin: a cell corner
+    res_map, (x0, y0) = meta["resolution_m"], meta["origin_xy"]
+    enu = np.stack([x0 + jj.ravel() * res_map, y0 + ii.ravel() * res_map, np.nan_to_num(elevation.ravel())], 1)
+    if meta.get("origin_lat_lon_alt"):  # the map's ENU frame is the worker's: move into the truth's frame
+        enu = LocalFrame(*gt["enu_origin_lat_lon_alt"]).geodetic_to_enu(
+            *LocalFrame(*meta["origin_lat_lon_alt"]).enu_to_geodetic(enu))
+    res, (ox, oy) = float(gt["grid_resolution_m"]), gt["grid_origin_xy"]
+    gi = np.floor((enu[:, 1] - oy) / res).astype(int)  # the truth's origin is a cell corner
+    gj = np.floor((enu[:, 0] - ox) / res).astype(int)
     inside = (gi >= 0) & (gi < gt["elevation"].shape[0]) & (gj >= 0) & (gj < gt["elevation"].shape[1])
     out = {}
-    ok = inside & np.isfinite(elevation)
+    z = np.where(np.isfinite(elevation.ravel()), enu[:, 2], np.nan)
+    ok = inside & np.isfinite(z)
     true_z = gt["elevation"][gi[ok], gj[ok]]
     fin = np.isfinite(true_z)
     if fin.any():
-        out["elev_mae_gt_cm"] = float(100 * np.mean(np.abs(elevation[ok][fin] - true_z[fin])))
-    ok = inside & (labels < NUM_MAP_CLASSES)
+        out["elev_mae_gt_cm"] = float(100 * np.mean(np.abs(z[ok][fin] - true_z[fin])))
+    lab = labels.ravel()
+    ok = inside & (lab < NUM_MAP_CLASSES)
     true_l = gt["semantic"][gi[ok], gj[ok]]
     valid = true_l < NUM_MAP_CLASSES
     if valid.any():
-        out["miou_pct_bev"] = miou_pct(confusion(labels[ok][valid], true_l[valid], np.ones(valid.sum(), bool)))
+        out["miou_pct_bev"] = miou_pct(confusion(lab[ok][valid], true_l[valid], np.ones(valid.sum(), bool)))
+    windows = [wi.get("metrics", {}) for wi in meta.get("windows", [])]
+    for key in ("psnr_db", "elev_error_cm"):
+        values = [m[key] for m in windows if m.get(key) is not None]
+        if values:
+            out[f"{key}_windows_mean"] = float(np.mean(values))
+    out["windows"] = len(windows)
     return out
 
 
@@ -111,10 +124,7 @@ def main(argv: list[str] | None = None) -> int:
         s, g = sum(sent[t] for t in topics), sum(logged[t] for t in topics)
         rows.append((sensor, s, g, sum(lost[t] for t in topics)))
     map_dir = data / "map" / "final"
-    metrics = {}
-    if (map_dir / "metrics.json").exists():
-        metrics.update(json.loads((map_dir / "metrics.json").read_text()))
-    metrics.update(map_truth_metrics(map_dir, gt))
+    metrics = map_truth_metrics(map_dir, gt)
 
     print()
     print(f"{'sensor':<12}{'sent':>10}{'logged':>10}{'lost':>8}")
@@ -124,9 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\nevery message logged: {'yes' if all_logged else 'NO'}; segments: {len(segments)}, "
           f"incomplete: {len(report.incomplete_files)}")
     print("map metrics: " + ", ".join(f"{k}={v:.2f}" if isinstance(v, float) else f"{k}={v}"
-                                      for k, v in metrics.items() if k in (
-                                          "psnr_db", "miou_pct", "miou_pct_bev", "elev_error_cm",
-                                          "elev_mae_gt_cm", "windows")))
+                                      for k, v in metrics.items()))
     print(f"time: simulate {timings['simulate_s']:.0f} s, daemon (replay + record + map) {timings['daemon_s']:.0f} s")
     print("\nfiles:")
     for pattern in ("*.png", "*.ply", "*.glb", "*.npy", "*.json"):
