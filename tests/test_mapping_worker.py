@@ -202,9 +202,10 @@ def test_worker_maps_as_data_arrives_survives_kill_9_and_writes_the_final_map(ci
     meta = json.loads((final / "metadata.json").read_text())
     elevation = np.load(final / "bev_elevation.npy")
     res, (x0, y0) = meta["resolution_m"], meta["origin_xy"]
-    for cx, cy in centres:
+    for k, (cx, cy) in enumerate(centres):  # the road within ~4 m of each window's middle is mapped
         i, j = int(round((cy - y0) / res)), int(round((cx - x0) / res))
-        assert np.isfinite(elevation[i - 15:i + 16, j - 15:j + 16]).mean() > 0.5
+        covered = np.isfinite(elevation[i - 15:i + 16, j - 15:j + 16]).mean()
+        assert covered > (0.3 if k == 0 else 0.75)  # the first one's middle is only 5 m from the start
     assert len(meta["windows"]) == len(windows)
     for name in ("bev_semantics.png", "bev_elevation.png", "bev_rgb_front_wide.png", "mesh.ply", "mesh.glb"):
         assert (final / name).stat().st_size > 0
