@@ -55,7 +55,9 @@ def process_table(
         table.append(ProcessSpec("replay", "daemon.replay", cfg + ("--rate", replay_rate) + replay_logs,
                                  restart_on_success=False, heartbeat_s=30.0))
     if record:
-        table.append(ProcessSpec("recorder", "daemon.recorder", cfg + out, heartbeat_s=15.0, stop_timeout_s=30.0))
+        anchors = ("--no-time-anchors",) if mode == "replay" else ()  # the player replays the recorded ones
+        table.append(ProcessSpec("recorder", "daemon.recorder", cfg + out + anchors, heartbeat_s=15.0,
+                                 stop_timeout_s=30.0))
     if config.mapper.enabled:
         table.append(ProcessSpec("mapper", "mapping.mapping_worker", cfg + out, heartbeat_s=120.0,
                                  stop_timeout_s=map_stop_timeout_s, restart_on_success=False))

@@ -322,10 +322,12 @@ def _read_round(rec: Recorder, subscribers: dict[str, bus.Subscriber]) -> int:
     return got
 
 
-def run(config: CarConfig, output_dir: Path, stop: threading.Event, config_path: str | Path | None = None) -> Recorder:
+def run(config: CarConfig, output_dir: Path, stop: threading.Event, config_path: str | Path | None = None,
+        time_anchors: bool = True) -> Recorder:
     """Record until `stop` is set, then write what is still waiting in the rings and close the segment."""
     rec = Recorder(config, output_dir, config_path)
-    anchor_pub = bus.open_publisher(config, TIME_ANCHOR)
+    # in replay mode the log player publishes the recorded anchors instead
+    anchor_pub = bus.open_publisher(config, TIME_ANCHOR) if time_anchors else None
     health_pub = bus.open_publisher(config, health_topic(PROCESS))
     wanted = logged_topics(config)
     subscribers: dict[str, bus.Subscriber] = {}
@@ -346,7 +348,8 @@ def run(config: CarConfig, output_dir: Path, stop: threading.Event, config_path:
             if now - last_health >= HEALTH_PERIOD_S:
                 last_health = now
                 mono, utc = time.monotonic_ns(), time.time_ns()
-                anchor_pub.publish(TimeAnchor(sensor_time_ns=mono, host_mono_ns=mono, utc_ns=utc))
+                if anchor_pub is not None:
+                    anchor_pub.publish(TimeAnchor(sensor_time_ns=mono, host_mono_ns=mono, utc_ns=utc))
                 health_pub.publish(rec.health_message())
             got = _read_round(rec, subscribers)
             rec.rotate_if_due()
@@ -362,7 +365,8 @@ def run(config: CarConfig, output_dir: Path, stop: threading.Event, config_path:
         health_pub.publish(rec.health_message())
         for sub in subscribers.values():
             sub.close()
-        anchor_pub.close()
+        if anchor_pub is not None:
+            anchor_pub.close()
         health_pub.close()
     return rec
 
@@ -371,6 +375,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="roadlog recorder", description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", required=True, help="car config YAML")
     parser.add_argument("--output-dir", help="folder for the segments (default: recorder.output_dir)")
+    parser.add_argument("--no-time-anchors", action="store_true",
+                        help="do not publish monotonic/UTC anchors (replay: the player publishes the recorded ones)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s recorder %(levelname)s %(message)s")
     config = load_config_or_report(args.config)
@@ -380,7 +386,7 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    rec = run(config, output_dir, stop, args.config)
+    rec = run(config, output_dir, stop, args.config, time_anchors=not args.no_time_anchors)
     log.info("stopped: %d segments closed, %d messages written, %d lost", rec.segments_closed,
               sum(rec.tally.written.values()), sum(rec.tally.lost().values()))
     return 0

@@ -3,10 +3,13 @@
 Messages of one or many segments are played in log-time order, paced by their recorded log times
 (`--rate 1.0`, or any factor) or as fast as the consumers allow (`--rate max`: every publish is lossless,
 so it waits for registered lossless subscribers such as the mapping worker instead of overrunning them).
-Each message gets a fresh seq from the publisher and host_mono_ns = now, and keeps its sensor_time_ns,
-so a consumer cannot tell replay from a live drive. Only the drivers' topics are played: topics the car's
-topic table lacks and topics that live processes publish themselves (health, time anchors, poses) are
-skipped and counted. Progress goes once a second, as JSON in `detail`, on the replay's health topic.
+Each message gets a fresh seq from the publisher and keeps its sensor_time_ns; its host_mono_ns is its
+recorded arrival time moved onto this host's clock (log time + the offset at the start), and the recorded
+monotonic/UTC time anchors are published the same way, so the relations between every sensor's clock and
+the host clock are those of the drive, at any rate: a consumer cannot tell replay from a live drive. Only
+the drivers' topics and the time anchors are played: topics the car's topic table lacks and topics that
+live processes publish themselves (health, poses) are skipped and counted. Progress goes once a second,
+as JSON in `detail`, on the replay's health topic.
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ from daemon.config import EXIT_CONFIG_ERROR, CarConfig, load_config_or_report
 from daemon.health import HealthCounters
 from daemon.log_format import LogRecord, ReadReport, read_log
 from daemon.process_table import process_table
-from daemon.topics import health_topic, topic_table
+from daemon.topics import TIME_ANCHOR, health_topic, topic_table
 
 PROCESS = "replay"
 HEALTH_PERIOD_S = 1.0
@@ -166,12 +169,12 @@ class _Player:
                 return
             self.stop.wait(min(delay, HEALTH_PERIOD_S))
 
-    def publish(self, topic: str, message: object) -> bool:
+    def publish(self, topic: str, message: object, host_mono_ns: int) -> bool:
         """Publish as a live driver would; False when stopped while waiting for a lossless reader."""
         pub = self.publishers.get(topic)
         if pub is None:
             pub = self.publishers[topic] = bus.open_publisher(self.config, topic)
-        message.host_mono_ns = 0  # the publisher stamps now
+        message.host_mono_ns = host_mono_ns
         while True:
             try:
                 pub.publish(message, lossless=self.lossless, timeout_s=LOSSLESS_WAIT_SLICE_S)
@@ -202,9 +205,10 @@ def replay(config: CarConfig, paths: list[str | Path], *, rate: float | None = 1
     progress = ReplayProgress(log_start_ns=start_ns, log_end_ns=span.end_ns if end_ns is None else min(end_ns,
                                                                                                       span.end_ns))
     table = topic_table(config)
-    playable = replayed_topics(config)
+    playable = replayed_topics(config) | {TIME_ANCHOR}
     player = _Player(config, progress, lossless=rate is None, stop=stop)
     wall0 = time.monotonic_ns()
+    shift = wall0 - start_ns  # recorded host times -> this host's clock
     try:
         for rec in merged_records(span, start_ns, end_ns, progress.report):
             if stop.is_set():
@@ -215,7 +219,7 @@ def replay(config: CarConfig, paths: list[str | Path], *, rate: float | None = 1
             else:
                 if rate is not None:
                     player.wait_until(wall0 + int((rec.log_time_ns - start_ns) / rate))
-                if not player.publish(rec.topic, rec.message):
+                if not player.publish(rec.topic, rec.message, rec.log_time_ns + shift):
                     break
             progress.reached_ns = rec.log_time_ns
     finally:
