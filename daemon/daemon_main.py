@@ -6,10 +6,21 @@ import argparse
 import signal
 import sys
 
-from daemon.bus import unlink_all
+from daemon.bus import open_publisher, unlink_all
 from daemon.config import EXIT_CONFIG_ERROR, load_config_or_report
 from daemon.process_table import process_table
 from daemon.supervisor import Supervisor
+from daemon.topics import topic_table
+
+
+def create_rings(config) -> None:
+    """Make every topic's ring before any process starts, so consumers can subscribe (and register as
+    lossless readers) before their producers exist."""
+    for name in topic_table(config):
+        try:
+            open_publisher(config, name).close()
+        except RuntimeError:  # a live writer from an earlier run still holds it: it exists
+            pass
 
 
 def _serve(supervisor: Supervisor, config) -> int:
@@ -19,6 +30,7 @@ def _serve(supervisor: Supervisor, config) -> int:
 
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
+    create_rings(config)
     try:
         return supervisor.run()
     finally:

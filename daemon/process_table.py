@@ -23,6 +23,7 @@ class ProcessSpec:
     heartbeat_s: float = 10.0  # restart when its health is older than this (0: not watched)
     restart_on_success: bool = True  # False: a clean exit means "done" (replay at the end of its logs)
     stop_timeout_s: float = 10.0  # how long it may take to exit after SIGTERM
+    start_after: tuple[str, ...] = ()  # processes that must be up (have published health) before it starts
 
 
 def process_table(
@@ -52,8 +53,10 @@ def process_table(
         if s.can is not None:
             table.append(ProcessSpec("can", "drivers.can.can_driver", cfg, required=True))
     else:
+        # the player starts once the recorder and the mapper listen: nothing is played before they subscribe
+        consumers = ("recorder",) * record + ("mapper",) * config.mapper.enabled
         table.append(ProcessSpec("replay", "daemon.replay", cfg + ("--rate", replay_rate) + replay_logs,
-                                 restart_on_success=False, heartbeat_s=30.0))
+                                 restart_on_success=False, heartbeat_s=30.0, start_after=consumers))
     if record:
         anchors = ("--no-time-anchors",) if mode == "replay" else ()  # the player replays the recorded ones
         table.append(ProcessSpec("recorder", "daemon.recorder", cfg + out + anchors, heartbeat_s=15.0,

@@ -57,7 +57,7 @@ def watchdog_interval_s() -> float | None:
 class Child:
     spec: ProcessSpec
     popen: subprocess.Popen | None = None
-    state: str = "starting"  # starting | running | backoff | finished | stopped | failed
+    state: str = "starting"  # starting | waiting | running | backoff | finished | stopped | failed
     restarts: int = 0
     last_exit: int | None = None
     last_reason: str = ""
@@ -126,7 +126,8 @@ class Supervisor:
 
     def _check(self, child: Child) -> None:
         now = time.monotonic()
-        if child.state == "backoff" and now >= child.next_start_at:
+        if (child.state == "backoff" and now >= child.next_start_at) or (
+                child.state == "waiting" and self._ready_to_start(child)):
             self._start(child)
             return
         if child.state != "running" or child.popen is None:
@@ -220,9 +221,17 @@ class Supervisor:
             self._publisher.publish(snap)
 
     # --- main loop -----------------------------------------------------------------------------
+    def _ready_to_start(self, child: Child) -> bool:
+        """A process that starts after others waits until each of them has published health."""
+        return all(self._last_health_age_s(self.children[name]) is not None
+                   for name in child.spec.start_after if name in self.children)
+
     def run(self) -> int:
         for child in self.children.values():
-            self._start(child)
+            if child.spec.start_after:
+                child.state = "waiting"
+            else:
+                self._start(child)
         while not self.stop_event.is_set():
             for child in self.children.values():
                 self._check(child)
@@ -240,9 +249,9 @@ class Supervisor:
         if replay is None or replay.state != "finished":
             return False
         mapper = self.children.get("mapper")
-        if mapper is not None and mapper.state == "running":
-            if mapper.popen is not None and mapper.popen.poll() is None and not self._mapper_told:
-                mapper.popen.send_signal(signal.SIGTERM)  # end of drive: finish remaining windows, write the map
-                self._mapper_told = True
-            return False
-        return True
+        if mapper is None or mapper.state in ("finished", "failed", "stopped"):
+            return True
+        if mapper.state == "running" and mapper.popen.poll() is None and not self._mapper_told:
+            mapper.popen.send_signal(signal.SIGTERM)  # end of drive: finish remaining windows, write the map
+            self._mapper_told = True
+        return False

@@ -215,7 +215,8 @@ class BusReader(threading.Thread):
         self.last_message_ns = time.monotonic_ns()
         self.lost = 0
 
-    def _attach(self) -> None:
+    def attach(self) -> None:
+        """Subscribe to every topic whose ring exists (again later for the others)."""
         for topic in self.topics:
             if topic not in self.subs:
                 try:
@@ -260,7 +261,7 @@ class BusReader(threading.Thread):
         next_attach = 0.0
         while True:
             if time.monotonic() >= next_attach:
-                self._attach()
+                self.attach()
                 next_attach = time.monotonic() + 0.5
             got = 0
             for topic, sub in self.subs.items():
@@ -651,6 +652,7 @@ class MappingWorker:
                 pub.publish(self.health_message())
 
         health_thread = threading.Thread(target=publish_health, name="mapper-health", daemon=True)
+        self.reader.attach()  # registered as a lossless reader before the first health says "up"
         health_thread.start()
         self.reader.start()
         next_fusion = 0.0

@@ -138,6 +138,22 @@ def test_replay_mode_ends_when_the_player_is_done(config):
     assert sup.children["replay"].state == "finished" and sup.children["replay"].restarts == 0
 
 
+def test_a_process_starts_after_the_ones_it_waits_for(config):
+    cfg, path = config
+    player = ProcessSpec("replay", "fake_process", ("--config", str(path), "--name", "replay"),
+                         start_after=("recorder",))
+    sup = Supervisor(cfg, [player, _spec("recorder", path)], env=ENV)
+    thread = _run_in_thread(sup)
+    try:
+        assert sup.children["replay"].popen is None  # waiting while the recorder comes up
+        _wait_for_health(cfg, ["recorder"])
+        assert _wait(lambda: sup.children["replay"].state == "running")
+        assert sup.children["replay"].started_at > sup.children["recorder"].started_at
+    finally:
+        sup.stop_event.set()
+        thread.join(30)
+
+
 def _notify_socket(tmp_path):
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     path = str(tmp_path / "notify.sock")
