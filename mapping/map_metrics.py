@@ -13,6 +13,7 @@ from mapping.scene_data import CameraModel, GroundTruth, Keyframe, Trajectory
 from mapping.semantic_classes import NUM_MAP_CLASSES, ROAD_SURFACE_CLASSES
 
 TRAIN_VIEWS_EVALUATED = 12
+HOLDOUT_VIEWS_EVALUATED = 36  # evenly spaced along the drive: evaluation costs the same on long drives
 EVAL_STRIDE = 2  # views are rendered and compared at every 2nd pixel row and column
 BEHIND_CAMERA_M = 10.0  # the cameras look forward: faces further behind the view's trajectory point are not drawn
 
@@ -105,6 +106,13 @@ def evaluate_views(
     return (float(np.mean(psnrs)) if psnrs else None), conf
 
 
+def _evenly(views: list[Keyframe], count: int) -> list[Keyframe]:
+    """At most `count` of `views`, evenly spaced in their order."""
+    if len(views) <= count:
+        return list(views)
+    return [views[i] for i in np.linspace(0, len(views) - 1, count).astype(int)]
+
+
 def evaluate_map(
     road_map: RoadMap,
     cameras: dict[str, CameraModel],
@@ -116,8 +124,9 @@ def evaluate_map(
     window_before_m: float,
     window_after_m: float,
 ) -> dict:
-    psnr, conf = evaluate_views(road_map, cameras, holdout, trajectory, window_before_m, window_after_m)
-    some_train = [train[i] for i in np.linspace(0, len(train) - 1, min(len(train), TRAIN_VIEWS_EVALUATED)).astype(int)]
+    psnr, conf = evaluate_views(road_map, cameras, _evenly(holdout, HOLDOUT_VIEWS_EVALUATED), trajectory,
+                                window_before_m, window_after_m)
+    some_train = _evenly(train, TRAIN_VIEWS_EVALUATED)
     psnr_train, _ = evaluate_views(road_map, cameras, some_train, trajectory, window_before_m, window_after_m)
     return {
         "psnr_db": psnr,
