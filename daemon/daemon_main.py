@@ -14,8 +14,10 @@ from daemon.topics import topic_table
 
 
 def create_rings(config) -> None:
-    """Make every topic's ring before any process starts, so consumers can subscribe (and register as
-    lossless readers) before their producers exist."""
+    """Make every topic's ring afresh before any process starts (rings left by a crashed run are removed
+    first: their messages are in the recovered segments), so consumers can subscribe, and register as
+    lossless readers, before their producers exist."""
+    unlink_all(config)
     for name in topic_table(config):
         try:
             open_publisher(config, name).close()

@@ -33,6 +33,7 @@ from daemon.config import EXIT_CONFIG_ERROR, CarConfig, data_dir, load_config_or
 from daemon.health import HealthCounters
 from daemon.log_format import LogWriter, recover_log
 from daemon.messages import TimeAnchor
+from daemon.supervisor import RESTARTS_ENV
 from daemon.topics import TIME_ANCHOR, health_topic, topic_table
 
 PROCESS = "recorder"
@@ -331,8 +332,11 @@ def run(config: CarConfig, output_dir: Path, stop: threading.Event, config_path:
     health_pub = bus.open_publisher(config, health_topic(PROCESS))
     wanted = logged_topics(config)
     subscribers: dict[str, bus.Subscriber] = {}
-    # Topics there at start-up: from now on. Topics that appear later: from their first message.
-    start_of = {t: "next" for t in wanted}
+    # First start in a daemon run: everything in the rings (the daemon made them empty before starting its
+    # processes). After a restart: from now on (what was published while it was down is not recorded).
+    # Topics that appear later: from their first message.
+    restarted = int(os.environ.get(RESTARTS_ENV, "0")) > 0
+    start_of = {t: "next" if restarted else "oldest" for t in wanted}
     last_subscribe = last_health = 0.0
     try:
         while not stop.is_set():

@@ -29,6 +29,7 @@ MAX_BACKOFF_S = 30.0
 CRASH_LOOP_RESTARTS = 3  # this many restarts of one process ...
 CRASH_LOOP_WINDOW_S = 60.0  # ... within this window: the daemon is unhealthy (systemd's watchdog starves)
 STARTUP_GRACE_S = 20.0
+RESTARTS_ENV = "ROADLOG_RESTARTS"  # how many times the supervisor restarted this process (0: first start)
 
 
 def sd_notify(state: str) -> bool:
@@ -90,7 +91,7 @@ class Supervisor:
     # --- process control -----------------------------------------------------------------------
     def _start(self, child: Child) -> None:
         cmd = [sys.executable, "-m", child.spec.module, *child.spec.args]
-        child.popen = subprocess.Popen(cmd, env=self.env)
+        child.popen = subprocess.Popen(cmd, env=dict(self.env, **{RESTARTS_ENV: str(child.restarts)}))
         child.state = "running"
         child.started_at = time.monotonic()
 

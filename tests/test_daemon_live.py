@@ -27,8 +27,8 @@ from drivers.can.can_driver import open_can_bus
 from drivers.sim.live_drive import open_gnss_pty, run_live_drive
 from tests.daemon_fixtures import REPO
 
-DRIVER_TOPICS = ("lidar/packets", "can/frames", "wheel_speeds", "camera/front_wide", "mask/front_wide",
-                 "camera/front_left", "camera/front_right")
+DRIVER_TOPICS = ("lidar/packets", "can/frames", "wheel_speeds")
+CAMERAS = ("front_wide", "front_left", "front_right")
 
 
 def _free_port(kind=socket.SOCK_STREAM) -> int:
@@ -159,9 +159,16 @@ def test_daemon_logs_every_message_restarts_drivers_and_recovers_segments(live_s
     assert len(segments) >= 2 and not list(logs.glob("*.open"))  # rotated every 3 s, all closed
     logged, report = _counts(segments)
     assert not report.incomplete_files
+    camera_dropped = {}  # each camera's own count of what it dropped, from its last logged health
+    for rec in read_log(segments, topics=[f"health/camera_{cam}" for cam in CAMERAS]):
+        camera_dropped[rec.message.process.removeprefix("camera_")] = rec.message.dropped
     sent, _ = _counts([city_drive])
     for topic in DRIVER_TOPICS:
         assert logged[topic] == sent[topic], topic
+    for cam in CAMERAS:  # a sim camera drops (and counts) a frame it could not deliver in time, as a camera does
+        pair = logged[f"camera/{cam}"] + logged[f"mask/{cam}"]
+        assert pair + camera_dropped[cam] == sent[f"camera/{cam}"] + sent[f"mask/{cam}"], (cam, logged, camera_dropped)
+        assert camera_dropped[cam] <= 2, cam
     assert logged["gnss/fix"] >= sent["gnss/fix"] - 1  # the receiver's first epoch may precede its time fix
     assert logged["imu"] == sent["imu"]
 
