@@ -39,6 +39,7 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, Message, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.summary import Summary
 from mcap.writer import CompressionType, Writer
 
 from daemon import message_codec
@@ -352,11 +353,10 @@ def decode_record(schema: Schema | None, channel: Channel, message: Message) -> 
     return None
 
 
-def _iter_complete_file(path: Path, report: FileReport, topics: set[str] | None, start_ns, end_ns):
+def _iter_complete_file(path: Path, summary: Summary, topics: set[str] | None, start_ns, end_ns):
     """Messages of a closed file in log-time order: chunks taken by start time, each chunk's messages
     released once no later chunk can hold an earlier one (a plain tuple heap: cheaper than mcap's own)."""
     with open(path, "rb") as f:
-        summary = make_reader(f).get_summary()
         chunks = sorted((c for c in summary.chunk_indexes
                          if (start_ns is None or c.message_end_time >= start_ns)
                          and (end_ns is None or c.message_start_time < end_ns)),
@@ -417,21 +417,22 @@ def _iter_truncated_file(path: Path, report: FileReport, topics: set[str] | None
         yield heapq.heappop(heap)[2:]
 
 
-def _file_is_complete(path: Path) -> bool:
-    """True when the file ends with a valid footer and summary (i.e. it was closed properly)."""
+def _closed_file_summary(path: Path) -> Summary | None:
+    """The summary of a file that ends with a valid footer (it was closed properly), else None."""
     try:
         with open(path, "rb") as f:
-            make_reader(f).get_summary()
+            summary = make_reader(f).get_summary()
             f.seek(-8, io.SEEK_END)
-            return f.read(8) == b"\x89MCAP0\r\n"
+            return summary if f.read(8) == b"\x89MCAP0\r\n" else None
     except Exception:  # noqa: BLE001 - any failure means "read it the careful way"
-        return False
+        return None
 
 
 def _iter_file(path: Path, report: FileReport, topics, start_ns, end_ns) -> Iterator[LogRecord]:
     report.bytes_total = path.stat().st_size
-    if _file_is_complete(path):
-        source = _iter_complete_file(path, report, topics, start_ns, end_ns)
+    summary = _closed_file_summary(path)
+    if summary is not None:
+        source = _iter_complete_file(path, summary, topics, start_ns, end_ns)
     else:
         report.complete = False
         source = _iter_truncated_file(path, report, topics, start_ns, end_ns)
