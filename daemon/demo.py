@@ -15,18 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from daemon.log_format import ReadReport, read_log, read_metadata
+from daemon.log_format import read_metadata
+from daemon.log_info import summarise
 
 REPO = Path(__file__).resolve().parents[1]
 SIM_CONFIG = REPO / "configs" / "sim.yaml"
-
-
-def count_messages(paths: list[Path]) -> tuple[Counter, ReadReport]:
-    report = ReadReport()
-    counts: Counter = Counter()
-    for rec in read_log(paths, report=report):
-        counts[rec.topic] += 1
-    return counts, report
 
 
 def recorder_losses(segments: list[Path]) -> Counter:
@@ -113,9 +106,11 @@ def main(argv: list[str] | None = None) -> int:
     timings["daemon_s"] = time.monotonic() - t0
 
     print("[3/3] checking the recorded log and the map", flush=True)
-    sent, _ = count_messages([drive])
+    sent = summarise([drive])["messages_per_topic"]
     segments = sorted(data.glob("*.mcap"))
-    logged, report = count_messages(segments)
+    recorded = summarise(segments)
+    logged = Counter(recorded["messages_per_topic"])
+    incomplete = [f["path"] for f in recorded["files"] if not f["complete"]]
     lost = recorder_losses(segments)
     replayed = {t for t in sent if not t.startswith(("health/", "time_anchor"))}
     rows = []
@@ -132,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{sensor:<12}{s:>10}{g:>10}{lo:>8}")
     all_logged = all(g >= s for _, s, g, _ in rows)
     print(f"\nevery message logged: {'yes' if all_logged else 'NO'}; segments: {len(segments)}, "
-          f"incomplete: {len(report.incomplete_files)}")
+          f"incomplete: {len(incomplete)}")
     print("map metrics: " + ", ".join(f"{k}={v:.2f}" if isinstance(v, float) else f"{k}={v}"
                                       for k, v in metrics.items()))
     print(f"time: simulate {timings['simulate_s']:.0f} s, daemon (replay + record + map) {timings['daemon_s']:.0f} s")
