@@ -3,11 +3,14 @@
 A bus thread subscribes (lossless) to the cameras, masks, Lidar, GNSS, IMU, wheel speeds and time
 anchors and appends everything to the disk spool (`mapping.keyframe_spool`; Lidar every n-th scan);
 GNSS/IMU/wheels/anchors are also kept in memory from the oldest unfinished window on. The main thread
-fuses the trajectory so far about once a second (`drive_inputs.fuse_log_trajectory`) to know the
-distance travelled, and as soon as `window_after_m` of road lie beyond a window centre it optimises
-that window ([centre - window_before_m, centre + window_after_m]; centres every half window, so the
-windows overlap by half) with `reconstruction.reconstruct` on the window's keyframes, trajectory and
-Lidar ground points. Each window's BEV goes into the disk tiles (`mapping.map_tiles`), the latest
+integrates the wheel speeds into the distance travelled (`Odometry`), and as soon as `window_after_m` of
+road lie beyond a window centre and every topic has delivered its data that far (plus the 2 s the
+window's inputs reach beyond), it optimises that window ([centre - window_before_m, centre +
+window_after_m]; centres every half window, so the windows overlap by half) with
+`reconstruction.reconstruct` on the window's keyframes, fused trajectory (`drive_inputs.fuse_log_trajectory`)
+and Lidar ground points. What a window sees depends on the log's content only, never on arrival timing,
+so replaying a log twice gives the same map (tests/test_replay_determinism.py).
+Each window's BEV goes into the disk tiles (`mapping.map_tiles`), the latest
 previews into `<data>/map/previews`, and a line into the journal `<data>/map/journal.json` with its
 provenance (host time range, per-topic seq ranges, log segments named by recorder/replay health, the
 config's path and hash). On SIGTERM/SIGINT the worker drains the bus, finishes the remaining windows
@@ -77,7 +80,10 @@ from mapping.trajectory import Trajectory
 
 PROCESS = "mapper"
 FUSION_MARGIN_S = 20.0  # data kept (and fused) before the oldest unfinished window starts
-FUSION_PERIOD_S = 1.0
+ODOMETRY_PERIOD_S = 1.0
+KNOT_NS = 500_000_000
+INPUT_HORIZON_NS = 2_000_000_000  # a window's inputs reach this far past its end (fusion; clocks 1 s)
+STALLED_TOPIC_NS = 30_000_000_000  # a topic this far behind the newest message is not waited for
 FREE_CLOCK_RATE_FIT_MIN_S = 600.0  # shorter spans: a free-running clock is taken at rate 1
 TILE_M = 40.0
 LIDAR_EVERY_N_SCANS = 2
@@ -105,37 +111,33 @@ def windows_for_drive(total_m: float, before_m: float, after_m: float) -> int:
 
 @dataclass
 class Odometry:
-    """Distance along the drive at host times: knots every half second, extended by each fusion."""
+    """Distance along the drive at host times, integrated from the wheel speeds message by message.
+
+    It depends only on the messages, never on when the worker looks at them, so the windows' time
+    ranges are the same in every replay of a log (a distance read off successive pose fusions depended
+    on how much data each fusion happened to have). Knots at least `KNOT_NS` apart, the newest message
+    always the last knot; the integration state is kept so a restart goes on where the journal left off."""
 
     knots_t: list[int] = field(default_factory=list)
     knots_s: list[float] = field(default_factory=list)
+    last_speed_mps: float = 0.0
 
-    def extend(self, trajectory: Trajectory, junction_ns: int) -> None:
-        """Replace the knots after `junction_ns` by the trajectory's, continuous at the junction."""
-        t = trajectory.times_ns
-        latest = self.knots_t[-1] if self.knots_t else int(t[-1])  # never skip past what is known
-        junction = max(int(t[0]), min(junction_ns, int(t[-1]), latest))
-        keep = [i for i, kt in enumerate(self.knots_t) if kt <= junction]
-        if keep and self.knots_t[keep[-1]] >= t[0]:
-            j = keep[-1]
-            base_t, base_s = self.knots_t[j], self.knots_s[j]
-        elif not self.knots_t:
-            base_t, base_s = int(t[0]), 0.0
-        else:  # the fusion starts after the last knot (a gap): continue from the last knot
-            base_t, base_s = int(t[0]), self.knots_s[keep[-1]] if keep else self.knots_s[-1]
-            keep = keep or list(range(len(self.knots_t)))
-        self.knots_t = [self.knots_t[i] for i in keep]
-        self.knots_s = [self.knots_s[i] for i in keep]
-        if not self.knots_t or self.knots_t[-1] != base_t:
-            self.knots_t.append(base_t)
-            self.knots_s.append(base_s)
-        s0 = float(trajectory.distance_at(base_t)[0])
-        new_t = np.arange(base_t + 500_000_000, int(t[-1]), 500_000_000, dtype=np.int64).tolist() + [int(t[-1])]
-        new_t = [x for x in new_t if x > base_t]
-        if new_t:
-            s = trajectory.distance_at(np.array(new_t, np.int64)) - s0 + base_s
-            self.knots_t += new_t
-            self.knots_s += [float(v) for v in s]
+    def add(self, host_ns: int, speed_mps: float) -> bool:
+        """Integrate one wheel-speed message (trapezoids); False for one not after the last."""
+        if not self.knots_t:
+            self.knots_t, self.knots_s, self.last_speed_mps = [host_ns], [0.0], speed_mps
+            return True
+        last_t = self.knots_t[-1]
+        if host_ns <= last_t:
+            return False
+        s = self.knots_s[-1] + 0.5 * (speed_mps + self.last_speed_mps) * (host_ns - last_t) / 1e9
+        if len(self.knots_t) >= 2 and last_t - self.knots_t[-2] < KNOT_NS:
+            self.knots_t[-1], self.knots_s[-1] = host_ns, s  # the tip moves on
+        else:
+            self.knots_t.append(host_ns)
+            self.knots_s.append(s)
+        self.last_speed_mps = speed_mps
+        return True
 
     @property
     def distance_m(self) -> float:
@@ -154,13 +156,42 @@ class Odometry:
         return int(self.knots_t[i - 1] + f * (self.knots_t[i] - self.knots_t[i - 1]))
 
 
+def wheel_speed_mps(msg: object) -> float | None:
+    """The vehicle's speed from one WheelSpeeds message: the mean of the wheels that report one."""
+    speeds = [abs(v) for v in (msg.front_left_mps, msg.front_right_mps, msg.rear_left_mps, msg.rear_right_mps)
+              if np.isfinite(v)]
+    return float(np.mean(speeds)) if speeds else None
+
+
+@dataclass(frozen=True)
+class RelativeUtcClock(ClockMap):
+    """A "utc" ClockMap whose (utc - mono) interpolation runs relative to the first anchor.
+
+    UTC nanoseconds (~1.7e18) hold in a float64 only to 256 ns, so the plain map rounds each stamp
+    differently for every offset between the log's and this host's monotonic clock: a replay's trajectory
+    moved by tens of ns with the moment it was played, and the optimisation (batch orders, sorted ties)
+    turned that into different maps. Relative to the first anchor every number is the same in each replay."""
+
+    def to_host(self, stamps_ns: np.ndarray) -> np.ndarray:
+        stamps = np.asarray(stamps_ns, np.int64)
+        mono0, diff0 = int(self.anchor_mono_ns[0]), int(self.anchor_utc_minus_mono_ns[0])
+        approx_mono = (stamps - diff0 - mono0).astype(np.float64)
+        diff = np.interp(approx_mono, (self.anchor_mono_ns - mono0).astype(np.float64),
+                         (self.anchor_utc_minus_mono_ns - diff0).astype(np.float64))
+        return stamps - diff0 - np.rint(diff).astype(np.int64)
+
+
 def span_clock(stamps_ns: list[int], host_ns: list[int], anchors: list[tuple[int, int]]) -> ClockMap:
-    """`fit_clock` for the few seconds or minutes the worker holds: a free-running clock keeps rate 1.
+    """`fit_clock` for the few seconds or minutes the worker holds, in exact arithmetic where it matters.
 
     Over a short span the fitted rate of a free-running clock is arrival jitter, not drift (a crystal
     drifts < 100 ppm: 6 ms a minute), and a rate error stretches that sensor's time axis, so wheel
-    speeds integrate to a wrong distance. The offset is refitted with rate 1 (shortest latency)."""
+    speeds integrate to a wrong distance. The offset is refitted with rate 1 (shortest latency), in
+    integers. A UTC clock maps through `RelativeUtcClock`."""
     clock = fit_clock(stamps_ns, host_ns, anchors)
+    if clock.kind == "utc":
+        return RelativeUtcClock("utc", anchor_mono_ns=clock.anchor_mono_ns,
+                                anchor_utc_minus_mono_ns=clock.anchor_utc_minus_mono_ns)
     if clock.kind != "free" or len(stamps_ns) == 0:
         return clock
     stamps, host = np.asarray(stamps_ns, np.int64), np.asarray(host_ns, np.int64)
@@ -214,6 +245,7 @@ class BusReader(threading.Thread):
         self.packets_per_scan = packets_per_scan
         self.last_message_ns = time.monotonic_ns()
         self.lost = 0
+        self.newest: dict[str, int] = {}  # topic -> newest host time received
 
     def attach(self) -> None:
         """Subscribe to every topic whose ring exists (again later for the others)."""
@@ -230,12 +262,14 @@ class BusReader(threading.Thread):
                 except FileNotFoundError:
                     pass
 
-    def _take(self, topic: str, msg: object) -> None:
+    def take(self, topic: str, msg: object) -> None:
+        """Spool one message (and keep it in memory if it is a small stream)."""
         if msg.seq <= self.last_seq.get(topic, -1):
             return  # spooled before a restart
         self.last_seq[topic] = msg.seq
         self.health.received += 1
         arrival = msg.host_mono_ns
+        self.newest[topic] = max(arrival, self.newest.get(topic, arrival))
         if topic == LIDAR_PACKETS:
             n = self.lidar_count
             self.lidar_count += 1
@@ -270,7 +304,7 @@ class BusReader(threading.Thread):
                     if msg is None:
                         break
                     got += 1
-                    self._take(topic, msg)
+                    self.take(topic, msg)
             for topic, sub in self.side.items():
                 msg = sub.read(0, copy=True)
                 while msg is not None:
@@ -299,6 +333,15 @@ class BusReader(threading.Thread):
                     self.small[topic] = [m for m in msgs if m.host_mono_ns >= before_ns]
             self.spool.prune_before(before_ns)
 
+    def complete_until(self, host_ns: int) -> bool:
+        """Whether every topic heard from has delivered its messages up to `host_ns` (each topic arrives in
+        host-time order); a topic stalled far behind the others is not waited for."""
+        newest = dict(self.newest)
+        if not newest:
+            return False
+        top = max(newest.values())
+        return all(t >= host_ns or t < top - STALLED_TOPIC_NS for t in newest.values())
+
     def small_copy(self) -> dict[str, list]:
         with self.lock:
             return {t: list(v) for t, v in self.small.items()}
@@ -317,6 +360,7 @@ class WorkerState:
     last_window_wall_s: float = 0.0
     errors: int = 0
     last_error: str = ""
+    wheel_messages_without_speed: int = 0
     finished: bool = False
 
 
@@ -342,15 +386,16 @@ class MappingWorker:
         self.spool = KeyframeSpool(self.folder / "spool", topic_table(config), chunk_s=2.0)
         self.journal_path = self.folder / "journal.json"
         self.journal = self._load_journal()
-        self.odometry = Odometry(list(self.journal.get("odometry_t", [])), list(self.journal.get("odometry_s", [])))
+        self.odometry = Odometry(list(self.journal.get("odometry_t", [])), list(self.journal.get("odometry_s", [])),
+                                 self.journal.get("odometry_last_speed_mps", 0.0))
         self.origin = LocalFrame(*self.journal["origin"]) if self.journal.get("origin") else None
         self.lidar_meta = (parse_metadata(resolve_path(config_path, config.sensors.lidar.metadata_file))
                            if config.sensors.lidar is not None else None)
-        last_seq = self._restore_from_spool()
+        last_seq, newest = self._restore_from_spool()
         self.reader = BusReader(config, self.spool, self.lock, self.health, last_seq,
                                 self.lidar_meta.packets_per_frame if self.lidar_meta else 1)
+        self.reader.newest.update(newest)
         self._refill_small()
-        self.trajectory: Trajectory | None = None
         self.state.windows_done = sum(1 for w in self.journal["windows"] if w["status"] == "done")
         self.state.windows_failed = sum(1 for w in self.journal["windows"] if w["status"] == "failed")
         self.state.mapped_until_m = self.journal.get("mapped_until_m", 0.0)
@@ -370,18 +415,22 @@ class MappingWorker:
 
     def _save_journal(self) -> None:
         self.journal.update(odometry_t=self.odometry.knots_t, odometry_s=self.odometry.knots_s,
+                            odometry_last_speed_mps=self.odometry.last_speed_mps,
                             mapped_until_m=self.state.mapped_until_m,
                             origin=None if self.origin is None else [self.origin.lat_deg, self.origin.lon_deg,
                                                                      self.origin.alt_m])
         _atomic_write_text(self.journal_path, json.dumps(self.journal, indent=1))
 
-    def _restore_from_spool(self) -> dict[str, int]:
-        """Last seq per topic already spooled (a restart skips those when the bus still holds them)."""
+    def _restore_from_spool(self) -> tuple[dict[str, int], dict[str, int]]:
+        """Last seq and newest host time per topic already spooled (a restart skips those when the bus still
+        holds them, and knows how far each topic's data reaches)."""
         last: dict[str, int] = {}
+        newest: dict[str, int] = {}
         for chunk in self.spool.chunks:
-            for _, topic, msg in self.spool.read(chunk.first_ns, chunk.last_ns, set(self.spool.topics)):
+            for arrival, topic, msg in self.spool.read(chunk.first_ns, chunk.last_ns, set(self.spool.topics)):
                 last[topic] = max(last.get(topic, -1), msg.seq)
-        return last
+                newest[topic] = max(newest.get(topic, arrival), arrival)
+        return last, newest
 
     def _refill_small(self) -> None:
         if not self.spool.chunks:
@@ -391,14 +440,14 @@ class MappingWorker:
             self.reader.small[topic].append(msg)
 
     # ---- trajectory --------------------------------------------------------------------------------------
-    def _fuse(self, small: dict[str, list], until_ns: int | None = None) -> Trajectory | None:
-        gnss, imu, wheels = small[GNSS_FIX], small[IMU], small[WHEEL_SPEEDS]
-        if until_ns is not None:
-            gnss, imu, wheels = ([m for m in x if m.host_mono_ns <= until_ns] for x in (gnss, imu, wheels))
+    def _fuse(self, small: dict[str, list], until_ns: int) -> Trajectory | None:
+        """The trajectory from the GNSS, IMU and wheel speeds held, up to host time `until_ns`."""
+        held = {t: [m for m in small[t] if m.host_mono_ns <= until_ns] for t in SMALL_TOPICS}
+        gnss, imu, wheels = held[GNSS_FIX], held[IMU], held[WHEEL_SPEEDS]
         if len(gnss) < 5 or len(imu) < 20 or len(wheels) < 10:
             return None
-        anchors = [(m.host_mono_ns, m.utc_ns) for m in small[TIME_ANCHOR]]
-        clocks = {t: span_clock([m.sensor_time_ns for m in small[t]], [m.host_mono_ns for m in small[t]], anchors)
+        anchors = [(m.host_mono_ns, m.utc_ns) for m in held[TIME_ANCHOR]]
+        clocks = {t: span_clock([m.sensor_time_ns for m in held[t]], [m.host_mono_ns for m in held[t]], anchors)
                   for t in (GNSS_FIX, IMU, WHEEL_SPEEDS)}
         if self.origin is None:
             g = min(gnss, key=lambda m: m.sensor_time_ns)
@@ -406,16 +455,20 @@ class MappingWorker:
         return fuse_log_trajectory(gnss, imu, wheels, self.config, self.origin, clocks)
 
     def update_distance(self) -> None:
-        try:
-            traj = self._fuse(self.reader.small_copy())
-        except Exception as exc:  # a fusion failure is reported, and retried with more data
-            self._error(f"pose fusion: {exc}")
-            return
-        if traj is None:
-            return
-        self.trajectory = traj
-        junction = int(traj.times_ns[0] + FUSION_MARGIN_S * 1e9 / 2)
-        self.odometry.extend(traj, junction)
+        """Integrate the wheel speeds that arrived since the last call into the odometry."""
+        with self.lock:
+            wheels = self.reader.small[WHEEL_SPEEDS]
+            last = self.odometry.knots_t[-1] if self.odometry.knots_t else None
+            i = len(wheels)
+            while i > 0 and (last is None or wheels[i - 1].host_mono_ns > last):
+                i -= 1
+            new = wheels[i:]
+        for msg in new:
+            speed = wheel_speed_mps(msg)
+            if speed is None:
+                self.state.wheel_messages_without_speed += 1
+            else:
+                self.odometry.add(msg.host_mono_ns, speed)
         self.state.distance_m = self.odometry.distance_m
         mapped_t = self.odometry.time_at(self.state.mapped_until_m) if self.odometry.knots_t else 0
         self.state.lag_s = max(0.0, (self.odometry.knots_t[-1] - mapped_t) / 1e9) if mapped_t else 0.0
@@ -426,7 +479,10 @@ class MappingWorker:
         if end_of_drive:
             return k < windows_for_drive(self.state.distance_m, self.mapper.window_before_m,
                                          self.mapper.window_after_m)
-        return bool(self.odometry.knots_s) and self.state.distance_m >= s_hi
+        # the road reaches the window's end, and every input it reads has arrived: its map is then the same
+        # whenever the worker gets to it
+        return (bool(self.odometry.knots_s) and self.state.distance_m >= s_hi
+                and self.reader.complete_until(self.odometry.time_at(s_hi) + INPUT_HORIZON_NS))
 
     def _window_inputs(self, k: int) -> tuple:
         m = self.mapper
@@ -434,7 +490,8 @@ class MappingWorker:
         s_hi = min(s_hi, self.state.distance_m)
         t_lo, t_hi = self.odometry.time_at(s_lo), self.odometry.time_at(s_hi)
         small = self.reader.small_copy()
-        traj = self._fuse(small, until_ns=t_hi + 2_000_000_000)
+        horizon = t_hi + INPUT_HORIZON_NS
+        traj = self._fuse(small, until_ns=horizon)
         if traj is None:
             raise ValueError("not enough GNSS/IMU/wheel data for the window")
         t_lo, t_hi = max(t_lo, int(traj.times_ns[0])), min(t_hi, int(traj.times_ns[-1]))
@@ -446,7 +503,7 @@ class MappingWorker:
             want.add(LIDAR_PACKETS)
         with self.lock:
             records = list(self.spool.read(t_lo - 1_000_000_000, t_hi + 1_000_000_000, want))
-        anchors = [(a.host_mono_ns, a.utc_ns) for a in small[TIME_ANCHOR]]
+        anchors = [(a.host_mono_ns, a.utc_ns) for a in small[TIME_ANCHOR] if a.host_mono_ns <= horizon]
         by_topic: dict[str, list] = {}
         for _, topic, msg in records:
             by_topic.setdefault(topic, []).append(msg)
@@ -591,6 +648,7 @@ class MappingWorker:
             "lag_m": round(max(0.0, st.distance_m - st.mapped_until_m), 2), "lag_s": round(st.lag_s, 2),
             "last_window_wall_s": round(st.last_window_wall_s, 2), "spool_bytes": self.spool.bytes,
             "errors": st.errors, "last_error": st.last_error, "bus_lost": self.reader.lost,
+            "wheel_messages_without_speed": st.wheel_messages_without_speed,
             "finished": st.finished,
             "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
         })
@@ -655,11 +713,11 @@ class MappingWorker:
         self.reader.attach()  # registered as a lossless reader before the first health says "up"
         health_thread.start()
         self.reader.start()
-        next_fusion = 0.0
+        next_odometry = 0.0
         while not stop.is_set():
-            if time.monotonic() >= next_fusion:
+            if time.monotonic() >= next_odometry:
                 self.update_distance()
-                next_fusion = time.monotonic() + FUSION_PERIOD_S
+                next_odometry = time.monotonic() + ODOMETRY_PERIOD_S
             if not self.step(end_of_drive=False):
                 stop.wait(0.2)
         log.info("stopping: draining the bus and finishing the remaining windows")

@@ -25,15 +25,14 @@ from daemon.topics import GNSS_FIX, camera_topic, health_topic, topic_table
 from drivers.sim.drive_log import simulate_drive
 from mapping import map_tiles
 from mapping.keyframe_spool import KeyframeSpool
-from mapping.mapping_worker import Odometry, window_span, windows_for_drive
-from mapping.trajectory import Trajectory
+from mapping.mapping_worker import window_span, windows_for_drive
 from tests.daemon_fixtures import REPO, private_config
 
 SMALL_WINDOWS = {"window_before_m": 10.0, "window_after_m": 10.0, "epochs": 1, "corridor_half_width_m": 6.0,
                  "mesh_side_m": 0.25, "keyframe_spacing_m": 2.0}
 
 
-# ---- spool, tiles, schedule ------------------------------------------------------------------------------
+# ---- spool, tiles, schedule (odometry: test_replay_determinism.py) ------------------------------------
 def test_spool_round_trip_survives_a_torn_tail_and_prunes_whole_chunks(tmp_path):
     config, _ = private_config(tmp_path)
     topics = topic_table(config)
@@ -93,25 +92,6 @@ def test_window_schedule_overlaps_by_half_and_covers_the_drive():
     assert window_span(3, 80, 80) == (240.0, 160.0, 320.0)
     assert windows_for_drive(50.0, 10, 10) == 6  # centres 0..50 m, each owning +-5 m
     assert windows_for_drive(1.0, 80, 80) == 1
-
-
-def _line(t0_s, t1_s, speed, x0=0.0):
-    t = np.arange(t0_s, t1_s, 0.1)
-    pos = np.stack([x0 + speed * (t - t0_s), np.zeros_like(t), np.zeros_like(t)], 1)
-    return Trajectory((t * 1e9).astype(np.int64), pos, np.tile([0, 0, 0, 1.0], (len(t), 1)), 48.0, 11.0, 500.0)
-
-
-def test_odometry_stays_continuous_when_a_later_fusion_starts_mid_drive():
-    odo = Odometry()
-    odo.extend(_line(0, 10, 5.0), junction_ns=0)
-    assert odo.distance_m == pytest.approx(5.0 * 9.9, abs=1e-6)
-    odo.extend(_line(4, 20, 5.0, x0=20.0), junction_ns=6 * 10**9)  # the later fusion: same speed, other origin
-    assert odo.distance_m == pytest.approx(5.0 * 19.9, abs=1e-6)
-    assert odo.time_at(50.0) == pytest.approx(10e9, abs=1e6)
-    assert np.all(np.diff(odo.knots_t) > 0) and np.all(np.diff(odo.knots_s) >= 0)
-    restarted = Odometry(odo.knots_t[:25], odo.knots_s[:25])  # the journal's knots: up to 12 s
-    restarted.extend(_line(10, 20, 5.0), junction_ns=15 * 10**9)  # a fusion after a restart, shorter than the margin
-    assert restarted.distance_m == pytest.approx(5.0 * 19.9, abs=1e-6)
 
 
 # ---- the real worker process on a replayed drive ---------------------------------------------------------

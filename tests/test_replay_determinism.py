@@ -1,0 +1,133 @@
+"""Replay determinism: the map of a log depends on the log's content only, not on when or how it was played.
+
+Replays move the recorded host times onto this host's clock, so each replay's host times differ by an
+offset, and the worker's bus reader takes topics in turns, so messages reach the spool in another order
+each time. The fast test feeds the real worker the same log twice, at two host-clock offsets and in two
+orders, and compares window 0; the slow one replays a drive twice through the real daemon
+(`roadlog replay --rate max`) and compares the final maps.
+"""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from daemon.log_format import read_log
+from mapping import map_tiles
+from mapping.mapping_worker import MappingWorker, Odometry, RelativeUtcClock, span_clock
+from mapping.sensor_time import ClockMap
+from tests.daemon_fixtures import REPO, private_config
+
+SMALL_WINDOWS = {"window_before_m": 10.0, "window_after_m": 10.0, "epochs": 1, "corridor_half_width_m": 6.0,
+                 "mesh_side_m": 0.25, "keyframe_spacing_m": 2.0}
+UTC_2026_NS = 1_790_000_000_000_000_000
+
+
+def test_utc_clock_moves_exactly_with_the_host_clock_offset():
+    stamps = UTC_2026_NS + np.arange(0, 10_000_000_000, 100_000_000) + 12_345  # GNSS epochs, 10 Hz
+    anchor_mono = np.arange(0, 11_000_000_000, 1_000_000_000) + 7_000_000_000_123
+    anchors = [(int(m), int(UTC_2026_NS - 7_000_000_000_000 + m + 3 * (m % 7))) for m in anchor_mono]  # jitter
+    host = stamps - UTC_2026_NS + 7_000_000_000_000 + 5_000_000  # arrivals 5 ms after the epoch
+    results = []
+    for shift in (0, 123_456_789_012, 9_999_999_999_999):
+        clock = span_clock(stamps.tolist(), (host + shift).tolist(), [(m + shift, u) for m, u in anchors])
+        assert isinstance(clock, RelativeUtcClock)
+        results.append(clock.to_host(stamps) - shift)
+        plain = ClockMap("utc", anchor_mono_ns=clock.anchor_mono_ns,
+                         anchor_utc_minus_mono_ns=clock.anchor_utc_minus_mono_ns).to_host(stamps)
+        assert np.abs(plain - shift - results[-1]).max() <= 256  # the same map, to float64's 256 ns at UTC magnitudes
+    assert np.array_equal(results[0], results[1]) and np.array_equal(results[0], results[2])
+
+
+def test_odometry_integrates_wheel_speeds_and_resumes_from_its_knots():
+    t = 1_000_000_000 + np.arange(0, 501) * 20_000_000  # 50 Hz for 10 s
+    speed = np.where(t < 6e9, 10.0, 5.0)
+    odo = Odometry()
+    assert all(odo.add(int(a), float(v)) for a, v in zip(t, speed, strict=True))
+    assert not odo.add(int(t[-1]), 5.0)  # not after the last message: ignored
+    assert odo.distance_m == pytest.approx(10.0 * 5.0 + 5.0 * 5.0, abs=0.1)
+    assert odo.knots_t[-1] == t[-1] and np.all(np.diff(odo.knots_t[:-1]) >= 500_000_000)
+    assert odo.time_at(50.0) == pytest.approx(6e9, abs=2e7) and odo.time_at(-1) == t[0]
+    first = Odometry()
+    for a, v in zip(t[:200], speed[:200], strict=True):
+        first.add(int(a), float(v))
+    resumed = Odometry(list(first.knots_t), list(first.knots_s), first.last_speed_mps)  # from the journal
+    for a, v in zip(t[200:], speed[200:], strict=True):
+        resumed.add(int(a), float(v))
+    assert resumed.knots_t == odo.knots_t and resumed.knots_s == odo.knots_s
+
+
+def _worker_fed(folder: Path, drive: Path, shift_ns: int, topic_by_topic: bool) -> MappingWorker:
+    """A worker fed the log (without its bus thread): arrivals moved by shift_ns, in log order or per topic."""
+    folder.mkdir()
+    config, config_path = private_config(folder, mapper=SMALL_WINDOWS)
+    worker = MappingWorker(config, str(config_path), str(folder / "data"))
+    records = [r for r in read_log([drive]) if r.topic in worker.reader.topics]
+    if topic_by_topic:
+        records.sort(key=lambda r: r.topic)  # stable: each topic still in its own order
+    for r in records:
+        r.message.host_mono_ns = r.log_time_ns + shift_ns
+        worker.reader.take(r.topic, r.message)
+    worker.update_distance()
+    return worker
+
+
+def test_a_window_is_the_same_whatever_the_host_clock_offset_and_arrival_order(city_drive, tmp_path):
+    shifts = (10_000_000_000_000, 10_000_000_000_000 + 987_654_321_987)
+    entries, tiles = [], []
+    for n, shift in enumerate(shifts):
+        worker = _worker_fed(tmp_path / f"run{n}", city_drive, shift, topic_by_topic=n == 1)
+        entries.append(worker.run_window(0))
+        tiles.append({name: map_tiles.load_tile(worker.tiles_dir / name, worker.tile_cells, worker.cam_names)
+                      for name in entries[-1]["tiles"]})
+    a, b = entries
+    assert a["keyframes"] == b["keyframes"] > 0 and a["lidar_ground_points"] == b["lidar_ground_points"] > 0
+    assert [x - shifts[0] for x in a["host_time_ns"]] == [x - shifts[1] for x in b["host_time_ns"]]
+    for key in ("psnr_train_db", "elev_error_cm", "miou_pct", "loss_last", "vertices_observed"):
+        assert a["metrics"][key] == b["metrics"][key], key
+    assert a["tiles"] == b["tiles"]
+    for name in a["tiles"]:
+        for key, value in tiles[0][name].items():
+            assert np.array_equal(value, tiles[1][name][key], equal_nan=True), (name, key)
+
+
+def _replay_through_the_daemon(drive: Path, folder: Path) -> Path:
+    folder.mkdir()
+    _, config_path = private_config(folder, mapper=SMALL_WINDOWS, status={"port": 0})
+    data = folder / "data"
+    done = subprocess.run([sys.executable, "-m", "daemon.cli", "replay", str(drive), "--config", str(config_path),
+                           "--rate", "max", "--output-dir", str(data)], cwd=REPO, capture_output=True, text=True,
+                          timeout=1200)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return data / "map"
+
+
+def _figures(metrics: dict) -> dict:
+    return {k: v for k, v in metrics.items() if not k.endswith("wall_s")}
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(2400)
+def test_replaying_a_log_twice_through_the_daemon_gives_the_same_map(city_drive, tmp_path):
+    maps = [_replay_through_the_daemon(city_drive, tmp_path / f"run{n}") for n in range(2)]
+    metas = [json.loads((m / "final" / "metadata.json").read_text()) for m in maps]
+    a, b = metas
+    assert len(a["windows"]) == len(b["windows"]) >= 4 and a["distance_m"] == b["distance_m"]
+    for wa, wb in zip(a["windows"], b["windows"], strict=True):
+        assert wa["status"] == wb["status"] == "done"
+        assert wa["host_time_ns"][1] - wa["host_time_ns"][0] == wb["host_time_ns"][1] - wb["host_time_ns"][0]
+        assert (wa["keyframes"], wa["lidar_packets"]) == (wb["keyframes"], wb["lidar_packets"])
+        assert _figures(wa["metrics"]) == _figures(wb["metrics"])
+    assert (a["origin_xy"], a["shape"]) == (b["origin_xy"], b["shape"])
+    for name in ("bev_elevation.npy", "bev_semantics.npy"):
+        x, y = (np.load(m / "final" / name) for m in maps)
+        assert np.allclose(x, y, rtol=0, atol=1e-6, equal_nan=True), name
+    tiles = sorted(p.name for p in (maps[0] / "tiles").glob("tile_*.npz"))
+    assert tiles == sorted(p.name for p in (maps[1] / "tiles").glob("tile_*.npz")) and tiles
+    for name in tiles:
+        with np.load(maps[0] / "tiles" / name) as x, np.load(maps[1] / "tiles" / name) as y:
+            for key in x.files:
+                assert np.allclose(x[key], y[key], rtol=0, atol=1e-6, equal_nan=True), (name, key)
