@@ -1,14 +1,28 @@
 """Peak memory of the mapping worker for a short and a long drive: does it stay flat with the drive's length?
 
 Simulating a long drive with cameras is far too slow on this machine, so the worker (the real process,
-through the real bus) is fed a synthetic drive instead: a vehicle going round a 200 m-radius circle at
-10 m/s, with consistent GNSS fixes (10 Hz), IMU samples (100 Hz) and wheel speeds (50 Hz) computed
-from that motion, and the front_left camera's frames and masks of one short simulated city drive
-(`configs/sim.yaml`) replayed cyclically at 10 Hz, restamped onto the synthetic clock. One camera, no
-Lidar, 0.2 m mesh, 6 m corridor, 3 m keyframe spacing, 1 epoch: cheap windows. The
-images therefore do not match the poses (the map is meaningless) but every window costs what a real one
-costs. Both drives use the same mapper settings; the worker is stopped with SIGTERM after the feed and
-its peak RSS (ru_maxrss, from its last health message) is reported.
+through the real shared-memory bus, optimising real windows) is fed a synthetic drive: a car going
+anticlockwise round a 2 km-radius circle at 20 m/s (a 10 km drive never comes back over its own
+road, so anything that grows with the map's extent shows), with consistent GNSS fixes (10 Hz), IMU
+samples (100 Hz) and wheel speeds (50 Hz), and the front_left camera's frames and masks of a 2 s
+simulated city drive (one camera, no Lidar; simulated while the workers start) replayed cyclically at
+10 Hz, restamped onto the synthetic clock. The images do not match the poses (the map is meaningless)
+but every window is optimised on real keyframes. The feed stays at most `--lead-m` (two windows)
+ahead of the worker's mapped distance, as with a worker that keeps up with the car.
+
+Cheap windows, the same for both drives and both modes, so that many fit in the time: 160 m windows
+(the default length), a 0.8 m mesh, 4 m corridor half-width, 6 m keyframe spacing, 1 epoch, one torch
+thread: about 1.5-2.5 s a window here (most of it the fixed 200-step colour fit and the pose fusion
+over the worker's 20 s margin).
+  --quick  0.2 km vs 1 km (4 vs 13 windows), under a minute;
+  full     1 km vs 10 km (13 vs 126 windows), about 6 minutes.
+The two drives run side by side, each with its own worker and bus. Each worker is stopped with SIGTERM
+after its feed (it drains the bus, finishes the remaining windows, writes the final map).
+
+Memory is the worker's VmHWM, polled from /proc until it exits: its own peak. (ru_maxrss, which its
+health messages report, starts from its parent's peak: execve keeps it.) Reported per drive: the peak
+(final map included), the peak while driving (before SIGTERM), and the slope of the RSS sampled while
+driving against the mapped distance, over the drive's second half, in MB per km.
 
     python bench/memory.py [--quick]     # last line: JSON with peak_rss_mb_short, peak_rss_mb_long, km_short, km_long
 """
@@ -18,12 +32,15 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import uuid
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -33,145 +50,254 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from daemon import bus  # noqa: E402
-from daemon.config import load_config  # noqa: E402
+from daemon.config import CarConfig, load_config  # noqa: E402
 from daemon.log_format import read_log  # noqa: E402
 from daemon.messages import CameraFrame, GnssFix, ImuSample, SemanticMask, WheelSpeeds  # noqa: E402
 from daemon.topics import GNSS_FIX, IMU, WHEEL_SPEEDS, camera_topic, health_topic, mask_topic  # noqa: E402
 from mapping.local_frame import LocalFrame  # noqa: E402
 
-SPEED = 10.0
-RADIUS = 200.0
+SPEED = 20.0
+RADIUS = 2000.0
 G = 9.80665
+ORIGIN = (48.1, 11.5, 520.0)  # latitude, longitude, altitude of the drive's start
+RATES_HZ = {"gnss": 10, "imu": 100, "wheels": 50, "camera": 10}
+CAMERA = "front_left"
+SOURCE_SECONDS = 2.0
+WINDOW_M = 80.0  # before and after the centre: 160 m windows (the default), centres every 80 m
+MAPPER = {"window_before_m": WINDOW_M, "window_after_m": WINDOW_M, "epochs": 1, "corridor_half_width_m": 4.0,
+          "mesh_side_m": 0.8, "keyframe_spacing_m": 6.0, "threads": 1}
+LEAD_M = 4 * WINDOW_M  # two windows: the next one is always fed, with the inputs beyond its end
+ATTACH_S = 1.0  # the worker attaches (lossless) to new rings every 0.5 s
+HWM_POLL_S = 0.02
+RSS_PERIOD_S = 0.5
 
 
-def make_config(folder: Path, window_m: float) -> Path:
+def car_config_data() -> dict:
+    """configs/sim.yaml with one camera and no Lidar, the cheap mapper settings, a bus of its own."""
     data = yaml.safe_load((REPO / "configs" / "sim.yaml").read_text())
     data["bus"] = {"shm_prefix": f"mem{uuid.uuid4().hex[:8]}"}
     data["sensors"].pop("lidar")
-    data["sensors"]["cameras"] = [c for c in data["sensors"]["cameras"] if c["name"] == "front_left"]
+    data["sensors"]["cameras"] = [c for c in data["sensors"]["cameras"] if c["name"] == CAMERA]
     data["sensors"]["can"]["dbc_file"] = str(REPO / "configs" / data["sensors"]["can"]["dbc_file"])
-    data["recorder"]["output_dir"] = str(folder / "data")
-    data["mapper"].update(window_before_m=window_m, window_after_m=window_m, epochs=1, corridor_half_width_m=6.0,
-                          mesh_side_m=0.2, keyframe_spacing_m=3.0)
-    path = folder / "car.yaml"
-    path.write_text(yaml.safe_dump(data))
-    return path
+    data["mapper"].update(MAPPER)
+    return data
 
 
-def city_frames(log: Path) -> list[tuple[str, CameraFrame, SemanticMask]]:
-    """(camera, frame, mask) pairs of a simulated drive, in time order."""
+def simulate_source(folder: Path) -> Path:
+    """A short simulated city drive with only the camera the bench replays (in this process: no pool)."""
+    from drivers.sim.drive_log import simulate_drive
+
+    log = folder / "city.mcap"
+    simulate_drive("city", SOURCE_SECONDS, log, CarConfig.model_validate(car_config_data()), seed=1, workers=1)
+    return log
+
+
+def city_frames(log: Path) -> list[tuple[CameraFrame, SemanticMask]]:
+    """(frame, mask) pairs of the bench's camera in a simulated drive, in time order."""
     frames, masks = {}, {}
     for rec in read_log([log]):
         m = rec.message
-        if isinstance(m, CameraFrame):
-            frames[(m.camera, m.sensor_time_ns)] = m
-        elif isinstance(m, SemanticMask):
-            masks[(m.camera, m.sensor_time_ns)] = m
-    keys = sorted((k for k in frames if k in masks), key=lambda k: k[1])
-    return [(k[0], frames[k], masks[k]) for k in keys]
+        if isinstance(m, CameraFrame) and m.camera == CAMERA:
+            frames[m.sensor_time_ns] = m
+        elif isinstance(m, SemanticMask) and m.camera == CAMERA:
+            masks[m.sensor_time_ns] = m
+    pairs = [(frames[t], masks[t]) for t in sorted(frames) if t in masks]
+    if not pairs:
+        raise ValueError(f"no {CAMERA} frames with masks in {log}")
+    return pairs
 
 
-def feed(config_path: Path, km: float, pairs: list, t0_ns: int) -> None:
-    """Publish the synthetic drive into the bus, in time order, losslessly."""
-    config = load_config(config_path)
-    frame = LocalFrame(48.1, 11.5, 520.0)
-    cams = [c.name for c in config.sensors.cameras]
-    pubs = {t: bus.open_publisher(config, t) for t in
-            [GNSS_FIX, IMU, WHEEL_SPEEDS] + [camera_topic(c) for c in cams] + [mask_topic(c) for c in cams]}
-    seconds = km * 1000.0 / SPEED
+def vehicle_enu(t: np.ndarray) -> np.ndarray:
+    """(N, 3) ENU position at drive times t (s): anticlockwise round the circle, from the origin heading east."""
     w = SPEED / RADIUS
-    events = []
-    for rate, kind in ((10, "gnss"), (100, "imu"), (50, "wheels"), (10, "cams")):
-        events += [(i / rate, kind) for i in range(int(seconds * rate) + 1)]
-    events.sort()
-    cursor = 0
+    return np.stack([RADIUS * np.sin(w * t), RADIUS * (1 - np.cos(w * t)), np.zeros_like(t)], -1)
+
+
+def drive_messages(km: float, pairs: list, t0_ns: int, track_m: float):
+    """(topic, message) of the synthetic drive in time order; the wheel speeds of a car `track_m` wide."""
+    frame = LocalFrame(*ORIGIN)
+    w = SPEED / RADIUS
     rng = np.random.default_rng(0)
+    seconds = km * 1000.0 / SPEED
+    events = sorted((i / rate, kind) for kind, rate in RATES_HZ.items() for i in range(int(seconds * rate) + 1))
+    cov = (0.02**2, 0, 0, 0, 0.02**2, 0, 0, 0, 0.05**2)
+    inner, outer = SPEED - w * track_m / 2, SPEED + w * track_m / 2
+    cursor = 0
     for t, kind in events:
         ns = t0_ns + int(round(t * 1e9))
         if kind == "gnss":
-            enu = np.array([RADIUS * np.sin(w * t), RADIUS * (1 - np.cos(w * t)), 0.0]) + rng.normal(0, 0.02, 3)
-            lat, lon, alt = frame.enu_to_geodetic(enu[None])
-            cov = (0.02**2, 0, 0, 0, 0.02**2, 0, 0, 0, 0.05**2)
-            msg = GnssFix(sensor_time_ns=ns, host_mono_ns=ns, latitude_deg=float(np.ravel(lat)[0]),
-                          longitude_deg=float(np.ravel(lon)[0]), altitude_m=float(np.ravel(alt)[0]),
-                          position_covariance=cov, covariance_type=2)
-            pubs[GNSS_FIX].publish(msg, lossless=True, timeout_s=600)
+            lat, lon, alt = frame.enu_to_geodetic(vehicle_enu(np.array([t])) + rng.normal(0, 0.02, (1, 3)))
+            yield GNSS_FIX, GnssFix(sensor_time_ns=ns, host_mono_ns=ns, latitude_deg=float(np.ravel(lat)[0]),
+                                    longitude_deg=float(np.ravel(lon)[0]), altitude_m=float(np.ravel(alt)[0]),
+                                    position_covariance=cov, covariance_type=2)
         elif kind == "imu":
-            msg = ImuSample(sensor_time_ns=ns, host_mono_ns=ns, accel_mps2=(0.0, SPEED * w, G), gyro_rps=(0.0, 0.0, w))
-            pubs[IMU].publish(msg, lossless=True, timeout_s=600)
+            yield IMU, ImuSample(sensor_time_ns=ns, host_mono_ns=ns, accel_mps2=(0.0, SPEED * w, G),
+                                 gyro_rps=(0.0, 0.0, w))
         elif kind == "wheels":
-            msg = WheelSpeeds(sensor_time_ns=ns, host_mono_ns=ns, front_left_mps=SPEED * (1 - 0.8 * w / SPEED),
-                              front_right_mps=SPEED * (1 + 0.8 * w / SPEED), rear_left_mps=SPEED - 0.8 * w,
-                              rear_right_mps=SPEED + 0.8 * w, yaw_rate_rps=w)
-            pubs[WHEEL_SPEEDS].publish(msg, lossless=True, timeout_s=600)
+            yield WHEEL_SPEEDS, WheelSpeeds(sensor_time_ns=ns, host_mono_ns=ns, front_left_mps=inner,
+                                            front_right_mps=outer, rear_left_mps=inner, rear_right_mps=outer,
+                                            yaw_rate_rps=w)
         else:
-            for cam in cams:
-                while pairs[cursor % len(pairs)][0] != cam:
-                    cursor += 1
-                _, f, m = pairs[cursor % len(pairs)]
-                cursor += 1
-                pubs[camera_topic(cam)].publish(CameraFrame(sensor_time_ns=ns, host_mono_ns=ns, camera=cam,
-                                                            format=f.format, data=bytes(f.data)),
-                                                lossless=True, timeout_s=600)
-                pubs[mask_topic(cam)].publish(SemanticMask(sensor_time_ns=ns, host_mono_ns=ns, camera=cam,
-                                                           format=m.format, data=bytes(m.data)),
-                                              lossless=True, timeout_s=600)
-    for p in pubs.values():
-        p.close()
+            f, m = pairs[cursor % len(pairs)]
+            cursor += 1
+            yield camera_topic(CAMERA), CameraFrame(sensor_time_ns=ns, host_mono_ns=ns, camera=CAMERA,
+                                                    format=f.format, data=bytes(f.data))
+            yield mask_topic(CAMERA), SemanticMask(sensor_time_ns=ns, host_mono_ns=ns, camera=CAMERA,
+                                                   format=m.format, data=bytes(m.data))
 
 
-def run_drive(km: float, window_m: float, pairs: list) -> dict:
+def mapped_m(health: bus.Subscriber) -> float:
+    latest = health.latest()
+    return json.loads(latest.detail)["mapped_until_m"] if latest is not None else 0.0
+
+
+def feed(config: CarConfig, km: float, pairs: list, health: bus.Subscriber, lead_m: float) -> None:
+    """Publish the synthetic drive into the bus, in time order, losslessly, at most `lead_m` ahead of the
+    worker's mapped distance (from its health messages)."""
+    pubs = {t: bus.open_publisher(config, t) for t in
+            (GNSS_FIX, IMU, WHEEL_SPEEDS, camera_topic(CAMERA), mask_topic(CAMERA))}
+    time.sleep(ATTACH_S)  # the worker registers as a lossless reader of the new rings
+    t0_ns = time.monotonic_ns()
+    allowed_ns = t0_ns + int(lead_m / SPEED * 1e9)
+    try:
+        for topic, msg in drive_messages(km, pairs, t0_ns, config.vehicle.track_width_m):
+            while msg.host_mono_ns > allowed_ns:
+                allowed_ns = t0_ns + int((mapped_m(health) + lead_m) / SPEED * 1e9)
+                if msg.host_mono_ns > allowed_ns:
+                    time.sleep(0.05)
+            pubs[topic].publish(msg, lossless=True, timeout_s=600)
+    finally:
+        for p in pubs.values():
+            p.close()
+
+
+def proc_status_mb(pid: int) -> dict[str, float]:
+    """VmRSS and VmHWM of a process, in MB (none for a zombie)."""
+    out = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        key, _, value = line.partition(":")
+        if key in ("VmRSS", "VmHWM"):
+            out[key] = int(value.split()[0]) / 1024.0
+    return out
+
+
+class RssSampler(threading.Thread):
+    """Polls a worker's VmHWM until it exits, and samples its RSS with its mapped distance every RSS_PERIOD_S."""
+
+    def __init__(self, pid: int, health: bus.Subscriber):
+        super().__init__(name="rss-sampler", daemon=True)
+        self.pid, self.health = pid, health
+        self.samples: list[tuple[float, float]] = []  # (mapped m, RSS MB)
+        self.peak_mb = 0.0
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        next_sample = 0.0
+        while not self.stop.is_set():
+            try:
+                status = proc_status_mb(self.pid)
+            except (FileNotFoundError, ProcessLookupError):
+                return
+            if "VmHWM" not in status:  # exited
+                return
+            self.peak_mb = max(self.peak_mb, status["VmHWM"])
+            if time.monotonic() >= next_sample:
+                self.samples.append((mapped_m(self.health), status["VmRSS"]))
+                next_sample = time.monotonic() + RSS_PERIOD_S
+            time.sleep(HWM_POLL_S)
+
+
+def rss_slope_mb_per_km(samples: list[tuple[float, float]], from_m: float) -> float | None:
+    """Least-squares slope of RSS against mapped distance, over the samples mapped from `from_m` on."""
+    pts = np.array([(m, r) for m, r in samples if m >= from_m])
+    if len(pts) < 4 or np.ptp(pts[:, 0]) < 1.0:
+        return None
+    return round(float(np.polyfit(pts[:, 0] / 1000.0, pts[:, 1], 1)[0]), 2)
+
+
+def run_drive(km: float, pairs: Future, lead_m: float, keep: bool) -> dict:
+    """Start a worker, feed it a drive of `km`, stop it; its memory and timings."""
     folder = Path(tempfile.mkdtemp(prefix="roadlog-mem-"))
-    config_path = make_config(folder, window_m)
+    data = car_config_data()
+    data["recorder"]["output_dir"] = str(folder / "data")
+    config_path = folder / "car.yaml"
+    config_path.write_text(yaml.safe_dump(data))
     config = load_config(config_path)
     env = dict(os.environ, PYTHONPATH=str(REPO))
     started = time.monotonic()
     proc = subprocess.Popen([sys.executable, "-m", "mapping.mapping_worker", "--config", str(config_path)],
                             cwd=REPO, env=env, stdout=open(folder / "worker.log", "wb"), stderr=subprocess.STDOUT)
+    sampler = None
     try:
         health = bus.open_subscriber(config, health_topic("mapper"), wait_s=120)
-        time.sleep(1.5)  # the worker attaches to the rings (start=oldest) as they appear
-        feed(config_path, km, pairs, t0_ns=time.monotonic_ns())
+        up_s = time.monotonic() - started
+        sampler = RssSampler(proc.pid, bus.open_subscriber(config, health_topic("mapper")))
+        sampler.start()
+        feed(config, km, pairs.result(), health, lead_m)
         fed_s = time.monotonic() - started
+        driving = list(sampler.samples)
+        driving_mb = sampler.peak_mb
         proc.send_signal(signal.SIGTERM)
         rc = proc.wait(timeout=3600)
-        last = json.loads(health.latest().detail)
+        sampler.join()
         if rc != 0:
             raise RuntimeError(f"worker exited {rc}: {(folder / 'worker.log').read_text()[-2000:]}")
+        last = json.loads(health.latest().detail)
         journal = json.loads((folder / "data" / "map" / "journal.json").read_text())
-        return {"km": km, "peak_rss_mb": last["peak_rss_mb"], "windows": len(journal["windows"]),
+        walls = [w["wall_s"] for w in journal["windows"] if "wall_s" in w]
+        (folder / "rss_samples.json").write_text(json.dumps(sampler.samples))
+        return {"km": km, "peak_rss_mb": round(sampler.peak_mb, 1), "peak_rss_mb_driving": round(driving_mb, 1),
+                "rss_slope_mb_per_km": rss_slope_mb_per_km(driving, km * 500.0),
+                "windows": len(journal["windows"]),
                 "windows_failed": sum(w["status"] != "done" for w in journal["windows"]),
-                "distance_m": last["distance_m"], "feed_s": round(fed_s, 1),
+                "distance_m": last["distance_m"], "bus_lost": last["bus_lost"], "errors": last["errors"],
+                "startup_s": round(up_s, 1), "feed_s": round(fed_s - up_s, 1),
+                "finish_s": round(time.monotonic() - started - fed_s, 1),
                 "wall_s": round(time.monotonic() - started, 1),
-                "window_wall_s_median": float(np.median([w["wall_s"] for w in journal["windows"] if "wall_s" in w]))}
+                "window_wall_s_median": round(float(np.median(walls)), 3) if walls else None,
+                "folder": str(folder) if keep else None}
     finally:
+        if sampler is not None:
+            sampler.stop.set()
         if proc.poll() is None:
             proc.kill()
             proc.wait()
         bus.unlink_all(config)
+        if not keep:
+            shutil.rmtree(folder, ignore_errors=True)
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="0.1 km vs 0.3 km with 20 m windows")
-    parser.add_argument("--drive-log", type=Path, help="a simulated drive to take camera frames from")
+    parser.add_argument("--quick", action="store_true", help="0.2 km vs 1 km (full: 1 km vs 10 km)")
+    parser.add_argument("--km", type=float, nargs=2, metavar=("SHORT", "LONG"), help="other drive lengths")
+    parser.add_argument("--lead-m", type=float, default=LEAD_M,
+                        help=f"how far the feed may run ahead of the mapped distance (default {LEAD_M:g} m)")
+    parser.add_argument("--drive-log", type=Path, help="a simulated drive (with the bench's camera) to replay")
+    parser.add_argument("--keep", action="store_true", help="keep each worker's folder (map, log, RSS samples)")
     args = parser.parse_args()
-    log = args.drive_log
-    if log is None:
-        from drivers.sim.drive_log import simulate_drive
-
-        log = Path(tempfile.mkdtemp(prefix="roadlog-mem-drive-")) / "city.mcap"
-        simulate_drive("city", 2.0, log, load_config(REPO / "configs" / "sim.yaml"), seed=1)
-    pairs = city_frames(log)
-    km_short, km_long, window_m = (0.1, 0.3, 10.0) if args.quick else (0.5, 2.0, 40.0)
-    short = run_drive(km_short, window_m, pairs)
-    print(json.dumps({"short": short}), flush=True)
-    long = run_drive(km_long, window_m, pairs)
-    print(json.dumps({"long": long}), flush=True)
+    started = time.monotonic()
+    km_short, km_long = args.km or ((0.2, 1.0) if args.quick else (1.0, 10.0))
+    source = Path(tempfile.mkdtemp(prefix="roadlog-mem-drive-"))
+    try:
+        with ThreadPoolExecutor(3) as pool:  # the workers start (imports) while the source drive is simulated
+            pairs = pool.submit(lambda: city_frames(args.drive_log or simulate_source(source)))
+            short_run = pool.submit(run_drive, km_short, pairs, args.lead_m, args.keep)
+            long_run = pool.submit(run_drive, km_long, pairs, args.lead_m, args.keep)
+            short = short_run.result()
+            print(json.dumps({"short": short}), flush=True)
+            long = long_run.result()
+            print(json.dumps({"long": long}), flush=True)
+    finally:
+        shutil.rmtree(source, ignore_errors=True)
     print(json.dumps({"peak_rss_mb_short": short["peak_rss_mb"], "peak_rss_mb_long": long["peak_rss_mb"],
-                      "km_short": km_short, "km_long": km_long, "window_m": 2 * window_m,
+                      "km_short": km_short, "km_long": km_long,
+                      "ratio_long_short": round(long["peak_rss_mb"] / short["peak_rss_mb"], 3),
+                      "peak_rss_mb_driving_short": short["peak_rss_mb_driving"],
+                      "peak_rss_mb_driving_long": long["peak_rss_mb_driving"],
+                      "rss_slope_mb_per_km_long": long["rss_slope_mb_per_km"],
                       "windows_short": short["windows"], "windows_long": long["windows"],
-                      "ratio_long_short": round(long["peak_rss_mb"] / short["peak_rss_mb"], 3)}))
+                      "window_m": 2 * WINDOW_M, "lead_m": args.lead_m, "wall_s": round(time.monotonic() - started, 1)}))
     return 0
 
 
