@@ -113,20 +113,31 @@ def vehicle_enu(t: np.ndarray) -> np.ndarray:
     return np.stack([RADIUS * np.sin(w * t), RADIUS * (1 - np.cos(w * t)), np.zeros_like(t)], -1)
 
 
-def drive_messages(km: float, pairs: list, t0_ns: int, track_m: float):
-    """(topic, message) of the synthetic drive in time order; the wheel speeds of a car `track_m` wide."""
+def antenna_enu(t: np.ndarray, lever_arm_m: tuple[float, float, float]) -> np.ndarray:
+    """(N, 3) ENU position of a GNSS antenna at `lever_arm_m` (x forward, y left, z up) from the vehicle's origin."""
+    heading = SPEED / RADIUS * t
+    x, y, z = lever_arm_m
+    offset = np.stack([x * np.cos(heading) - y * np.sin(heading), x * np.sin(heading) + y * np.cos(heading),
+                       np.full_like(t, z)], -1)
+    return vehicle_enu(t) + offset
+
+
+def drive_messages(km: float, pairs: list, t0_ns: int, config: CarConfig):
+    """(topic, message) of the synthetic drive in time order, for the car of `config` (track width, antenna)."""
     frame = LocalFrame(*ORIGIN)
     w = SPEED / RADIUS
     rng = np.random.default_rng(0)
     seconds = km * 1000.0 / SPEED
     events = sorted((i / rate, kind) for kind, rate in RATES_HZ.items() for i in range(int(seconds * rate) + 1))
     cov = (0.02**2, 0, 0, 0, 0.02**2, 0, 0, 0, 0.05**2)
-    inner, outer = SPEED - w * track_m / 2, SPEED + w * track_m / 2
+    half_track = config.vehicle.track_width_m / 2
+    inner, outer = SPEED - w * half_track, SPEED + w * half_track
+    lever = tuple(config.sensors.gnss.antenna_lever_arm_m)
     cursor = 0
     for t, kind in events:
         ns = t0_ns + int(round(t * 1e9))
         if kind == "gnss":
-            lat, lon, alt = frame.enu_to_geodetic(vehicle_enu(np.array([t])) + rng.normal(0, 0.02, (1, 3)))
+            lat, lon, alt = frame.enu_to_geodetic(antenna_enu(np.array([t]), lever) + rng.normal(0, 0.02, (1, 3)))
             yield GNSS_FIX, GnssFix(sensor_time_ns=ns, host_mono_ns=ns, latitude_deg=float(np.ravel(lat)[0]),
                                     longitude_deg=float(np.ravel(lon)[0]), altitude_m=float(np.ravel(alt)[0]),
                                     position_covariance=cov, covariance_type=2)
@@ -160,7 +171,7 @@ def feed(config: CarConfig, km: float, pairs: list, health: bus.Subscriber, lead
     t0_ns = time.monotonic_ns()
     allowed_ns = t0_ns + int(lead_m / SPEED * 1e9)
     try:
-        for topic, msg in drive_messages(km, pairs, t0_ns, config.vehicle.track_width_m):
+        for topic, msg in drive_messages(km, pairs, t0_ns, config):
             while msg.host_mono_ns > allowed_ns:
                 allowed_ns = t0_ns + int((mapped_m(health) + lead_m) / SPEED * 1e9)
                 if msg.host_mono_ns > allowed_ns:
