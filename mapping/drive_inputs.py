@@ -9,6 +9,7 @@ every `keyframe_spacing_m` of travel (per camera); their poses are interpolated 
 from __future__ import annotations
 
 from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -197,7 +198,39 @@ def load_drive(paths: list[str | Path], config: CarConfig, config_path: str | Pa
     else:
         trajectory = fuse_log_trajectory(gnss, imu, wheels, config, origin, clocks)
     spacing = config.mapper.keyframe_spacing_m if keyframe_spacing_m is None else keyframe_spacing_m
-    keyframes, counts = [], {"frames": 0, "frames_without_mask": 0, "frames_outside_trajectory": 0}
+    chosen, counts = _keyframe_messages(config, frames, masks, clocks, trajectory, spacing)
+    ground = None
+    # JPEG/PNG decoding (OpenCV releases the GIL) runs in a thread beside the Lidar decoding and ground filter
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        decoding = pool.submit(_decode_keyframes, chosen)
+        if lidar and config.sensors.lidar is not None:
+            meta_path = resolve_path(config_path or ".", config.sensors.lidar.metadata_file)
+            ground = lidar_ground_from_packets(lidar, clocks[LIDAR_PACKETS], parse_metadata(meta_path), config,
+                                               trajectory, lidar_every_n_scans, ground_filter or GroundFilter(
+                                                   corridor_half_width_m=config.mapper.corridor_half_width_m))
+            counts["lidar_packets"] = len(lidar)
+            counts["lidar_ground_points"] = len(ground)
+        keyframes = decoding.result()
+    counts["keyframes"] = len(keyframes)
+    return DriveInputs(camera_models(config), keyframes, trajectory, ground, clocks, counts, report)
+
+
+@dataclass(frozen=True)
+class _KeyframeMessages:
+    """A camera frame chosen as keyframe, its mask and pose, not decoded yet."""
+
+    camera: str
+    timestamp: float  # seconds from the trajectory start
+    T_world_camera: np.ndarray
+    frame: CameraFrame
+    mask: SemanticMask
+
+
+def _keyframe_messages(config: CarConfig, frames: dict[str, list[CameraFrame]],
+                       masks: dict[str, dict[int, SemanticMask]], clocks: dict[str, ClockMap],
+                       trajectory: Trajectory, spacing_m: float) -> tuple[list[_KeyframeMessages], dict[str, int]]:
+    """Per camera, a frame (with its mask) every `spacing_m` of travel; the counts of frames passed over."""
+    chosen, counts = [], {"frames": 0, "frames_without_mask": 0, "frames_outside_trajectory": 0}
     t0 = trajectory.times_ns[0]
     for cam in config.sensors.cameras:
         T_vc = cam.extrinsics.matrix()
@@ -209,26 +242,21 @@ def load_drive(paths: list[str | Path], config: CarConfig, config_path: str | Pa
                 counts["frames_outside_trajectory"] += 1
                 continue
             s = float(trajectory.distance_at(np.array([t], np.int64))[0])
-            if s - last_s < spacing:
+            if s - last_s < spacing_m:
                 continue
             mask = masks.get(cam.name, {}).get(f.sensor_time_ns)
             if mask is None:
                 counts["frames_without_mask"] += 1
                 continue
             last_s = s
-            keyframes.append(Keyframe(cam.name, (t - t0) / 1e9, camera_pose(trajectory, t, T_vc), decode_image(f),
-                                      decode_mask(mask)))
-    keyframes.sort(key=lambda k: k.timestamp)
-    ground = None
-    if lidar and config.sensors.lidar is not None:
-        meta_path = resolve_path(config_path or ".", config.sensors.lidar.metadata_file)
-        ground = lidar_ground_from_packets(lidar, clocks[LIDAR_PACKETS], parse_metadata(meta_path),
-                                           config, trajectory, lidar_every_n_scans, ground_filter or GroundFilter(
-                                               corridor_half_width_m=config.mapper.corridor_half_width_m))
-        counts["lidar_packets"] = len(lidar)
-        counts["lidar_ground_points"] = len(ground)
-    counts["keyframes"] = len(keyframes)
-    return DriveInputs(camera_models(config), keyframes, trajectory, ground, clocks, counts, report)
+            chosen.append(_KeyframeMessages(cam.name, (t - t0) / 1e9, camera_pose(trajectory, t, T_vc), f, mask))
+    chosen.sort(key=lambda k: k.timestamp)
+    return chosen, counts
+
+
+def _decode_keyframes(chosen: list[_KeyframeMessages]) -> list[Keyframe]:
+    return [Keyframe(k.camera, k.timestamp, k.T_world_camera, decode_image(k.frame), decode_mask(k.mask))
+            for k in chosen]
 
 
 def lidar_ground_from_packets(packets: list[LidarPacket], clock: ClockMap, metadata, config: CarConfig,
@@ -236,7 +264,8 @@ def lidar_ground_from_packets(packets: list[LidarPacket], clock: ClockMap, metad
     """Ground points of every n-th Lidar scan (a scan = the packets of one frame id)."""
     per_scan = metadata.packets_per_frame
     T_vl = config.sensors.lidar.extrinsics.matrix()
-    road = TrajectoryGround.of(trajectory, config.vehicle.reference_height_m)
+    road = TrajectoryGround.of(trajectory, config.vehicle.reference_height_m, settings.corridor_half_width_m,
+                               settings.ground_cell_m)
     decoding = LidarDecoding.of(metadata)
     out = []
     for start in range(0, len(packets), per_scan * every_n_scans):

@@ -39,10 +39,38 @@ def miou_pct(conf: np.ndarray) -> float | None:
     return float(100.0 * np.mean(inter[present] / union[present])) if present.any() else None
 
 
+OBSERVED_BLOCK_M = 1.0  # the observed area is rasterised on blocks of this size to skip points far from it
+
+
+def _near_observed(road_map: RoadMap, xy: np.ndarray) -> np.ndarray:
+    """(M,) False where a point cannot lie in a triangle with an observed vertex: no observed vertex in its
+    OBSERVED_BLOCK_M block or the 8 around it (a point is within one mesh side of its triangle's vertices)."""
+    block = max(OBSERVED_BLOCK_M, road_map.mesh.side_m)
+    seen = np.floor(road_map.mesh.xy[road_map.observed > 0] / block).astype(np.int64)
+    near = np.zeros(len(xy), bool)
+    if not len(seen):
+        return near
+    lo = seen.min(0) - 1
+    shape = seen.max(0) - lo + 2
+    marked = np.zeros(tuple(shape), bool)
+    marked[tuple((seen - lo).T)] = True
+    grown = marked.copy()  # marked blocks and the 8 around each (its border is empty: rolling wraps nothing in)
+    for shift in ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
+        grown |= np.roll(marked, shift, axis=(0, 1))
+    cell = np.floor(xy / block).astype(np.int64) - lo
+    i, j = cell[:, 0], cell[:, 1]
+    inside = np.flatnonzero((i >= 0) & (i < shape[0]) & (j >= 0) & (j < shape[1]))
+    near[inside] = grown[i[inside], j[inside]]
+    return near
+
+
 def observed_triangles(road_map: RoadMap, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Triangle under each point, restricted to triangles whose three vertices were supervised."""
-    ids, w, ok = locate(road_map.mesh, xy)
-    ok &= (road_map.observed[np.where(ok[:, None], ids, 0)] > 0).all(1)
+    near = np.flatnonzero(_near_observed(road_map, xy))  # locate only points that can be in an observed triangle
+    near_ids, near_w, near_ok = locate(road_map.mesh, xy[near])
+    seen = road_map.observed[np.where(near_ok[:, None], near_ids, 0)] > 0
+    ids, w, ok = np.full((len(xy), 3), -1, np.int64), np.zeros((len(xy), 3)), np.zeros(len(xy), bool)
+    ids[near], w[near], ok[near] = near_ids, near_w, near_ok & seen[:, 0] & seen[:, 1] & seen[:, 2]
     return ids, w, ok
 
 
@@ -65,14 +93,13 @@ def elev_mae_gt_cm(road_map: RoadMap, gt: GroundTruth | None) -> float | None:
     """Mean |z - z_true| (cm) over true-raster cells inside the reconstructed area."""
     if gt is None:
         return None
-    xy = gt.cell_centres().reshape(-1, 2)
-    z_true = gt.elevation_m.reshape(-1)
+    rows, cols = np.nonzero(np.isfinite(gt.elevation_m))
+    xy = np.stack([gt.origin_xy[0] + cols * gt.resolution_m, gt.origin_xy[1] + rows * gt.resolution_m], 1)
     ids, w, ok = observed_triangles(road_map, xy)
-    ok &= np.isfinite(z_true)
     if not ok.any():
         return None
     z = (road_map.z_now[ids[ok]] * w[ok]).sum(1)
-    return float(100.0 * np.mean(np.abs(z - z_true[ok])))
+    return float(100.0 * np.mean(np.abs(z - gt.elevation_m[rows[ok], cols[ok]])))
 
 
 def evaluate_views(

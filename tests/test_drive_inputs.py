@@ -1,12 +1,16 @@
-"""From a simulated drive log to the reconstruction's inputs: trajectory, keyframes and Lidar ground."""
+"""From a simulated drive log to the reconstruction's inputs: trajectory, keyframes and Lidar ground; the ground
+filter's trajectory height raster on a synthetic bend."""
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from daemon.config import load_config
 from mapping.drive_inputs import load_drive
+from mapping.lidar_ground import TILE_CELLS, GroundFilter, TrajectoryGround, ground_points
 from mapping.reconstruct_command import DriveTruth
+from mapping.trajectory import Trajectory
 from tests.daemon_fixtures import REPO
 
 CONFIG = REPO / "configs" / "sim.yaml"
@@ -57,3 +61,50 @@ def test_keyframes_and_lidar_ground(drive):
     dz = dz[np.isfinite(dz)]
     assert np.mean(np.abs(dz)) < 0.03  # on the road surface (cars filtered out), within the range noise
     assert np.percentile(np.abs(dz), 99) < 0.15
+
+
+def _bend_trajectory() -> Trajectory:
+    """20 s along a 60 m-radius bend, climbing at 4 %, sampled at 100 Hz."""
+    t = np.arange(0.0, 20.0, 0.01)
+    angle = 10.0 * t / 60.0
+    positions = np.column_stack([60.0 * np.sin(angle), 60.0 * (1 - np.cos(angle)), 0.4 * t + 1.5])
+    quats = Rotation.from_euler("z", angle[:, None]).as_quat()
+    return Trajectory(np.round(t * 1e9).astype(np.int64), positions, quats, 48.1, 11.5, 500.0)
+
+
+def test_trajectory_ground_raster_holds_the_nearest_trajectory_height():
+    traj = _bend_trajectory()
+    road = TrajectoryGround.of(traj, 1.5, corridor_half_width_m=15.0, cell_m=0.25)
+    ground = traj.positions - [0.0, 0.0, 1.5]
+    rng = np.random.default_rng(0)
+    xy = ground[rng.integers(0, len(ground), 20_000), :2] + rng.uniform(-25, 25, (20_000, 2))
+    centres = (np.floor(xy / 0.25) + 0.5) * 0.25
+    dist, idx = cKDTree(ground[:, :2]).query(centres)
+    heights = road.height_at(xy)
+    inside = dist < 15.0
+    assert inside.sum() > 5_000 and (~inside).sum() > 5_000
+    np.testing.assert_allclose(heights[inside], ground[idx[inside], 2], atol=1e-5)
+    assert np.isnan(heights[~inside]).all()
+    assert road.heights.shape[1:] == (TILE_CELLS, TILE_CELLS)
+    assert (~np.isnan(road.heights)).any((1, 2)).all()  # only tiles holding part of the corridor are stored
+
+
+def test_ground_filter_keeps_the_road_and_drops_a_car_on_it():
+    traj = _bend_trajectory()
+    road = TrajectoryGround.of(traj, 1.5, corridor_half_width_m=15.0)
+    ground = traj.positions - [0.0, 0.0, 1.5]
+    rng = np.random.default_rng(1)
+    at = ground[rng.integers(0, len(ground), 30_000)]
+    surface = at + np.column_stack([rng.uniform(-10, 10, (30_000, 2)), np.zeros(30_000)])
+    surface[:, 2] = at[:, 2] + rng.normal(0.0, 0.01, 30_000)  # the road is level across, as the trajectory
+    car_centre = ground[1500]
+    car = car_centre + np.column_stack([rng.uniform(-2, 2, (3_000, 2)), rng.uniform(0.15, 1.5, 3_000)])
+    beside = car_centre + np.column_stack([rng.uniform(-2, 2, (2_000, 2)), np.zeros(2_000)])  # road by the car
+    far = at[:3_000] + np.column_stack([rng.uniform(-40, 40, (3_000, 2)), np.zeros(3_000)])
+    far = far[cKDTree(ground[:, :2]).query(far[:, :2])[0] > 15.5]  # outside the corridor
+    kept = ground_points(np.concatenate([surface, beside, car, far]), road, GroundFilter())
+    assert len(kept) > 0.5 * len(surface)
+    assert cKDTree(car).query(kept)[0].min() > 1e-6  # nothing of the car's body
+    assert cKDTree(far).query(kept)[0].min() > 1e-6  # none of the points beyond the corridor
+    dist = cKDTree(ground[:, :2]).query(kept[:, :2])[0]
+    assert dist.max() < 15.0 + 0.25
