@@ -110,10 +110,11 @@ def evaluate_views(
     window_before_m: float,
     window_after_m: float,
     stride: int = EVAL_STRIDE,
+    windows: WindowIndex | None = None,
 ) -> tuple[float | None, np.ndarray]:
     """Mean per-view PSNR on road pixels and the summed semantic confusion matrix, over the pixels that
-    see the mapped surface (faces whose vertices were all supervised)."""
-    windows = WindowIndex.of(road_map.mesh)
+    see the mapped surface (faces whose vertices were all supervised). `windows`: the mesh's index, if built."""
+    windows = WindowIndex.of(road_map.mesh) if windows is None else windows
     mapped = (road_map.observed[road_map.mesh.faces] > 0).all(1)
     psnrs, conf = [], np.zeros((NUM_MAP_CLASSES, NUM_MAP_CLASSES), np.int64)
     road = np.array(ROAD_SURFACE_CLASSES)
@@ -151,10 +152,12 @@ def evaluate_map(
     window_before_m: float,
     window_after_m: float,
 ) -> dict:
+    windows = WindowIndex.of(road_map.mesh)
     psnr, conf = evaluate_views(road_map, cameras, _evenly(holdout, HOLDOUT_VIEWS_EVALUATED), trajectory,
-                                window_before_m, window_after_m)
+                                window_before_m, window_after_m, windows=windows)
     some_train = _evenly(train, TRAIN_VIEWS_EVALUATED)
-    psnr_train, _ = evaluate_views(road_map, cameras, some_train, trajectory, window_before_m, window_after_m)
+    psnr_train, _ = evaluate_views(road_map, cameras, some_train, trajectory, window_before_m, window_after_m,
+                                   windows=windows)
     return {
         "psnr_db": psnr,
         "psnr_train_db": psnr_train,
