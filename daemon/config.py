@@ -190,6 +190,14 @@ class LossWeights(_Strict):
     smoothness: float = Field(1.0, ge=0)
 
 
+class LiveViewConfig(_Strict):
+    """The mapper's optional Foxglove WebSocket live view of the growing map (mapping.live_view)."""
+
+    enabled: bool = False
+    bind_address: str = "127.0.0.1"
+    port: int = Field(8765, ge=0, le=65535)  # 0: any free port
+
+
 class MapperConfig(_Strict):
     enabled: bool = True
     mesh_side_m: float = Field(0.1, gt=0, le=2)
@@ -209,6 +217,7 @@ class MapperConfig(_Strict):
     keyframe_spacing_m: float = Field(1.0, ge=0)
     seed: int = 0
     threads: int = Field(2, ge=1)
+    live_view: LiveViewConfig = LiveViewConfig()
 
 
 class StatusConfig(_Strict):

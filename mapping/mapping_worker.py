@@ -16,7 +16,9 @@ provenance (host time range, per-topic seq ranges, log segments named by recorde
 config's path and hash). On SIGTERM/SIGINT the worker drains the bus, finishes the remaining windows
 (the last one shorter), writes the final map under `<data>/map/final` and exits 0. Killed, it resumes
 from the journal, tiles and spool on its next start. A failed window is counted, reported and retried;
-after its last attempt it is recorded as failed in the journal and the worker moves on.
+after its last attempt it is recorded as failed in the journal and the worker moves on. With
+`mapper.live_view.enabled` each finished window is also published on a Foxglove WebSocket server
+(`mapping.live_view`).
 """
 
 from __future__ import annotations
@@ -57,7 +59,7 @@ from daemon.topics import (
     topic_table,
 )
 from drivers.lidar.ouster_metadata import parse_metadata
-from mapping import map_tiles
+from mapping import live_view, map_tiles
 from mapping.drive_inputs import (
     camera_models,
     camera_pose,
@@ -399,6 +401,12 @@ class MappingWorker:
         self.state.windows_done = sum(1 for w in self.journal["windows"] if w["status"] == "done")
         self.state.windows_failed = sum(1 for w in self.journal["windows"] if w["status"] == "failed")
         self.state.mapped_until_m = self.journal.get("mapped_until_m", 0.0)
+        self.live_view = None
+        if self.mapper.live_view.enabled:
+            try:
+                self.live_view = live_view.start_live_view(self.mapper.live_view)
+            except Exception as exc:  # mapping goes on without it
+                self._error(f"live view: cannot start: {type(exc).__name__}: {exc}")
 
     # ---- persistence -------------------------------------------------------------------------------------
     def _archive_finished_map(self) -> None:
@@ -578,6 +586,12 @@ class MappingWorker:
         raster = map_tiles.WindowRaster(i0, j0, bev["elevation"], bev["labels"], bev["rgb"], central)
         tiles = map_tiles.write_window(self.tiles_dir, self.tile_cells, k, raster, self.cam_names)
         self._write_previews(bev)
+        if self.live_view is not None:
+            try:
+                live_view.publish_window(self.live_view, t_hi, self._preview_images(bev), bev["elevation"],
+                                         bev["origin_xy"], self.res, path.positions)
+            except Exception as exc:  # the live view never costs a window: counted and reported
+                self._error(f"live view, window {k}: {type(exc).__name__}: {exc}")
         wall = time.perf_counter() - started
         keep = ("psnr_train_db", "elev_error_cm", "miou_pct", "steps", "vertices", "vertices_observed",
                 "optimise_wall_s", "loss_last")
@@ -587,10 +601,13 @@ class MappingWorker:
                 "metrics": {x: result.metrics.get(x) for x in keep}, **provenance,
                 "config": {"path": self.config_path, "sha256": self.config_sha256}}
 
+    def _preview_images(self, bev: dict) -> dict[str, np.ndarray]:
+        return {"rgb": bev["rgb"][self.cam_names[0]], "semantics": semantic_image(bev["labels"]),
+                "elevation": elevation_image(bev["elevation"])}
+
     def _write_previews(self, bev: dict) -> None:
-        _atomic_png(self.previews / "rgb.png", bev["rgb"][self.cam_names[0]])
-        _atomic_png(self.previews / "semantics.png", semantic_image(bev["labels"]))
-        _atomic_png(self.previews / "elevation.png", elevation_image(bev["elevation"]))
+        for name, image in self._preview_images(bev).items():
+            _atomic_png(self.previews / f"{name}.png", image)
 
     def _error(self, what: str) -> None:
         self.state.errors += 1
@@ -649,6 +666,8 @@ class MappingWorker:
             "last_window_wall_s": round(st.last_window_wall_s, 2), "spool_bytes": self.spool.bytes,
             "errors": st.errors, "last_error": st.last_error, "bus_lost": self.reader.lost,
             "wheel_messages_without_speed": st.wheel_messages_without_speed,
+            "live_view": None if self.live_view is None else {"port": self.live_view.port,
+                                                              "windows_published": self.live_view.published},
             "finished": st.finished,
             "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
         })
@@ -734,6 +753,8 @@ class MappingWorker:
         self.spool.chunks = []
         log.info("final map in %s (%d windows done, %d failed)", out, self.state.windows_done,
                  self.state.windows_failed)
+        if self.live_view is not None:
+            live_view.stop_live_view(self.live_view)
         health_stop.set()
         health_thread.join()
         pub.publish(self.health_message())
