@@ -148,7 +148,7 @@ def test_elevation_fit_to_the_lidar_lattice_recovers_the_crossfall(scene):
                       torch.Generator().manual_seed(0))
     rm.observed[:] = 1
     start_cm = elev_mae_gt_cm(rm, scene.gt)
-    first, last = fit_elevation(rm, scene.lidar, 0.5, 5.0, 100, 512, 0.01, 1.0, 1.0, np.random.default_rng(0))
+    first, last = fit_elevation(rm, scene.lidar, 0.5, 5.0, 100, 512, 128, 0.01, 1.0, 1.0, np.random.default_rng(0))
     rm.refresh_elevation()
     assert last < 0.5 * first
     assert start_cm > 5.0 and elev_mae_gt_cm(rm, scene.gt) < 0.4 * start_cm
