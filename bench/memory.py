@@ -12,10 +12,10 @@ ahead of the worker's mapped distance, as with a worker that keeps up with the c
 
 Cheap windows, the same for both drives and both modes, so that many fit in the time: 160 m windows
 (the default length), a 0.8 m mesh, 4 m corridor half-width, 6 m keyframe spacing, 1 epoch, one torch
-thread: about 1.5-2.5 s a window here (most of it the fixed 200-step colour fit and the pose fusion
-over the worker's 20 s margin).
-  --quick  0.2 km vs 1 km (4 vs 13 windows), under a minute;
-  full     1 km vs 10 km (13 vs 126 windows), about 6 minutes.
+thread: about 2 s a window here, most of it fixed costs of the worker (the 200-step colour fit, the
+pose fusion over its 20 s margin), plus a one-off ~5 s per worker to import torch and its optimisers.
+  --quick  0.2 km vs 1 km (4 vs 13 windows): 48-55 s wall here at a load of 2.5-6 from other sessions;
+  full     1 km vs 10 km (13 vs 126 windows): about 5-6 minutes.
 The two drives run side by side, each with its own worker and bus. Each worker is stopped with SIGTERM
 after its feed (it drains the bus, finishes the remaining windows, writes the final map).
 
