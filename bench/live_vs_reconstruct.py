@@ -71,6 +71,9 @@ class RasterMap:
 
     @staticmethod
     def load(folder: Path, meta: dict, frame: LocalFrame) -> RasterMap:
+        if meta.get("png_resolution_m", meta["resolution_m"]) != meta["resolution_m"]:
+            raise ValueError(f"{folder}: the colour PNGs are an overview ({meta['png_resolution_m']} m cells), "
+                             f"coarser than the {meta['resolution_m']} m rasters: map too large for this bench")
         rgb = {}
         for cam in meta["cameras"]:
             image = cv2.imread(str(folder / f"bev_rgb_{cam}.png"), cv2.IMREAD_COLOR)

@@ -113,11 +113,8 @@ class Mosaic:
     owner: np.ndarray
 
 
-def mosaic(folder: Path, tile_cells: int, grid_m: float, cameras: list[str], max_cells: int = 40_000_000) -> Mosaic:
-    """All tiles in one raster; subsampled by an integer stride when the full one would exceed max_cells."""
-    tiles = tile_indices(folder)
-    if not tiles:
-        raise ValueError(f"no map tiles in {folder}")
+def _layout(tiles: list[tuple[int, int]], tile_cells: int, max_cells: int) -> tuple[int, int, int, int, int]:
+    """(ti0, ti1, tj0, tj1, stride): the tiles' bounding box and the integer stride keeping it under max_cells."""
     n = tile_cells
     ti0, ti1 = min(t[0] for t in tiles), max(t[0] for t in tiles)
     tj0, tj1 = min(t[1] for t in tiles), max(t[1] for t in tiles)
@@ -125,6 +122,16 @@ def mosaic(folder: Path, tile_cells: int, grid_m: float, cameras: list[str], max
     stride = 1
     while (full_h // stride) * (full_w // stride) > max_cells or n % stride:
         stride += 1
+    return ti0, ti1, tj0, tj1, stride
+
+
+def mosaic(folder: Path, tile_cells: int, grid_m: float, cameras: list[str], max_cells: int = 40_000_000) -> Mosaic:
+    """All tiles in one raster; subsampled by an integer stride when the full one would exceed max_cells."""
+    tiles = tile_indices(folder)
+    if not tiles:
+        raise ValueError(f"no map tiles in {folder}")
+    n = tile_cells
+    ti0, ti1, tj0, tj1, stride = _layout(tiles, n, max_cells)
     m = n // stride
     h, w = (ti1 - ti0 + 1) * m, (tj1 - tj0 + 1) * m
     out = _empty_tile(1, cameras)
@@ -138,3 +145,84 @@ def mosaic(folder: Path, tile_cells: int, grid_m: float, cameras: list[str], max
     res = grid_m * stride
     return Mosaic((tj0 * n * grid_m, ti0 * n * grid_m), res, out["elevation"], out["labels"],
                   {c: out[f"rgb_{c}"] for c in cameras}, out["owner"])
+
+
+@dataclass(frozen=True)
+class RasterGrid:
+    """Where the cells of a written raster lie: cell (i, j) centred at origin + (j, i) * resolution."""
+
+    origin_xy: tuple[float, float]
+    resolution_m: float
+    shape: tuple[int, int]
+
+
+def write_mosaic_npy(folder: Path, tile_cells: int, grid_m: float, paths: dict[str, Path],
+                     max_cells: int = 40_000_000) -> RasterGrid:
+    """The mosaic's `elevation` and/or `labels` as .npy files (key -> path), written one row of tiles at a
+    time: memory holds one row of tiles, never the map's bounding box (mostly empty on a long drive)."""
+    tiles = tile_indices(folder)
+    if not tiles:
+        raise ValueError(f"no map tiles in {folder}")
+    n = tile_cells
+    ti0, ti1, tj0, tj1, stride = _layout(tiles, n, max_cells)
+    m = n // stride
+    shape = ((ti1 - ti0 + 1) * m, (tj1 - tj0 + 1) * m)
+    empty = _empty_tile(1, [])
+    rows: dict[int, list[int]] = {}
+    for ti, tj in tiles:
+        rows.setdefault(ti, []).append(tj)
+    files = {k: open(path.with_name(path.name + ".tmp"), "wb") for k, path in paths.items()}
+    try:
+        for k, f in files.items():
+            np.lib.format.write_array_header_1_0(f, {"descr": np.lib.format.dtype_to_descr(empty[k].dtype),
+                                                     "fortran_order": False, "shape": shape})
+        for ti in range(ti0, ti1 + 1):
+            strips = {k: np.full((m, shape[1]), empty[k][0, 0], empty[k].dtype) for k in files}
+            for tj in rows.get(ti, []):
+                tile = load_tile(tile_path(folder, ti, tj), n, [])
+                for k, strip in strips.items():
+                    strip[:, (tj - tj0) * m:(tj - tj0 + 1) * m] = tile[k][::stride, ::stride]
+            for k, f in files.items():
+                f.write(strips[k].tobytes())
+    finally:
+        for f in files.values():
+            f.close()
+    for path in paths.values():
+        os.replace(path.with_name(path.name + ".tmp"), path)
+    return RasterGrid((tj0 * n * grid_m, ti0 * n * grid_m), grid_m * stride, shape)
+
+
+@dataclass(frozen=True)
+class MappedCells:
+    """Mapped cells on a grid subsampled by a stride: cell (i, j) centred at (j, i) * resolution_m, sorted by (i, j)."""
+
+    i: np.ndarray
+    j: np.ndarray
+    elevation: np.ndarray  # float32
+    rgb: np.ndarray  # (N, 3) uint8, of one camera
+    resolution_m: float
+
+
+def mapped_cells(folder: Path, tile_cells: int, grid_m: float, camera: str, max_cells: int) -> MappedCells:
+    """Every mapped cell of the tiles, at the smallest stride (a divisor of tile_cells) that keeps them under
+    max_cells: memory in proportion to the road mapped, never to the map's bounding box."""
+    tiles = tile_indices(folder)
+    if not tiles:
+        raise ValueError(f"no map tiles in {folder}")
+    n = tile_cells
+    strides = [s for s in range(1, n + 1) if n % s == 0]
+    counts = np.zeros(len(strides), np.int64)
+    for ti, tj in tiles:
+        finite = np.isfinite(load_tile(tile_path(folder, ti, tj), n, [])["elevation"])
+        counts += [int(finite[::s, ::s].sum()) for s in strides]
+    stride = next((s for s, c in zip(strides, counts, strict=True) if c <= max_cells), strides[-1])
+    m = n // stride
+    parts = []
+    for ti, tj in tiles:
+        tile = load_tile(tile_path(folder, ti, tj), n, [camera])
+        z = tile["elevation"][::stride, ::stride]
+        r, c = np.nonzero(np.isfinite(z))
+        parts.append((ti * m + r, tj * m + c, z[r, c], tile[f"rgb_{camera}"][::stride, ::stride][r, c]))
+    i, j, z, rgb = (np.concatenate([p[k] for p in parts]) for k in range(4))
+    order = np.lexsort((j, i))
+    return MappedCells(i[order].astype(np.int64), j[order].astype(np.int64), z[order], rgb[order], grid_m * stride)

@@ -28,7 +28,6 @@ import hashlib
 import json
 import logging
 import os
-import resource
 import shutil
 import signal
 import sys
@@ -88,6 +87,7 @@ INPUT_HORIZON_NS = 2_000_000_000  # a window's inputs reach this far past its en
 STALLED_TOPIC_NS = 30_000_000_000  # a topic this far behind the newest message is not waited for
 FREE_CLOCK_RATE_FIT_MIN_S = 600.0  # shorter spans: a free-running clock is taken at rate 1
 TILE_M = 40.0
+OVERVIEW_MAX_CELLS = 4_000_000  # the final map's PNGs: an overview, coarser past 4 M cells of bounding box
 LIDAR_EVERY_N_SCANS = 2
 WINDOW_ATTEMPTS = 2
 DRAIN_QUIET_S = 1.0  # at shutdown: the bus counts as drained after this long without a message
@@ -216,6 +216,14 @@ def _atomic_png(path: Path, rgb: np.ndarray) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_bytes(data.tobytes())
     os.replace(tmp, path)
+
+
+def peak_rss_mb() -> float:
+    """This process's own peak RSS (VmHWM): ru_maxrss starts from the parent's peak, which execve keeps."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024.0
+    raise RuntimeError("no VmHWM in /proc/self/status")
 
 
 def semantic_image(labels: np.ndarray) -> np.ndarray:
@@ -669,7 +677,7 @@ class MappingWorker:
             "live_view": None if self.live_view is None else {"port": self.live_view.port,
                                                               "windows_published": self.live_view.published},
             "finished": st.finished,
-            "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
+            "peak_rss_mb": round(peak_rss_mb(), 1),
         })
         return msg
 
@@ -681,38 +689,43 @@ class MappingWorker:
                                                                 "sha256": self.config_sha256},
                 "distance_m": self.state.distance_m, "origin_lat_lon_alt": self.journal.get("origin")}
         if map_tiles.tile_indices(self.tiles_dir):
-            mos = map_tiles.mosaic(self.tiles_dir, self.tile_cells, self.res, self.cam_names)
+            grid = map_tiles.write_mosaic_npy(self.tiles_dir, self.tile_cells, self.res,
+                                              {"elevation": out / "bev_elevation.npy",
+                                               "labels": out / "bev_semantics.npy"})
+            mos = map_tiles.mosaic(self.tiles_dir, self.tile_cells, self.res, self.cam_names,
+                                   max_cells=OVERVIEW_MAX_CELLS)
             for c in self.cam_names:
                 _atomic_png(out / f"bev_rgb_{c}.png", mos.rgb[c])
             _atomic_png(out / "bev_semantics.png", semantic_image(mos.labels))
             _atomic_png(out / "bev_elevation.png", elevation_image(mos.elevation))
-            np.save(out / "bev_elevation.npy", mos.elevation)
-            np.save(out / "bev_semantics.npy", mos.labels)
-            meta.update(origin_xy=mos.origin_xy, resolution_m=mos.resolution_m, shape=list(mos.elevation.shape),
+            meta.update(origin_xy=grid.origin_xy, resolution_m=grid.resolution_m, shape=list(grid.shape),
+                        png_resolution_m=mos.resolution_m,
                         cell="cell (i, j) of the .npy rasters is centred at (x0 + j*res, y0 + i*res); "
-                             "PNGs are flipped north-up", semantics_no_label=NO_LABEL, cameras=self.cam_names)
-            meta["mesh"] = self._write_mesh(mos, out)
+                             "PNGs (at png_resolution_m) are flipped north-up", semantics_no_label=NO_LABEL,
+                        cameras=self.cam_names)
+            meta["mesh"] = self._write_mesh(out)
         _atomic_write_text(out / "metadata.json", json.dumps(meta, indent=1, default=str))
         return out
 
-    def _write_mesh(self, mos: map_tiles.Mosaic, out: Path, max_vertices: int = 2_000_000) -> dict:
-        """A grid mesh of the mosaic (cells as vertices, two triangles per fully mapped 2x2 block)."""
-        stride = 1
-        while np.isfinite(mos.elevation[::stride, ::stride]).sum() > max_vertices:
-            stride += 1
-        z = mos.elevation[::stride, ::stride]
-        h, w = z.shape
-        valid = np.isfinite(z)
-        index = np.full((h, w), -1, np.int64)
-        index[valid] = np.arange(valid.sum())
-        ii, jj = np.nonzero(valid)
-        res = mos.resolution_m * stride
-        vertices = np.stack([mos.origin_xy[0] + jj * res, mos.origin_xy[1] + ii * res, z[valid]], 1)
-        a, b, c, d = index[:-1, :-1], index[:-1, 1:], index[1:, :-1], index[1:, 1:]
-        full = (a >= 0) & (b >= 0) & (c >= 0) & (d >= 0)
+    def _write_mesh(self, out: Path, max_vertices: int = 2_000_000) -> dict:
+        """A grid mesh of the mapped cells (cells as vertices, two triangles per fully mapped 2x2 block),
+        built from the tiles' mapped cells only."""
+        cells = map_tiles.mapped_cells(self.tiles_dir, self.tile_cells, self.res, self.cam_names[0], max_vertices)
+        key = cells.i * (1 << 32) + (cells.j + (1 << 31))  # sorted, as the cells are
+
+        def neighbour(di: int, dj: int) -> np.ndarray:
+            """Index of the cell (i + di, j + dj) of every cell, -1 where it is not mapped."""
+            k = key + di * (1 << 32) + dj
+            pos = np.minimum(np.searchsorted(key, k), len(key) - 1)
+            return np.where(key[pos] == k, pos, -1)
+
+        a = np.arange(len(key))
+        b, c, d = neighbour(0, 1), neighbour(1, 0), neighbour(1, 1)
+        full = (b >= 0) & (c >= 0) & (d >= 0)
         faces = np.concatenate([np.stack([a[full], b[full], d[full]], 1), np.stack([a[full], d[full], c[full]], 1)])
-        colours = mos.rgb[self.cam_names[0]][::stride, ::stride][valid]
-        mesh = trimesh.Trimesh(vertices, faces, vertex_colors=colours, process=False)
+        res = cells.resolution_m
+        vertices = np.stack([cells.j * res, cells.i * res, cells.elevation], 1)
+        mesh = trimesh.Trimesh(vertices, faces, vertex_colors=cells.rgb, process=False)
         for name in ("mesh.ply", "mesh.glb"):
             mesh.export(out / name)
         return {"files": ["mesh.ply", "mesh.glb"], "vertices": len(vertices), "faces": len(faces),
