@@ -165,35 +165,14 @@ def wheel_speed_mps(msg: object) -> float | None:
     return float(np.mean(speeds)) if speeds else None
 
 
-@dataclass(frozen=True)
-class RelativeUtcClock(ClockMap):
-    """A "utc" ClockMap whose (utc - mono) interpolation runs relative to the first anchor.
-
-    UTC nanoseconds (~1.7e18) hold in a float64 only to 256 ns, so the plain map rounds each stamp
-    differently for every offset between the log's and this host's monotonic clock: a replay's trajectory
-    moved by tens of ns with the moment it was played, and the optimisation (batch orders, sorted ties)
-    turned that into different maps. Relative to the first anchor every number is the same in each replay."""
-
-    def to_host(self, stamps_ns: np.ndarray) -> np.ndarray:
-        stamps = np.asarray(stamps_ns, np.int64)
-        mono0, diff0 = int(self.anchor_mono_ns[0]), int(self.anchor_utc_minus_mono_ns[0])
-        approx_mono = (stamps - diff0 - mono0).astype(np.float64)
-        diff = np.interp(approx_mono, (self.anchor_mono_ns - mono0).astype(np.float64),
-                         (self.anchor_utc_minus_mono_ns - diff0).astype(np.float64))
-        return stamps - diff0 - np.rint(diff).astype(np.int64)
-
-
 def span_clock(stamps_ns: list[int], host_ns: list[int], anchors: list[tuple[int, int]]) -> ClockMap:
     """`fit_clock` for the few seconds or minutes the worker holds, in exact arithmetic where it matters.
 
     Over a short span the fitted rate of a free-running clock is arrival jitter, not drift (a crystal
     drifts < 100 ppm: 6 ms a minute), and a rate error stretches that sensor's time axis, so wheel
     speeds integrate to a wrong distance. The offset is refitted with rate 1 (shortest latency), in
-    integers. A UTC clock maps through `RelativeUtcClock`."""
+    integers."""
     clock = fit_clock(stamps_ns, host_ns, anchors)
-    if clock.kind == "utc":
-        return RelativeUtcClock("utc", anchor_mono_ns=clock.anchor_mono_ns,
-                                anchor_utc_minus_mono_ns=clock.anchor_utc_minus_mono_ns)
     if clock.kind != "free" or len(stamps_ns) == 0:
         return clock
     stamps, host = np.asarray(stamps_ns, np.int64), np.asarray(host_ns, np.int64)

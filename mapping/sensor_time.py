@@ -34,11 +34,15 @@ class ClockMap:
         if self.kind == "host":
             return stamps
         if self.kind == "utc":
-            # mono = utc - (utc - mono), the difference interpolated between anchors (it drifts slowly)
-            approx_mono = (stamps - self.anchor_utc_minus_mono_ns[0]).astype(np.float64)
-            diff = np.interp(approx_mono, self.anchor_mono_ns.astype(np.float64),
-                             self.anchor_utc_minus_mono_ns.astype(np.float64))
-            return stamps - np.rint(diff).astype(np.int64)
+            # mono = utc - (utc - mono), the difference interpolated between anchors (it drifts slowly),
+            # relative to the first anchor: UTC nanoseconds (~1.7e18) hold in a float64 only to 256 ns, and
+            # absolute values would round every stamp differently for each offset between the log's and
+            # this host's monotonic clocks (a replay's trajectory would move with the moment it is played)
+            mono0, diff0 = int(self.anchor_mono_ns[0]), int(self.anchor_utc_minus_mono_ns[0])
+            approx_mono = (stamps - diff0 - mono0).astype(np.float64)
+            diff = np.interp(approx_mono, (self.anchor_mono_ns - mono0).astype(np.float64),
+                             (self.anchor_utc_minus_mono_ns - diff0).astype(np.float64))
+            return stamps - diff0 - np.rint(diff).astype(np.int64)
         rel = (stamps - self.first_stamp_ns).astype(np.float64)
         return np.rint(self.offset_ns + self.scale * rel).astype(np.int64)
 

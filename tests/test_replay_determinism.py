@@ -17,8 +17,7 @@ import pytest
 
 from daemon.log_format import read_log
 from mapping import map_tiles
-from mapping.mapping_worker import MappingWorker, Odometry, RelativeUtcClock, span_clock
-from mapping.sensor_time import ClockMap
+from mapping.mapping_worker import MappingWorker, Odometry, span_clock
 from tests.daemon_fixtures import REPO, private_config
 
 SMALL_WINDOWS = {"window_before_m": 10.0, "window_after_m": 10.0, "epochs": 1, "corridor_half_width_m": 6.0,
@@ -34,11 +33,9 @@ def test_utc_clock_moves_exactly_with_the_host_clock_offset():
     results = []
     for shift in (0, 123_456_789_012, 9_999_999_999_999):
         clock = span_clock(stamps.tolist(), (host + shift).tolist(), [(m + shift, u) for m, u in anchors])
-        assert isinstance(clock, RelativeUtcClock)
+        assert clock.kind == "utc"
         results.append(clock.to_host(stamps) - shift)
-        plain = ClockMap("utc", anchor_mono_ns=clock.anchor_mono_ns,
-                         anchor_utc_minus_mono_ns=clock.anchor_utc_minus_mono_ns).to_host(stamps)
-        assert np.abs(plain - shift - results[-1]).max() <= 256  # the same map, to float64's 256 ns at UTC magnitudes
+        assert np.abs(results[-1] - (host - 5_000_000)).max() <= 18  # the epochs on the host clock (anchor jitter)
     assert np.array_equal(results[0], results[1]) and np.array_equal(results[0], results[2])
 
 
