@@ -127,7 +127,8 @@ def rasterise(
     uv, valid = project(cam, camera)
     g = (uv - torch.tensor([ox, oy], dtype=uv.dtype)) / stride
     fl = torch.from_numpy(local.astype(np.int64))
-    keep = valid[fl].all(1)
+    visible = torch.nonzero(valid[fl].all(1))[:, 0]  # faces with every vertex in front and in the image
+    fl = fl[visible]
     fg = g[fl]  # (F, 3, 2)
     lo = torch.ceil(fg.amin(1))
     hi = torch.floor(fg.amax(1))
@@ -136,7 +137,7 @@ def rasterise(
     hi[:, 0].clamp_(max=ws - 1)
     hi[:, 1].clamp_(max=hs - 1)
     n = (hi - lo + 1).clamp(min=0).to(torch.int64)
-    count = n[:, 0] * n[:, 1] * keep
+    count = n[:, 0] * n[:, 1]
     fid = torch.nonzero(count > 0)[:, 0]
     inv_depth = torch.zeros(hs * ws)
     face_depth = cam[:, 2][fl]
@@ -150,7 +151,7 @@ def rasterise(
         cand_d.append(d)
     for f, p, d in zip(cand_f, cand_p, cand_d, strict=True):
         win = d >= inv_depth[p]
-        out[p[win]] = f[win]
+        out[p[win]] = visible[f[win]]
     return out.reshape(hs, ws).numpy()
 
 

@@ -171,8 +171,9 @@ def render_view(road_map: RoadMap, faces: np.ndarray, keyframe: Keyframe, camera
     pixel row and column: images of shape (H', W') matching `sampled_pixels(camera, stride)`."""
     mesh = road_map.mesh
     tri_all = mesh.faces[faces]
-    vertices = np.concatenate([mesh.xy, road_map.z_now[:, None].astype(np.float64)], 1)
-    face_grid = rasterise(vertices, tri_all, camera, keyframe.T_world_camera, stride).ravel()
+    used, local = np.unique(tri_all, return_inverse=True)  # only the vertices these faces use
+    vertices = np.concatenate([mesh.xy[used], road_map.z_now[used, None].astype(np.float64)], 1)
+    face_grid = rasterise(vertices, local.reshape(-1, 3), camera, keyframe.T_world_camera, stride).ravel()
     h, wd = sampled_pixels(camera, stride).shape
     hit = face_grid >= 0
     local = np.nonzero(hit)[0]
