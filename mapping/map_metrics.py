@@ -4,6 +4,8 @@ defines it) and the mean absolute elevation error against a true elevation raste
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from mapping.mesh_renderer import sampled_pixels
@@ -14,6 +16,7 @@ from mapping.semantic_classes import NUM_MAP_CLASSES, ROAD_SURFACE_CLASSES
 
 TRAIN_VIEWS_EVALUATED = 12
 HOLDOUT_VIEWS_EVALUATED = 36  # evenly spaced along the drive: evaluation costs the same on long drives
+EVAL_THREADS = 2
 EVAL_STRIDE = 2  # views are rendered and compared at every 2nd pixel row and column
 BEHIND_CAMERA_M = 10.0  # the cameras look forward: faces further behind the view's trajectory point are not drawn
 
@@ -116,9 +119,9 @@ def evaluate_views(
     see the mapped surface (faces whose vertices were all supervised). `windows`: the mesh's index, if built."""
     windows = WindowIndex.of(road_map.mesh) if windows is None else windows
     mapped = (road_map.observed[road_map.mesh.faces] > 0).all(1)
-    psnrs, conf = [], np.zeros((NUM_MAP_CLASSES, NUM_MAP_CLASSES), np.int64)
     road = np.array(ROAD_SURFACE_CLASSES)
-    for kf in views:
+
+    def one_view(kf: Keyframe) -> tuple[float | None, np.ndarray]:
         s = float(trajectory.along_track_at(kf.timestamp))
         faces = windows.faces(s - min(window_before_m, BEHIND_CAMERA_M), s + window_after_m)
         camera = cameras[kf.camera]
@@ -127,10 +130,15 @@ def evaluate_views(
         image, semantics = kf.image.reshape(-1, 3)[at], kf.semantics.ravel()[at]
         road_pixels = view.hit & np.isin(semantics, road)
         value = psnr_db(view.rgb, image.astype(np.float32) / 255.0, road_pixels)
-        if value is not None:
-            psnrs.append(value)
         labelled = view.hit & (semantics < NUM_MAP_CLASSES) & (view.labels != NO_LABEL)
-        conf += confusion(view.labels, semantics, labelled)
+        return value, confusion(view.labels, semantics, labelled)
+
+    # Views render in two threads: numpy and torch release the GIL in their array work, and torch keeps
+    # one intra-op thread (two spun against each other on this 2-core machine)
+    with ThreadPoolExecutor(EVAL_THREADS) as pool:
+        results = list(pool.map(one_view, views))
+    psnrs = [value for value, _ in results if value is not None]
+    conf = sum((c for _, c in results), np.zeros((NUM_MAP_CLASSES, NUM_MAP_CLASSES), np.int64))
     return (float(np.mean(psnrs)) if psnrs else None), conf
 
 
