@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -61,6 +62,7 @@ class FastPathSettings:
     # 28.87 dB, 8.1 s; 2 steps 28.89 dB, 4.5 s)
     colour_batch: int = 4096
     lr_encoder: float = 0.01
+    threads_observe: int = 2  # Python threads observing keyframes (city31: 5.9 -> 3.2 s)
     threads: int = 1  # torch threads of the fast path (fits and evaluation): its MLPs are small, and on this
     # 2-core machine 2 threads ran the elevation fit 8x slower than 1 (59 s vs 7 s), worse under load
 
@@ -261,13 +263,27 @@ def _observe_and_fit_colours(road_map: RoadMap, train: list[Keyframe], cameras: 
     started = time.perf_counter()
     mesh = road_map.mesh
     windows = WindowIndex.of(mesh)
-    obs = VertexObservations.empty(mesh.num_vertices, road_map.decoder.camera_names)
-    for kf in tqdm(train, desc="observe", disable=not progress, unit="frame"):
-        s = float(trajectory.along_track_at(kf.timestamp))
-        a, b = np.searchsorted(windows.vertex_s, [s - fast.behind_m, s + fast.ahead_m])
-        ids = windows.vertex_order[a:b]
-        points = np.concatenate([mesh.xy[ids], road_map.z_now[ids, None].astype(np.float64)], 1)
-        observe_keyframe(obs, ids, points, kf, cameras[kf.camera])
+    bar = tqdm(total=len(train), desc="observe", disable=not progress, unit="frame")
+
+    def observe(keyframes: list[Keyframe]) -> VertexObservations:
+        part = VertexObservations.empty(mesh.num_vertices, road_map.decoder.camera_names)
+        for kf in keyframes:
+            s = float(trajectory.along_track_at(kf.timestamp))
+            a, b = np.searchsorted(windows.vertex_s, [s - fast.behind_m, s + fast.ahead_m])
+            ids = windows.vertex_order[a:b]
+            points = np.concatenate([mesh.xy[ids], road_map.z_now[ids, None].astype(np.float64)], 1)
+            observe_keyframe(part, ids, points, kf, cameras[kf.camera])
+            bar.update()
+        return part
+
+    # two threads (numpy releases the GIL in its array work), each keyframe half into its own observations,
+    # added in a fixed order: the same sums whatever the threads' timing
+    with ThreadPoolExecutor(fast.threads_observe) as pool:
+        parts = list(pool.map(observe, [train[i::fast.threads_observe] for i in range(fast.threads_observe)]))
+    bar.close()
+    obs = parts[0]
+    for part in parts[1:]:
+        obs.add(part)
     seen = obs.seen
     road_map.observed[seen] = obs.colour_count[seen].sum(1).astype(np.int32)
     if road_map.semantic_logits is not None:

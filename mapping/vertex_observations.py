@@ -43,6 +43,14 @@ class VertexObservations:
         """Vertex ids with at least one colour observation."""
         return np.nonzero(self.colour_count.sum(1) > 0)[0]
 
+    def add(self, other: VertexObservations) -> None:
+        """Add another set of observations of the same vertices and cameras to these."""
+        if other.camera_names != self.camera_names or other.label_counts.shape != self.label_counts.shape:
+            raise ValueError("observations of different meshes or cameras")
+        self.label_counts += other.label_counts
+        self.colour_sum += other.colour_sum
+        self.colour_count += other.colour_count
+
     def colour_mean(self, ids: np.ndarray) -> np.ndarray:
         return self.colour_sum[ids] / np.maximum(self.colour_count[ids], 1.0)[..., None]
 
