@@ -25,7 +25,7 @@ from mapping.drive_inputs import DriveInputs, load_drive
 from mapping.local_frame import LocalFrame
 from mapping.map_metrics import confusion, miou_pct, observed_triangles
 from mapping.reconstruction import ReconstructionResult, reconstruct
-from mapping.road_map import ABLATIONS, RoadMap
+from mapping.road_map import ABLATIONS, RoadMap, variant_for
 from mapping.scene_data import GroundTruth
 from mapping.semantic_classes import NUM_MAP_CLASSES
 
@@ -107,7 +107,7 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
                    rtf_mapping=drive.drive_s / mapping_wall if mapping_wall > 0 else None,
                    peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
                    vertices=result.road_map.mesh.num_vertices, inputs=drive.counts, logs=[str(p) for p in logs],
-                   lidar_supervision=lidar is not None)
+                   lidar_supervision=lidar is not None and variant_for(ablation).lidar_supervision)
     out.mkdir(parents=True, exist_ok=True)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
     (out / "config.yaml").write_text(config_to_yaml(config))

@@ -337,8 +337,9 @@ def reconstruct(
     history = []
     timings: dict[str, float] = {}
     setup_s = time.perf_counter() - start
+    supervision = lidar_ground_points if variant.lidar_supervision else None
     if faithful:
-        lidar_ids, lidar_z = lidar_vertex_targets(mesh, lidar_ground_points)
+        lidar_ids, lidar_z = lidar_vertex_targets(mesh, supervision)
         opt = _Optimisation(road_map, cameras, config, lidar_ids, lidar_z)
         batches = _batches(train, trajectory, config.batch_size)
         with tqdm(total=config.epochs * len(batches), desc="emie-map", disable=not progress, unit="step") as bar:
@@ -354,7 +355,7 @@ def reconstruct(
             opt.semantic_opt.flush()
         road_map.refresh_elevation()
     else:
-        history = _fit_observations(road_map, train, cameras, trajectory, lidar_ground_points, config, fast, rng,
+        history = _fit_observations(road_map, train, cameras, trajectory, supervision, config, fast, rng,
                                     progress, timings)
     train_s = time.perf_counter() - start
     drive_s = trajectory.duration_s

@@ -30,6 +30,7 @@ class Variant:
     colour: str = "mlps"  # "mlps" (per-camera decoders), "embedding" (one decoder + camera embedding), "explicit"
     semantics: bool = True
     flat_init: bool = False  # RoMe: z0 is one flat height, the MLP gives the whole (absolute) relief
+    lidar_supervision: bool = True  # False: RoMe is camera-only (Lidar points still measure Elev-error)
 
 
 ABLATIONS: dict[str, Variant] = {
@@ -37,7 +38,7 @@ ABLATIONS: dict[str, Variant] = {
     "no-colour-mlps": Variant(colour="explicit"),
     "embedding": Variant(colour="embedding"),
     "no-semantics": Variant(semantics=False),
-    "rome": Variant(colour="explicit", flat_init=True),
+    "rome": Variant(colour="explicit", flat_init=True, lidar_supervision=False),
 }
 
 

@@ -152,3 +152,12 @@ def test_elevation_fit_to_the_lidar_lattice_recovers_the_crossfall(scene):
     rm.refresh_elevation()
     assert last < 0.5 * first
     assert start_cm > 5.0 and elev_mae_gt_cm(rm, scene.gt) < 0.4 * start_cm
+
+
+def test_rome_is_camera_only_but_its_elevation_is_still_measured_against_the_lidar(scene):
+    cfg = CONFIG.model_copy(update={"epochs": 1})
+    runs = [reconstruct(scene.keyframes[:24], scene.cameras, scene.trajectory, lidar, cfg, scene.reference_height_m,
+                        None, ablation="rome", progress=False) for lidar in (scene.lidar, None)]
+    with_points, without = runs
+    assert np.array_equal(with_points.road_map.z_now, without.road_map.z_now)  # the points never reached the fit
+    assert with_points.metrics["elev_error_cm"] is not None and without.metrics["elev_error_cm"] is None
