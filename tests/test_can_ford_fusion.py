@@ -6,7 +6,6 @@ scaling) and the test turns rad/s into road speed with the car's rolling radius 
 
 from __future__ import annotations
 
-import threading
 from pathlib import Path
 
 import can
@@ -15,9 +14,8 @@ import numpy as np
 import pytest
 
 from daemon.config import CanConfig, CanSignals
-from daemon.health import HealthCounters
 from daemon.topics import CAN_FRAMES, WHEEL_SPEEDS
-from drivers.can.can_driver import open_can_bus, run_can_driver
+from tests.can_driver_thread import can_driver_thread
 
 DATA = Path("/work/shared/data/can_ford_fusion")
 DBC = DATA / "ford_fusion_2018_pt.dbc"
@@ -38,39 +36,21 @@ FORD_SIGNALS = CanSignals(
 def play_log(log: Path, channel: str, inject_error_every: int = 0):
     """Replay a candump log onto a virtual bus through the driver; return (published, stats, health, sent)."""
     config = CanConfig(interface="virtual", channel=channel, bitrate=None, dbc_file=str(DBC), signals=FORD_SIGNALS)
-    published: list[tuple[str, object]] = []
-    stop, opened = threading.Event(), threading.Event()
-    health = HealthCounters("can")
-    result = {}
-
-    def opening(cfg, **kw):
-        bus = open_can_bus(cfg, **kw)
-        opened.set()
-        return bus
-
-    def target():
-        result["stats"] = run_can_driver(config, DBC, lambda t, m: published.append((t, m)), stop, health,
-                                         open_bus=opening)
-
-    thread = threading.Thread(target=target, daemon=True)
-    thread.start()
-    assert opened.wait(5)
-    sender = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
-    sent = 0
-    for i, msg in enumerate(can.MessageSync(can.CanutilsLogReader(log), timestamps=False, gap=0.0)):
-        if inject_error_every and i % inject_error_every == 0:
-            error_class = 0x80 if (i // inject_error_every) % 2 else 0x40  # bus error, bus-off
-            sender.send(can.Message(timestamp=msg.timestamp, is_error_frame=True, arbitration_id=error_class,
-                                    data=bytes([0, 0, 0x08, 0x19, 0, 0, 0, 0])))
+    with can_driver_thread(config, DBC) as driver:
+        sender = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+        sent = 0
+        for i, msg in enumerate(can.MessageSync(can.CanutilsLogReader(log), timestamps=False, gap=0.0)):
+            if inject_error_every and i % inject_error_every == 0:
+                error_class = 0x80 if (i // inject_error_every) % 2 else 0x40  # bus error, bus-off
+                sender.send(can.Message(timestamp=msg.timestamp, is_error_frame=True, arbitration_id=error_class,
+                                        data=bytes([0, 0, 0x08, 0x19, 0, 0, 0, 0])))
+                sent += 1
+            sender.send(msg)
             sent += 1
-        sender.send(msg)
-        sent += 1
-    while sum(1 for t, _ in published if t == CAN_FRAMES) < sent and thread.is_alive():
-        stop.wait(0.01)
-    stop.set()
-    thread.join(10)
+        while driver.count(CAN_FRAMES) < sent and driver.thread.is_alive():
+            driver.stop.wait(0.01)
     sender.shutdown()
-    return published, result["stats"], health, sent
+    return driver.published, driver.stats, driver.health, sent
 
 
 def road_speed_kmh(published) -> tuple[np.ndarray, np.ndarray]:

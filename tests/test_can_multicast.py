@@ -5,16 +5,14 @@ from __future__ import annotations
 import random
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import pytest
 
 from daemon.config import load_config
-from daemon.health import HealthCounters
 from daemon.topics import CAN_FRAMES, WHEEL_SPEEDS
-from drivers.can.can_driver import open_can_bus, run_can_driver
+from tests.can_driver_thread import can_driver_thread
 
 ROOT = Path(__file__).resolve().parents[1]
 pytest.importorskip("msgpack", reason="python-can's udp_multicast needs msgpack (python-can[multicast])")
@@ -42,33 +40,16 @@ def test_wheel_speeds_from_another_process_over_udp_multicast():
     group = f"239.74.{random.randrange(256)}.{random.randrange(1, 255)}"
     port = random.randrange(40000, 60000)  # udp_multicast binds the port on every address: keep tests apart
     config = config.model_copy(update={"channel": group})
-    published: list[tuple[str, object]] = []
-    stop, opened = threading.Event(), threading.Event()
-    health = HealthCounters("can")
-    result = {}
-
-    def opening(cfg, **kw):
-        bus = open_can_bus(cfg, **kw)
-        opened.set()
-        return bus
-
-    def target():
-        result["stats"] = run_can_driver(config, ROOT / "configs" / config.dbc_file,
-                                         lambda t, m: published.append((t, m)), stop, health,
-                                         open_bus=opening, bus_kwargs={"port": port})
-
-    thread = threading.Thread(target=target, daemon=True)
-    thread.start()
-    assert opened.wait(5)
-    n = 200
-    sender = subprocess.run([sys.executable, "-c", SENDER, group, str(port), str(n)], cwd=ROOT, timeout=60,
-                            capture_output=True, text=True)
-    assert sender.returncode == 0, sender.stderr
-    deadline = time.monotonic() + 5
-    while sum(t == WHEEL_SPEEDS for t, _ in published) < n and time.monotonic() < deadline:
-        time.sleep(0.01)
-    stop.set()
-    thread.join(5)
+    with can_driver_thread(config, ROOT / "configs" / config.dbc_file, join_s=5.0,
+                           bus_kwargs={"port": port}) as driver:
+        n = 200
+        sender = subprocess.run([sys.executable, "-c", SENDER, group, str(port), str(n)], cwd=ROOT, timeout=60,
+                                capture_output=True, text=True)
+        assert sender.returncode == 0, sender.stderr
+        deadline = time.monotonic() + 5
+        while driver.count(WHEEL_SPEEDS) < n and time.monotonic() < deadline:
+            time.sleep(0.01)
+    published, health = driver.published, driver.health
     speeds = [m for t, m in published if t == WHEEL_SPEEDS]
     assert len(speeds) == n and sum(t == CAN_FRAMES for t, _ in published) == 2 * n
     for i, s in enumerate(speeds):
@@ -76,6 +57,6 @@ def test_wheel_speeds_from_another_process_over_udp_multicast():
         assert (s.front_left_mps, s.front_right_mps, s.rear_left_mps, s.rear_right_mps) == pytest.approx(
             (v, v + 0.5, v + 1.0, v + 1.5), abs=0.0015)
         assert s.yaw_rate_rps == pytest.approx(-0.001 * i, abs=1e-4)
-    assert result["stats"].undecodable == 0 and health.sequence_gaps == 0
+    assert driver.stats.undecodable == 0 and health.sequence_gaps == 0
     stamps = [s.sensor_time_ns for s in speeds]
     assert stamps == sorted(stamps) and abs(stamps[-1] / 1e9 - time.time()) < 30  # receive time, wall clock
