@@ -139,22 +139,26 @@ def test_worker_maps_as_data_arrives_survives_kill_9_and_writes_the_final_map(ci
         player.start()
         health = bus.open_subscriber(config, health_topic("mapper"), wait_s=60)
         # windows are optimised while the drive's data arrives, with no end-of-drive signal
-        _wait_for(lambda: len(_journal(journal_path)["windows"]) >= 2, 600, "two windows", procs[0])
-        player.join()
+        _wait_for(lambda: len(_journal(journal_path)["windows"]) >= 1, 600, "a window", procs[0])
         before_kill = _journal(journal_path)["windows"]
         assert all(w["status"] == "done" for w in before_kill)
+        _wait_for(lambda: health.latest() is not None and json.loads(health.latest().detail)["windows_done"] >= 1,
+                  60, "health after the first window", procs[0])
         detail = json.loads(health.latest().detail)
-        assert detail["windows_done"] >= 1 and detail["distance_m"] > 30 and detail["spool_bytes"] > 0
+        assert detail["distance_m"] > 10 and detail["spool_bytes"] > 0
         assert {"windows_pending", "mapped_until_m", "lag_m", "lag_s", "last_window_wall_s", "errors"} <= set(detail)
         for name in ("rgb", "semantics", "elevation"):
             assert (data / "map" / "previews" / f"{name}.png").stat().st_size > 0
-        # kill -9 mid-drive: the restart keeps every finished window and goes on from the spool
+        # kill -9 (mid-drive unless the machine is slow): the restart keeps every finished window and goes on
+        # from the spool and the bus; a window whose data has all arrived runs without waiting for the end
         procs[0].kill()
         procs[0].wait()
+        killed_ns = time.monotonic_ns()
         kept = _journal(journal_path)["windows"]
         procs.append(_start_worker(config_path, log))
-        _wait_for(lambda: len(_journal(journal_path)["windows"]) > len(kept), 600, "a window after the restart",
-                  procs[1])
+        player.join()
+        _wait_for(lambda: (m := health.latest()) is not None and m.host_mono_ns > killed_ns, 120,
+                  "the restarted worker's health", procs[1])  # it is up and handles SIGTERM
         procs[1].send_signal(signal.SIGTERM)
         assert procs[1].wait(timeout=1200) == 0, log.read_text()[-3000:]
     finally:
@@ -165,7 +169,7 @@ def test_worker_maps_as_data_arrives_survives_kill_9_and_writes_the_final_map(ci
         bus.unlink_all(config)
     journal = _journal(journal_path)
     windows = journal["windows"]
-    assert journal["finished"] and windows[:len(kept)] == kept
+    assert journal["finished"] and windows[:len(kept)] == kept and len(windows) > len(kept)
     assert [w["index"] for w in windows] == list(range(len(windows)))
     assert all(w["status"] == "done" for w in windows), [w.get("error") for w in windows]
     distance = journal["odometry_s"][-1]
