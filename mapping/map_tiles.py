@@ -113,6 +113,14 @@ class Mosaic:
     owner: np.ndarray
 
 
+def _tiles_in(folder: Path) -> list[tuple[int, int]]:
+    """The (ti, tj) tiles written in `folder`; an error if there are none."""
+    tiles = tile_indices(folder)
+    if not tiles:
+        raise ValueError(f"no map tiles in {folder}")
+    return tiles
+
+
 def _layout(tiles: list[tuple[int, int]], tile_cells: int, max_cells: int) -> tuple[int, int, int, int, int]:
     """(ti0, ti1, tj0, tj1, stride): the tiles' bounding box and the integer stride keeping it under max_cells."""
     n = tile_cells
@@ -127,9 +135,7 @@ def _layout(tiles: list[tuple[int, int]], tile_cells: int, max_cells: int) -> tu
 
 def mosaic(folder: Path, tile_cells: int, grid_m: float, cameras: list[str], max_cells: int = 40_000_000) -> Mosaic:
     """All tiles in one raster; subsampled by an integer stride when the full one would exceed max_cells."""
-    tiles = tile_indices(folder)
-    if not tiles:
-        raise ValueError(f"no map tiles in {folder}")
+    tiles = _tiles_in(folder)
     n = tile_cells
     ti0, ti1, tj0, tj1, stride = _layout(tiles, n, max_cells)
     m = n // stride
@@ -160,9 +166,7 @@ def write_mosaic_npy(folder: Path, tile_cells: int, grid_m: float, paths: dict[s
                      max_cells: int = 40_000_000) -> RasterGrid:
     """The mosaic's `elevation` and/or `labels` as .npy files (key -> path), written one row of tiles at a
     time: memory holds one row of tiles, never the map's bounding box (mostly empty on a long drive)."""
-    tiles = tile_indices(folder)
-    if not tiles:
-        raise ValueError(f"no map tiles in {folder}")
+    tiles = _tiles_in(folder)
     n = tile_cells
     ti0, ti1, tj0, tj1, stride = _layout(tiles, n, max_cells)
     m = n // stride
@@ -206,9 +210,7 @@ class MappedCells:
 def mapped_cells(folder: Path, tile_cells: int, grid_m: float, camera: str, max_cells: int) -> MappedCells:
     """Every mapped cell of the tiles, at the smallest stride (a divisor of tile_cells) that keeps them under
     max_cells: memory in proportion to the road mapped, never to the map's bounding box."""
-    tiles = tile_indices(folder)
-    if not tiles:
-        raise ValueError(f"no map tiles in {folder}")
+    tiles = _tiles_in(folder)
     n = tile_cells
     strides = [s for s in range(1, n + 1) if n % s == 0]
     counts = np.zeros(len(strides), np.int64)

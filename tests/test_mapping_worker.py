@@ -194,3 +194,19 @@ def test_worker_maps_as_data_arrives_survives_kill_9_and_writes_the_final_map(ci
     for name in ("bev_semantics.png", "bev_elevation.png", "bev_rgb_front_wide.png", "mesh.ply", "mesh.glb"):
         assert (final / name).stat().st_size > 0
     assert not (data / "map" / "spool").exists()
+
+
+def test_rasters_written_a_row_of_tiles_at_a_time_equal_the_mosaic(tmp_path):
+    folder, n = tmp_path / "tiles", 10
+    central = np.ones((5, 30), bool)
+    map_tiles.write_window(folder, n, 0, _raster(-2, -5, 5, 30, 1.0, central), ["cam"])
+    map_tiles.write_window(folder, n, 1, _raster(23, 40, 5, 12, 2.0, np.ones((5, 12), bool)), ["cam"])  # far off
+    for max_cells in (10**9, 900):  # full resolution, and subsampled by a stride
+        mos = map_tiles.mosaic(folder, n, 0.1, ["cam"], max_cells=max_cells)
+        paths = {"elevation": tmp_path / "e.npy", "labels": tmp_path / "l.npy"}
+        grid = map_tiles.write_mosaic_npy(folder, n, 0.1, paths, max_cells=max_cells)
+        assert grid.origin_xy == mos.origin_xy and grid.resolution_m == mos.resolution_m
+        assert np.array_equal(np.load(paths["elevation"]), mos.elevation, equal_nan=True)
+        assert np.array_equal(np.load(paths["labels"]), mos.labels)
+    cells = map_tiles.mapped_cells(folder, n, 0.1, "cam", max_cells=10**6)
+    assert len(cells.i) == 5 * 30 + 5 * 12 and set(np.unique(cells.elevation)) == {1.0, 2.0}
