@@ -59,7 +59,9 @@ def process_table(
                                  restart_on_success=False, heartbeat_s=30.0, start_after=consumers))
     if record:
         anchors = ("--no-time-anchors",) if mode == "replay" else ()  # the player replays the recorded ones
-        table.append(ProcessSpec("recorder", "daemon.recorder", cfg + out + anchors, heartbeat_s=15.0,
+        # replaying as fast as the consumers allow: the player waits for the recorder too, or it would overrun it
+        lossless = ("--lossless",) if mode == "replay" and replay_rate == "max" else ()
+        table.append(ProcessSpec("recorder", "daemon.recorder", cfg + out + anchors + lossless, heartbeat_s=15.0,
                                  stop_timeout_s=30.0))
     if config.mapper.enabled:
         table.append(ProcessSpec("mapper", "mapping.mapping_worker", cfg + out, heartbeat_s=120.0,

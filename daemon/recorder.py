@@ -12,6 +12,9 @@ health. Once a second it publishes a TimeAnchor (host monotonic + UTC), which it
 
 The recorder is a normal (non-lossless) bus reader: one thread polls every subscriber in turn, so it
 can never slow a driver down; if it falls behind a ring, it loses (and counts) the oldest messages.
+Only when the daemon replays a log as fast as its consumers allow (`--lossless`, given by the process
+table for `replay --rate max`) does it register as a lossless reader: the player then waits for it, as
+for the mapper, and the re-recorded log is complete.
 """
 
 from __future__ import annotations
@@ -324,7 +327,7 @@ def _read_round(rec: Recorder, subscribers: dict[str, bus.Subscriber]) -> int:
 
 
 def run(config: CarConfig, output_dir: Path, stop: threading.Event, config_path: str | Path | None = None,
-        time_anchors: bool = True) -> Recorder:
+        time_anchors: bool = True, lossless: bool = False) -> Recorder:
     """Record until `stop` is set, then write what is still waiting in the rings and close the segment."""
     rec = Recorder(config, output_dir, config_path)
     # in replay mode the log player publishes the recorded anchors instead
@@ -346,7 +349,8 @@ def run(config: CarConfig, output_dir: Path, stop: threading.Event, config_path:
                 for topic in wanted:
                     if topic not in subscribers:
                         try:
-                            subscribers[topic] = bus.open_subscriber(config, topic, start=start_of[topic])
+                            subscribers[topic] = bus.open_subscriber(config, topic, start=start_of[topic],
+                                                                     lossless=lossless)
                         except FileNotFoundError:
                             start_of[topic] = "oldest"
             if now - last_health >= HEALTH_PERIOD_S:
@@ -381,6 +385,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output-dir", help="folder for the segments (default: recorder.output_dir)")
     parser.add_argument("--no-time-anchors", action="store_true",
                         help="do not publish monotonic/UTC anchors (replay: the player publishes the recorded ones)")
+    parser.add_argument("--lossless", action="store_true",
+                        help="read losslessly: publishers wait for the recorder (replay at max speed only)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s recorder %(levelname)s %(message)s")
     config = load_config_or_report(args.config)
@@ -390,7 +396,7 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    rec = run(config, output_dir, stop, args.config, time_anchors=not args.no_time_anchors)
+    rec = run(config, output_dir, stop, args.config, time_anchors=not args.no_time_anchors, lossless=args.lossless)
     log.info("stopped: %d segments closed, %d messages written, %d lost", rec.segments_closed,
               sum(rec.tally.written.values()), sum(rec.tally.lost().values()))
     return 0

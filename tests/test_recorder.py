@@ -45,10 +45,10 @@ class RecorderProcess:
 
     started: list[subprocess.Popen] = []  # killed at the end of each test, whatever happened
 
-    def __init__(self, config_path: Path, output_dir: Path, env: dict[str, str] | None = None):
+    def __init__(self, config_path: Path, output_dir: Path, env: dict[str, str] | None = None, *args: str):
         self.config = load_config(config_path)
         self.proc = subprocess.Popen([sys.executable, "-m", "daemon.recorder", "--config", str(config_path),
-                                      "--output-dir", str(output_dir)], cwd=ROOT,
+                                      "--output-dir", str(output_dir), *args], cwd=ROOT,
                                      env=dict(os.environ, **(env or {})), stderr=subprocess.PIPE, text=True)
         self.started.append(self.proc)
         self.health = bus.open_subscriber(self.config, health_topic("recorder"), start="next", wait_s=20)
@@ -267,6 +267,26 @@ def test_messages_the_bus_overwrote_before_the_recorder_read_them_are_counted(ca
     written = [r.message.sensor_time_ns for r in read_log(segments, topics=[LIDAR_PACKETS])]
     lost = json.loads(read_metadata(segments[-1])["roadlog.counts"]["lost_per_topic"])
     assert len(written) + lost[LIDAR_PACKETS] == 300 and written == sorted(written) and written[-1] == 299
+
+
+def test_a_lossless_recorder_makes_a_lossless_publisher_wait_and_records_everything(car, tmp_path):
+    config_path = car()
+    data = yaml.safe_load(config_path.read_text())
+    data["bus"]["ring_bytes"] = {LIDAR_PACKETS: 100_000}  # room for 3 packets
+    config_path.write_text(yaml.safe_dump(data))
+    config = load_config(config_path)
+    out = tmp_path / "logs"
+    lidar = bus.open_publisher(config, LIDAR_PACKETS)
+    rec = RecorderProcess(config_path, out, None, "--lossless")  # its first health: its subscribers are open
+    payload = random.Random(9).randbytes(24_896)
+    for i in range(300):  # the same burst that overruns a normal recorder: now the publisher waits
+        lidar.publish(LidarPacket(sensor_time_ns=i, data=payload), lossless=True, timeout_s=10.0)
+    detail = rec.wait_written({LIDAR_PACKETS: 300})
+    lidar.close()
+    assert detail["lost"].get(LIDAR_PACKETS, 0) == 0
+    assert rec.stop() == 0, rec.stderr
+    written = [r.message.sensor_time_ns for r in read_log(sorted(out.glob("*.mcap")), topics=[LIDAR_PACKETS])]
+    assert written == list(range(300))
 
 
 def test_disk_policy_pure_functions():

@@ -215,3 +215,8 @@ def test_process_table_live_and_replay(config):
     replay = process_table(cfg, str(path), "replay", replay_logs=("a.mcap", "b.mcap"), replay_rate="max")
     assert [p.name for p in replay][0] == "replay" and "lidar" not in [p.name for p in replay]
     assert replay[0].args[-2:] == ("a.mcap", "b.mcap") and not replay[0].restart_on_success
+    recorder_args = {rate: next(p for p in process_table(cfg, str(path), "replay", replay_logs=("a.mcap",),
+                                                         replay_rate=rate) if p.name == "recorder").args
+                     for rate in ("max", "1.0")}
+    assert "--lossless" in recorder_args["max"] and "--lossless" not in recorder_args["1.0"]
+    assert "--lossless" not in next(p for p in live if p.name == "recorder").args
