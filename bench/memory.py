@@ -51,6 +51,7 @@ sys.path.insert(0, str(REPO))
 
 from daemon import bus  # noqa: E402
 from daemon.config import CarConfig, load_config  # noqa: E402
+from daemon.health import process_memory_mb  # noqa: E402
 from daemon.log_format import read_log  # noqa: E402
 from daemon.messages import CameraFrame, GnssFix, ImuSample, SemanticMask, WheelSpeeds  # noqa: E402
 from daemon.topics import GNSS_FIX, IMU, WHEEL_SPEEDS, camera_topic, health_topic, mask_topic  # noqa: E402
@@ -182,16 +183,6 @@ def feed(config: CarConfig, km: float, pairs: list, health: bus.Subscriber, lead
             p.close()
 
 
-def proc_status_mb(pid: int) -> dict[str, float]:
-    """VmRSS and VmHWM of a process, in MB (none for a zombie)."""
-    out = {}
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        key, _, value = line.partition(":")
-        if key in ("VmRSS", "VmHWM"):
-            out[key] = int(value.split()[0]) / 1024.0
-    return out
-
-
 class RssSampler(threading.Thread):
     """Polls a worker's VmHWM until it exits, and samples its RSS with its mapped distance every RSS_PERIOD_S."""
 
@@ -206,7 +197,7 @@ class RssSampler(threading.Thread):
         next_sample = 0.0
         while not self.stop.is_set():
             try:
-                status = proc_status_mb(self.pid)
+                status = process_memory_mb(self.pid)
             except (FileNotFoundError, ProcessLookupError):
                 return
             if "VmHWM" not in status:  # exited

@@ -1,10 +1,11 @@
-"""Per-process health counters, turned into a DriverHealth message once a second."""
+"""Per-process health counters, turned into a DriverHealth message once a second, and a process's memory."""
 
 from __future__ import annotations
 
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from daemon.messages import DriverHealth
 
@@ -70,3 +71,14 @@ class HealthCounters:
             sequence_gaps=self.sequence_gaps,
             detail=self.last_error,
         )
+
+
+def process_memory_mb(pid: int | str = "self") -> dict[str, float]:
+    """A process's current (VmRSS) and peak (VmHWM) resident memory in MB, from /proc (empty for a zombie).
+    VmHWM is the process's own peak: ru_maxrss starts from the parent's, which execve keeps."""
+    out = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        key, _, value = line.partition(":")
+        if key in ("VmRSS", "VmHWM"):
+            out[key] = int(value.split()[0]) / 1024.0
+    return out

@@ -44,7 +44,7 @@ from scipy.spatial import cKDTree
 
 from daemon import bus
 from daemon.config import CarConfig, ConfigError, data_dir, load_config, resolve_path
-from daemon.health import HealthCounters
+from daemon.health import HealthCounters, process_memory_mb
 from daemon.status_server import preview_dir
 from daemon.topics import (
     GNSS_FIX,
@@ -197,14 +197,6 @@ def _atomic_png(path: Path, rgb: np.ndarray) -> None:
     os.replace(tmp, path)
 
 
-def peak_rss_mb() -> float:
-    """This process's own peak RSS (VmHWM): ru_maxrss starts from the parent's peak, which execve keeps."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024.0
-    raise RuntimeError("no VmHWM in /proc/self/status")
-
-
 def semantic_image(labels: np.ndarray) -> np.ndarray:
     return CLASS_COLOURS[np.minimum(labels, len(CLASS_COLOURS) - 1)] * (labels != NO_LABEL)[..., None].astype(np.uint8)
 
@@ -347,8 +339,6 @@ class WorkerState:
     mapped_until_m: float = 0.0
     lag_s: float = 0.0
     last_window_wall_s: float = 0.0
-    errors: int = 0
-    last_error: str = ""
     wheel_messages_without_speed: int = 0
     finished: bool = False
 
@@ -597,8 +587,6 @@ class MappingWorker:
             _atomic_png(self.previews / f"{name}.png", image)
 
     def _error(self, what: str) -> None:
-        self.state.errors += 1
-        self.state.last_error = what
         self.health.count_error(what)
         log.error("%s", what)
 
@@ -618,7 +606,7 @@ class MappingWorker:
                 if attempts >= WINDOW_ATTEMPTS:
                     centre, s_lo, s_hi = window_span(k, self.mapper.window_before_m, self.mapper.window_after_m)
                     entry = {"index": k, "status": "failed", "centre_m": centre, "start_m": s_lo, "end_m": s_hi,
-                             "error": self.state.last_error, "finished_mono_ns": time.monotonic_ns()}
+                             "error": self.health.last_error, "finished_mono_ns": time.monotonic_ns()}
                     self.state.windows_failed += 1
                     break
         entry["attempts"] = attempts
@@ -643,20 +631,19 @@ class MappingWorker:
             ready += 1
         st.windows_pending = ready
         msg = self.health.snapshot()
-        msg.state = "degraded" if st.errors else "ok"
-        msg.errors = st.errors
+        msg.state = "degraded" if self.health.errors else "ok"
         msg.dropped = self.reader.lost
         msg.detail = json.dumps({
             "windows_done": st.windows_done, "windows_failed": st.windows_failed, "windows_pending": ready,
             "distance_m": round(st.distance_m, 2), "mapped_until_m": round(st.mapped_until_m, 2),
             "lag_m": round(max(0.0, st.distance_m - st.mapped_until_m), 2), "lag_s": round(st.lag_s, 2),
             "last_window_wall_s": round(st.last_window_wall_s, 2), "spool_bytes": self.spool.bytes,
-            "errors": st.errors, "last_error": st.last_error, "bus_lost": self.reader.lost,
+            "errors": self.health.errors, "last_error": self.health.last_error, "bus_lost": self.reader.lost,
             "wheel_messages_without_speed": st.wheel_messages_without_speed,
             "live_view": None if self.live_view is None else {"port": self.live_view.port,
                                                               "windows_published": self.live_view.published},
             "finished": st.finished,
-            "peak_rss_mb": round(peak_rss_mb(), 1),
+            "peak_rss_mb": round(process_memory_mb()["VmHWM"], 1),
         })
         return msg
 

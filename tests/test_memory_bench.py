@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from daemon.config import CarConfig
+from daemon.health import process_memory_mb
 from daemon.messages import CameraFrame, GnssFix, ImuSample, SemanticMask, WheelSpeeds
 from daemon.topics import GNSS_FIX, IMU, WHEEL_SPEEDS, camera_topic, mask_topic
 from mapping.drive_inputs import fuse_log_trajectory
@@ -111,6 +112,7 @@ def test_rss_slope_over_the_drive_second_half(memory_bench):
     assert memory_bench.rss_slope_mb_per_km([(0.0, 1.0)] * 10, 0.0) is None  # no distance covered
 
 
-def test_proc_status_reads_this_process(memory_bench):
-    status = memory_bench.proc_status_mb(os.getpid())
-    assert 0 < status["VmRSS"] <= status["VmHWM"]
+def test_process_memory_reads_this_process():
+    for pid in (os.getpid(), "self"):
+        status = process_memory_mb(pid)
+        assert 0 < status["VmRSS"] <= status["VmHWM"]
