@@ -17,6 +17,7 @@ Drives are cached under /tmp/maplab/.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import subprocess
 import sys
@@ -42,21 +43,15 @@ from mapping.reconstruction import select_keyframes  # noqa: E402
 from mapping.scene_data import CameraModel, Keyframe  # noqa: E402
 from mapping.semantic_classes import ROAD_SURFACE_CLASSES  # noqa: E402
 
-CACHE = Path("/tmp/maplab")
+_spec = importlib.util.spec_from_file_location("mapping_bench", Path(__file__).with_name("mapping.py"))
+mapping_bench = importlib.util.module_from_spec(_spec)  # its drive cache (simulated once, under /tmp/maplab)
+_spec.loader.exec_module(mapping_bench)
+
 HOLDOUT_EVERY = 10  # as `reconstruct` holds out its evaluation views
 STRIDE = 2  # views rendered at every 2nd pixel row and column, as map_metrics does
 VIEW_REACH_M = 35.0  # faces further from the camera are not drawn
 TRAIN_VIEWS = 12  # as map_metrics evaluates training views
 PSNR_TOLERANCE_DB, ELEV_TOLERANCE_CM = 0.5, 0.5
-
-
-def cached_drive(scenario: str, seconds: float) -> Path:
-    path = CACHE / f"{scenario}{seconds:g}.mcap"
-    if not path.exists():
-        CACHE.mkdir(parents=True, exist_ok=True)
-        subprocess.run([sys.executable, "-m", "daemon.cli", "simulate", "--scenario", scenario, "--seconds",
-                        str(seconds), "--out", str(path)], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
-    return path
 
 
 @dataclass(frozen=True)
@@ -188,7 +183,7 @@ def main() -> int:
     parser.add_argument("--keep", type=Path, help="keep the daemon's data and the reconstruction here")
     args = parser.parse_args()
     seconds = 3.0 if args.quick else args.seconds
-    log = cached_drive(args.scenario, seconds)
+    log = mapping_bench.drive(args.scenario, seconds)
     truth = DriveTruth.load(log.with_suffix(".gt.npz"))
     with tempfile.TemporaryDirectory() as tmp:
         work = args.keep or Path(tmp)

@@ -20,7 +20,7 @@ import pytest
 import yaml
 
 from daemon import bus, disk_policy
-from daemon.config import load_config
+from daemon.config import CarConfig, load_config
 from daemon.disk_policy import Segment, required_free_bytes, segments_to_delete
 from daemon.log_format import read_log, read_metadata
 from daemon.messages import CameraFrame, CanFrame, ImuSample, LidarPacket
@@ -247,12 +247,16 @@ def test_disk_policy_deletes_oldest_closed_segments_then_stops_and_resumes(car, 
     assert set(lost) <= {LIDAR_PACKETS, TIME_ANCHOR, health_topic("recorder")}
 
 
-def test_messages_the_bus_overwrote_before_the_recorder_read_them_are_counted(car, tmp_path):
-    config_path = car()
+def with_a_three_packet_lidar_ring(config_path: Path) -> tuple[Path, CarConfig]:
+    """The config rewritten with a Lidar ring that holds 3 packets: a burst overruns a normal reader."""
     data = yaml.safe_load(config_path.read_text())
-    data["bus"]["ring_bytes"] = {LIDAR_PACKETS: 100_000}  # room for 3 packets
+    data["bus"]["ring_bytes"] = {LIDAR_PACKETS: 100_000}
     config_path.write_text(yaml.safe_dump(data))
-    config = load_config(config_path)
+    return config_path, load_config(config_path)
+
+
+def test_messages_the_bus_overwrote_before_the_recorder_read_them_are_counted(car, tmp_path):
+    config_path, config = with_a_three_packet_lidar_ring(car())
     out = tmp_path / "logs"
     lidar = bus.open_publisher(config, LIDAR_PACKETS)
     rec = RecorderProcess(config_path, out)
@@ -270,11 +274,7 @@ def test_messages_the_bus_overwrote_before_the_recorder_read_them_are_counted(ca
 
 
 def test_a_lossless_recorder_makes_a_lossless_publisher_wait_and_records_everything(car, tmp_path):
-    config_path = car()
-    data = yaml.safe_load(config_path.read_text())
-    data["bus"]["ring_bytes"] = {LIDAR_PACKETS: 100_000}  # room for 3 packets
-    config_path.write_text(yaml.safe_dump(data))
-    config = load_config(config_path)
+    config_path, config = with_a_three_packet_lidar_ring(car())
     out = tmp_path / "logs"
     lidar = bus.open_publisher(config, LIDAR_PACKETS)
     rec = RecorderProcess(config_path, out, None, "--lossless")  # its first health: its subscribers are open
