@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import sys
 import tempfile
 import time
@@ -20,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from daemon.config import CarConfig, ConfigError, config_to_yaml, load_config, parse_config
+from daemon.health import process_memory_mb
 from daemon.log_format import read_metadata
 from mapping.drive_inputs import DriveInputs, load_drive
 from mapping.local_frame import LocalFrame
@@ -105,7 +105,7 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
     mapping_wall = wall - (metrics.get("evaluate_wall_s") or 0.0)  # the metrics are computed after the map
     metrics.update(drive_s=drive.drive_s, wall_s=wall, rtf=drive.drive_s / wall if wall > 0 else None,
                    rtf_mapping=drive.drive_s / mapping_wall if mapping_wall > 0 else None,
-                   peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+                   peak_rss_mb=process_memory_mb()["VmHWM"],
                    vertices=result.road_map.mesh.num_vertices, inputs=drive.counts, logs=[str(p) for p in logs],
                    lidar_supervision=lidar is not None and variant_for(ablation).lidar_supervision)
     out.mkdir(parents=True, exist_ok=True)
