@@ -108,3 +108,18 @@ def test_ground_filter_keeps_the_road_and_drops_a_car_on_it():
     assert cKDTree(far).query(kept)[0].min() > 1e-6  # none of the points beyond the corridor
     dist = cKDTree(ground[:, :2]).query(kept[:, :2])[0]
     assert dist.max() < 15.0 + 0.25
+
+
+def test_recorded_config_brings_its_lidar_metadata_or_asks_for_a_config(drive, tmp_path):
+    from daemon.config import ConfigError
+    from daemon.log_format import LogWriter
+    from mapping.reconstruct_command import config_from_logs
+
+    _, _, log = drive
+    config, config_path = config_from_logs([str(log)])
+    assert (config_path.parent / config.sensors.lidar.metadata_file).read_text().startswith("{")
+    bare = tmp_path / "no-lidar-metadata.mcap"
+    with LogWriter(bare, load_config(CONFIG)):  # no config path: the Lidar's metadata file is not recorded
+        pass
+    with pytest.raises(ConfigError, match="no Lidar metadata.*pass --config"):
+        config_from_logs([str(bare)])
