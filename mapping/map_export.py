@@ -14,6 +14,7 @@ import trimesh
 
 from mapping.map_metrics import observed_triangles
 from mapping.road_map import NO_LABEL, RoadMap
+from mapping.road_mesh import used_vertices
 from mapping.semantic_classes import CLASS_COLOURS
 
 _ROWS_PER_CHUNK = 256
@@ -96,7 +97,7 @@ def export_map(road_map: RoadMap, out_dir: Path, cameras: list[str]) -> dict[str
     files["bev.json"] = out_dir / "bev.json"
 
     faces = road_map.mesh.faces[(road_map.observed[road_map.mesh.faces] > 0).all(1)]
-    used, local = np.unique(faces, return_inverse=True)
+    used, local = used_vertices(faces, road_map.mesh.num_vertices)
     vertices = np.concatenate([road_map.mesh.xy[used], road_map.z_now[used, None]], 1)
     colours = np.clip(road_map.vertex_colours(cameras[0], used) * 255 + 0.5, 0, 255).astype(np.uint8)
     mesh = trimesh.Trimesh(vertices, local.reshape(-1, 3), vertex_colors=colours, process=False)

@@ -1,10 +1,11 @@
 """Map quality figures: PSNR on road pixels (held-out and training views, valid pixels only), mIoU of the
-rendered semantics, Elev-error (mean distance from Lidar ground points to the surface, as the paper
-defines it) and the mean absolute elevation error against a true elevation raster."""
+rendered semantics (against the masks, or the true semantic grid), Elev-error (mean distance from Lidar
+ground points to the surface, as the paper defines it) and the mean absolute elevation error against a
+true elevation raster."""
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 
@@ -105,19 +106,37 @@ def elev_mae_gt_cm(road_map: RoadMap, gt: GroundTruth | None) -> float | None:
     return float(100.0 * np.mean(np.abs(z - gt.elevation_m[rows[ok], cols[ok]])))
 
 
-def evaluate_views(
+def bev_miou_pct(road_map: RoadMap, gt: GroundTruth | None) -> float | None:
+    """mIoU (%) of the map's semantics against the true semantic grid (bird's-eye view), over every other
+    true cell (10 cm: the mesh resolution) inside triangles the map observed."""
+    if gt is None or gt.semantic is None or road_map.semantic_logits is None:
+        return None
+    h, w = gt.semantic.shape
+    ii, jj = np.mgrid[0:h:2, 0:w:2]
+    xy = np.stack([gt.origin_xy[0] + jj.ravel() * gt.resolution_m, gt.origin_xy[1] + ii.ravel() * gt.resolution_m], 1)
+    ids, wt, ok = observed_triangles(road_map, xy)
+    if not ok.any():
+        return None
+    logits = road_map.semantic_logits.detach().numpy()
+    pred = (logits[ids[ok]] * wt[ok][..., None]).sum(1).argmax(1)
+    true = gt.semantic[ii.ravel()[ok], jj.ravel()[ok]]
+    valid = true < NUM_MAP_CLASSES
+    return miou_pct(confusion(pred[valid], true[valid], np.ones(valid.sum(), bool)))
+
+
+def _view_scores(
+    pool: ThreadPoolExecutor,
     road_map: RoadMap,
     cameras: dict[str, CameraModel],
     views: list[Keyframe],
     trajectory: Trajectory,
     window_before_m: float,
     window_after_m: float,
+    windows: WindowIndex,
     stride: int = EVAL_STRIDE,
-    windows: WindowIndex | None = None,
-) -> tuple[float | None, np.ndarray]:
-    """Mean per-view PSNR on road pixels and the summed semantic confusion matrix, over the pixels that
-    see the mapped surface (faces whose vertices were all supervised). `windows`: the mesh's index, if built."""
-    windows = WindowIndex.of(road_map.mesh) if windows is None else windows
+) -> list[Future]:
+    """Per view (rendered on `pool`): its PSNR on road pixels and its semantic confusion matrix, over the
+    pixels that see the mapped surface (faces whose vertices were all supervised)."""
     mapped = (road_map.observed[road_map.mesh.faces] > 0).all(1)
     road = np.array(ROAD_SURFACE_CLASSES)
 
@@ -133,13 +152,12 @@ def evaluate_views(
         labelled = view.hit & (semantics < NUM_MAP_CLASSES) & (view.labels != NO_LABEL)
         return value, confusion(view.labels, semantics, labelled)
 
-    # Views render in two threads: numpy and torch release the GIL in their array work, and torch keeps
-    # one intra-op thread (two spun against each other on this 2-core machine)
-    with ThreadPoolExecutor(EVAL_THREADS) as pool:
-        results = list(pool.map(one_view, views))
-    psnrs = [value for value, _ in results if value is not None]
-    conf = sum((c for _, c in results), np.zeros((NUM_MAP_CLASSES, NUM_MAP_CLASSES), np.int64))
-    return (float(np.mean(psnrs)) if psnrs else None), conf
+    return [pool.submit(one_view, kf) for kf in views]
+
+
+def _mean_psnr(scores: list[Future]) -> float | None:
+    values = [f.result()[0] for f in scores if f.result()[0] is not None]
+    return float(np.mean(values)) if values else None
 
 
 def _evenly(views: list[Keyframe], count: int) -> list[Keyframe]:
@@ -160,16 +178,26 @@ def evaluate_map(
     window_before_m: float,
     window_after_m: float,
 ) -> dict:
+    """The paper's metrics and the truth's. `miou_mask_pct` compares rendered semantics with the held-out
+    frames' segmentation masks; `miou_pct` is the bird's-eye mIoU against the true grid when `gt` has one,
+    else `miou_mask_pct`. Every figure is a task on one pool of EVAL_THREADS threads (numpy and torch
+    release the GIL in their array work; torch keeps one intra-op thread: two spun against each other on
+    this 2-core machine), the longest first."""
     windows = WindowIndex.of(road_map.mesh)
-    psnr, conf = evaluate_views(road_map, cameras, _evenly(holdout, HOLDOUT_VIEWS_EVALUATED), trajectory,
-                                window_before_m, window_after_m, windows=windows)
-    some_train = _evenly(train, TRAIN_VIEWS_EVALUATED)
-    psnr_train, _ = evaluate_views(road_map, cameras, some_train, trajectory, window_before_m, window_after_m,
-                                   windows=windows)
-    return {
-        "psnr_db": psnr,
-        "psnr_train_db": psnr_train,
-        "miou_pct": miou_pct(conf) if road_map.semantic_logits is not None else None,
-        "elev_error_cm": elev_error_cm(road_map, lidar_points),
-        "elev_mae_gt_cm": elev_mae_gt_cm(road_map, gt),
-    }
+    with ThreadPoolExecutor(EVAL_THREADS) as pool:
+        elev_error = pool.submit(elev_error_cm, road_map, lidar_points)
+        elev_mae = pool.submit(elev_mae_gt_cm, road_map, gt)
+        bev_miou = pool.submit(bev_miou_pct, road_map, gt)
+        args = (trajectory, window_before_m, window_after_m, windows)
+        held = _view_scores(pool, road_map, cameras, _evenly(holdout, HOLDOUT_VIEWS_EVALUATED), *args)
+        trained = _view_scores(pool, road_map, cameras, _evenly(train, TRAIN_VIEWS_EVALUATED), *args)
+        conf = sum((f.result()[1] for f in held), np.zeros((NUM_MAP_CLASSES, NUM_MAP_CLASSES), np.int64))
+        miou_mask = miou_pct(conf) if road_map.semantic_logits is not None else None
+        return {
+            "psnr_db": _mean_psnr(held),
+            "psnr_train_db": _mean_psnr(trained),
+            "miou_pct": bev_miou.result() if gt is not None and gt.semantic is not None else miou_mask,
+            "miou_mask_pct": miou_mask,
+            "elev_error_cm": elev_error.result(),
+            "elev_mae_gt_cm": elev_mae.result(),
+        }

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 import torch
 
+from mapping.road_mesh import used_vertices
 from mapping.scene_data import CameraModel
 
 NEAR_M = 0.2  # faces with a vertex closer than this (or behind the camera) are not drawn
@@ -119,8 +120,7 @@ def rasterise(
     if len(faces) == 0:
         return out.reshape(hs, ws).numpy()
     if len(vertices_world) > 3 * faces.size:  # project only the vertices these faces use
-        used, local = np.unique(faces, return_inverse=True)
-        local = local.reshape(-1, 3)
+        used, local = used_vertices(faces, len(vertices_world))
     else:
         used, local = np.arange(len(vertices_world)), faces
     cam = torch.from_numpy(to_camera(T_world_camera, vertices_world[used]).astype(np.float32))

@@ -23,11 +23,9 @@ from daemon.health import process_memory_mb
 from daemon.log_format import read_metadata
 from mapping.drive_inputs import DriveInputs, load_drive
 from mapping.local_frame import LocalFrame
-from mapping.map_metrics import confusion, miou_pct, observed_triangles
 from mapping.reconstruction import ReconstructionResult, reconstruct
-from mapping.road_map import ABLATIONS, RoadMap, variant_for
+from mapping.road_map import ABLATIONS, variant_for
 from mapping.scene_data import GroundTruth
-from mapping.semantic_classes import NUM_MAP_CLASSES
 
 
 @dataclass(frozen=True)
@@ -35,9 +33,12 @@ class DriveTruth:
     """A simulated drive's ground truth (drivers/sim writes it beside the log)."""
 
     origin: LocalFrame
-    elevation: GroundTruth
-    semantic: np.ndarray  # (H, W) uint8 class ids on the elevation grid
+    elevation: GroundTruth  # the true elevation and semantic grids
     lidar_points: np.ndarray  # (N, 3) true road-surface points hit by the Lidar
+
+    @property
+    def semantic(self) -> np.ndarray:
+        return self.elevation.semantic
 
     @staticmethod
     def load(path: str | Path) -> DriveTruth:
@@ -45,26 +46,8 @@ class DriveTruth:
         res = float(gt["grid_resolution_m"])
         origin_xy = tuple(float(v) + res / 2 for v in gt["grid_origin_xy"])  # the file gives cell corners
         return DriveTruth(LocalFrame(*(float(v) for v in gt["enu_origin_lat_lon_alt"])),
-                          GroundTruth(gt["elevation"].astype(np.float32), origin_xy, res),
-                          gt["semantic"], gt["lidar_points_enu"])
-
-
-def bev_miou_vs_truth(road_map: RoadMap, truth: DriveTruth) -> float | None:
-    """mIoU (%) of the map's semantics against the true grid, over true cells the map observed."""
-    if road_map.semantic_logits is None:
-        return None
-    g = truth.elevation
-    h, w = truth.semantic.shape
-    ii, jj = np.mgrid[0:h:2, 0:w:2]  # every other 5 cm cell: 10 cm, the mesh resolution
-    xy = np.stack([g.origin_xy[0] + jj.ravel() * g.resolution_m, g.origin_xy[1] + ii.ravel() * g.resolution_m], 1)
-    ids, wt, ok = observed_triangles(road_map, xy)
-    if not ok.any():
-        return None
-    logits = road_map.semantic_logits.detach().numpy()
-    pred = (logits[ids[ok]] * wt[ok][..., None]).sum(1).argmax(1)
-    true = truth.semantic[ii.ravel()[ok], jj.ravel()[ok]]
-    valid = true < NUM_MAP_CLASSES
-    return miou_pct(confusion(pred[valid], true[valid], np.ones(valid.sum(), bool)))
+                          GroundTruth(gt["elevation"].astype(np.float32), origin_xy, res, gt["semantic"]),
+                          gt["lidar_points_enu"])
 
 
 def config_from_logs(paths: list[str]) -> tuple[CarConfig, Path]:
@@ -98,8 +81,6 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
                          gt=truth.elevation if truth else None, faithful=faithful, progress=progress)
     metrics = result.metrics
     if truth is not None:
-        metrics["miou_mask_pct"] = metrics.get("miou_pct")
-        metrics["miou_pct"] = bev_miou_vs_truth(result.road_map, truth)
         if lidar is None:  # Elev-error still needs Lidar ground points: the true ones
             from mapping.map_metrics import elev_error_cm
 

@@ -12,7 +12,7 @@ import torch
 from mapping.colour_mlps import ColourDecoder
 from mapping.elevation_mlp import ElevationMLP
 from mapping.mesh_renderer import pixel_rays, rasterise, ray_triangle_weights, sampled_pixels, world_rays
-from mapping.road_mesh import RoadMesh
+from mapping.road_mesh import RoadMesh, used_vertices
 from mapping.scene_data import CameraModel, Keyframe
 from mapping.semantic_classes import NUM_MAP_CLASSES
 
@@ -172,7 +172,7 @@ def render_view(road_map: RoadMap, faces: np.ndarray, keyframe: Keyframe, camera
     pixel row and column: images of shape (H', W') matching `sampled_pixels(camera, stride)`."""
     mesh = road_map.mesh
     tri_all = mesh.faces[faces]
-    used, local = np.unique(tri_all, return_inverse=True)  # only the vertices these faces use
+    used, local = used_vertices(tri_all, mesh.num_vertices)  # only the vertices these faces use
     vertices = np.concatenate([mesh.xy[used], road_map.z_now[used, None].astype(np.float64)], 1)
     face_grid = rasterise(vertices, local.reshape(-1, 3), camera, keyframe.T_world_camera, stride).ravel()
     h, wd = sampled_pixels(camera, stride).shape
@@ -181,8 +181,7 @@ def render_view(road_map: RoadMap, faces: np.ndarray, keyframe: Keyframe, camera
     pixels = sampled_pixels(camera, stride).ravel()[local]
     tri = tri_all[face_grid[local]]
     w = pixel_weights(road_map, keyframe, camera, pixels, tri, torch.from_numpy(road_map.z_now[tri]))
-    ids, inverse = np.unique(tri, return_inverse=True)
-    inverse = inverse.reshape(tri.shape)
+    ids, inverse = used_vertices(tri, mesh.num_vertices)
     rgb = np.zeros((h * wd, 3), np.float32)
     colours = torch.from_numpy(road_map.vertex_colours(camera.name, ids))
     rgb[local] = (colours[inverse] * w[..., None]).sum(1).clamp(0, 1).numpy()

@@ -145,6 +145,18 @@ def _neighbours(node_index: np.ndarray, rc: np.ndarray) -> np.ndarray:
     return out
 
 
+def used_vertices(ids: np.ndarray, num_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """np.unique(ids, return_inverse=True) for vertex ids in [0, num_vertices), in linear time: the sorted
+    distinct ids and each entry's index among them (same shape as `ids`). The sort np.unique does took a
+    third of a view's render."""
+    mark = np.zeros(num_vertices, bool)
+    mark[ids.ravel()] = True
+    used = np.flatnonzero(mark)
+    position = np.empty(num_vertices, np.int64)
+    position[used] = np.arange(len(used))
+    return used, position[ids]
+
+
 def locate(mesh: RoadMesh, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The triangle under each point: vertex ids (M, 3), barycentric weights (M, 3), valid (M,).
 

@@ -58,11 +58,13 @@ class Trajectory:
 
 @dataclass(frozen=True)
 class GroundTruth:
-    """A true elevation raster: cell (i, j) is centred at (x0 + j*res, y0 + i*res); NaN = unknown."""
+    """True rasters of a simulated drive: elevation (NaN = unknown) and, where known, semantic class ids on the
+    same grid; cell (i, j) is centred at (x0 + j*res, y0 + i*res)."""
 
     elevation_m: np.ndarray  # (H, W) float
     origin_xy: tuple[float, float]  # centre of cell (0, 0)
     resolution_m: float
+    semantic: np.ndarray | None = None  # (H, W) uint8 class ids (>= NUM_MAP_CLASSES: no map class)
 
     def cell_centres(self) -> np.ndarray:
         h, w = self.elevation_m.shape

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from mapping.road_mesh import build_road_mesh, locate
+from mapping.road_mesh import build_road_mesh, locate, used_vertices
 from mapping.scene_data import Trajectory
 
 
@@ -57,3 +57,11 @@ def test_neighbours_are_one_side_apart_and_z0_follows_the_trajectory(curve):
     assert np.allclose(mesh.z0, np.interp(mesh.s, s_traj, traj.positions[:, 2]) - 0.5, atol=1e-5)
     flat = build_road_mesh(traj, 5.0, 0.2, 0.5, flat=True)
     assert np.ptp(flat.z0) == 0
+
+
+def test_used_vertices_is_a_linear_time_unique_with_inverse():
+    ids = np.random.default_rng(3).integers(0, 1000, (700, 3))
+    used, local = used_vertices(ids, 1000)
+    expected, inverse = np.unique(ids, return_inverse=True)
+    assert np.array_equal(used, expected) and np.array_equal(local, inverse.reshape(ids.shape))
+    assert np.array_equal(used[local], ids)
