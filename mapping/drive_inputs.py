@@ -9,7 +9,7 @@ every `keyframe_spacing_m` of travel (per camera); their poses are interpolated 
 from __future__ import annotations
 
 from collections import defaultdict
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -46,6 +46,12 @@ from mapping.sensor_time import ClockMap, fit_clock
 from mapping.trajectory import Trajectory
 
 
+def reconstruction_path(trajectory: Trajectory) -> PathTrajectory:
+    """The trajectory as the reconstruction takes it (seconds from the drive start, positions)."""
+    t0 = trajectory.times_ns[0]
+    return PathTrajectory((trajectory.times_ns - t0) / 1e9, trajectory.positions)
+
+
 @dataclass
 class DriveInputs:
     cameras: dict[str, CameraModel]
@@ -58,13 +64,38 @@ class DriveInputs:
 
     @property
     def path(self) -> PathTrajectory:
-        """The trajectory as the reconstruction takes it (seconds from the drive start, positions)."""
-        t0 = self.trajectory.times_ns[0]
-        return PathTrajectory((self.trajectory.times_ns - t0) / 1e9, self.trajectory.positions)
+        return reconstruction_path(self.trajectory)
 
     @property
     def drive_s(self) -> float:
         return float(self.trajectory.times_ns[-1] - self.trajectory.times_ns[0]) / 1e9
+
+
+@dataclass
+class LoadingDrive:
+    """A drive whose trajectory is ready while its Lidar ground is extracted, then its keyframe images decoded,
+    in a background thread (numpy and OpenCV release the GIL): the reconstruction builds its mesh meanwhile
+    and waits for each input where it first needs it."""
+
+    cameras: dict[str, CameraModel]
+    keyframes: Future[list[Keyframe]]
+    trajectory: Trajectory
+    lidar_ground_points: Future[np.ndarray | None]
+    clocks: dict[str, ClockMap]
+    counts: dict[str, int]
+    report: ReadReport
+
+    @property
+    def path(self) -> PathTrajectory:
+        return reconstruction_path(self.trajectory)
+
+    def result(self) -> DriveInputs:
+        """The finished inputs (waits for the background work; its errors are raised here)."""
+        keyframes, ground = self.keyframes.result(), self.lidar_ground_points.result()
+        counts = dict(self.counts, keyframes=len(keyframes))
+        if ground is not None:
+            counts["lidar_ground_points"] = len(ground)
+        return DriveInputs(self.cameras, keyframes, self.trajectory, ground, self.clocks, counts, self.report)
 
 
 def camera_models(config: CarConfig) -> dict[str, CameraModel]:
@@ -157,10 +188,18 @@ def camera_pose(trajectory: Trajectory, t_ns: int, T_vehicle_camera: np.ndarray)
     return T @ T_vehicle_camera
 
 
-def load_drive(paths: list[str | Path], config: CarConfig, config_path: str | Path | None = None, *,
-               origin: LocalFrame | None = None, use_lidar: bool = True, keyframe_spacing_m: float | None = None,
-               lidar_every_n_scans: int = 2, ground_filter: GroundFilter | None = None) -> DriveInputs:
-    """Everything the reconstruction needs from the given log segments."""
+def load_drive(paths: list[str | Path], config: CarConfig, config_path: str | Path | None = None,
+               **options) -> DriveInputs:
+    """Everything the reconstruction needs from the given log segments (options: start_loading_drive's)."""
+    return start_loading_drive(paths, config, config_path, **options).result()
+
+
+def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path: str | Path | None = None, *,
+                        origin: LocalFrame | None = None, use_lidar: bool = True,
+                        keyframe_spacing_m: float | None = None, lidar_every_n_scans: int = 2,
+                        ground_filter: GroundFilter | None = None) -> LoadingDrive:
+    """Read the log segments and fuse the trajectory; start extracting the Lidar ground and decoding the
+    keyframes in the background."""
     report = ReadReport()
     cams = [c.name for c in config.sensors.cameras]
     frames: dict[str, list[CameraFrame]] = defaultdict(list)
@@ -199,20 +238,22 @@ def load_drive(paths: list[str | Path], config: CarConfig, config_path: str | Pa
         trajectory = fuse_log_trajectory(gnss, imu, wheels, config, origin, clocks)
     spacing = config.mapper.keyframe_spacing_m if keyframe_spacing_m is None else keyframe_spacing_m
     chosen, counts = _keyframe_messages(config, frames, masks, clocks, trajectory, spacing)
-    ground = None
-    # JPEG/PNG decoding (OpenCV releases the GIL) runs in a thread beside the Lidar decoding and ground filter
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        decoding = pool.submit(_decode_keyframes, chosen)
-        if lidar and config.sensors.lidar is not None:
-            meta_path = resolve_path(config_path or ".", config.sensors.lidar.metadata_file)
-            ground = lidar_ground_from_packets(lidar, clocks[LIDAR_PACKETS], parse_metadata(meta_path), config,
-                                               trajectory, lidar_every_n_scans, ground_filter or GroundFilter(
-                                                   corridor_half_width_m=config.mapper.corridor_half_width_m))
-            counts["lidar_packets"] = len(lidar)
-            counts["lidar_ground_points"] = len(ground)
-        keyframes = decoding.result()
-    counts["keyframes"] = len(keyframes)
-    return DriveInputs(camera_models(config), keyframes, trajectory, ground, clocks, counts, report)
+    # one background thread, the Lidar first: the reconstruction needs it first (its elevation fit), and the
+    # decoding then runs beside that single-threaded fit. The pool lets its thread finish after shutdown.
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="load-drive")
+    if lidar and config.sensors.lidar is not None:
+        meta_path = resolve_path(config_path or ".", config.sensors.lidar.metadata_file)
+        metadata = parse_metadata(meta_path)  # a bad metadata file fails here, before the background work
+        ground = pool.submit(lidar_ground_from_packets, lidar, clocks[LIDAR_PACKETS], metadata, config, trajectory,
+                             lidar_every_n_scans, ground_filter or GroundFilter(
+                                 corridor_half_width_m=config.mapper.corridor_half_width_m))
+        counts["lidar_packets"] = len(lidar)
+    else:
+        ground = Future()
+        ground.set_result(None)
+    keyframes = pool.submit(_decode_keyframes, chosen)
+    pool.shutdown(wait=False)
+    return LoadingDrive(camera_models(config), keyframes, trajectory, ground, clocks, counts, report)
 
 
 @dataclass(frozen=True)

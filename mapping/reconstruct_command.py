@@ -21,7 +21,7 @@ import numpy as np
 from daemon.config import CarConfig, ConfigError, config_to_yaml, load_config, parse_config
 from daemon.health import process_memory_mb
 from daemon.log_format import read_metadata
-from mapping.drive_inputs import DriveInputs, load_drive
+from mapping.drive_inputs import DriveInputs, start_loading_drive
 from mapping.local_frame import LocalFrame
 from mapping.reconstruction import ReconstructionResult, reconstruct
 from mapping.road_map import ABLATIONS, variant_for
@@ -74,11 +74,13 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
                        truth: DriveTruth | None = None, use_lidar: bool = True, ablation: str | None = None,
                        faithful: bool = False, progress: bool = True) -> tuple[ReconstructionResult, DriveInputs]:
     started = time.perf_counter()
-    drive = load_drive(logs, config, config_path, origin=truth.origin if truth else None, use_lidar=use_lidar)
-    lidar = drive.lidar_ground_points if use_lidar else None
-    result = reconstruct(drive.keyframes, drive.cameras, drive.path, lidar, config.mapper,
-                         config.vehicle.reference_height_m, out_dir=out, ablation=ablation,
+    loading = start_loading_drive(logs, config, config_path, origin=truth.origin if truth else None,
+                                  use_lidar=use_lidar)
+    result = reconstruct(loading.keyframes, loading.cameras, loading.path, loading.lidar_ground_points,
+                         config.mapper, config.vehicle.reference_height_m, out_dir=out, ablation=ablation,
                          gt=truth.elevation if truth else None, faithful=faithful, progress=progress)
+    drive = loading.result()
+    lidar = drive.lidar_ground_points
     metrics = result.metrics
     if truth is not None:
         if lidar is None:  # Elev-error still needs Lidar ground points: the true ones

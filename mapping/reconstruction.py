@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import json
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -231,26 +231,18 @@ def _batches(keyframes: list[Keyframe], trajectory: Trajectory, size: int) -> li
     return out
 
 
-def _fit_observations(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraModel],
-                      trajectory: Trajectory, lidar: np.ndarray | None, config: MapperConfig,
-                      fast: FastPathSettings, rng: np.random.Generator, progress: bool,
-                      timings: dict[str, float]) -> list[float]:
-    """The fast path: elevation from the Lidar lattice, then every keyframe's view of every vertex in
-    reach, then semantics and colours fitted to those observations (mapping.observation_fit). Each
-    stage's wall time goes into `timings`."""
+def _fit_elevation(road_map: RoadMap, lidar: np.ndarray | None, config: MapperConfig,
+                   fast: FastPathSettings, rng: np.random.Generator) -> tuple[float, float]:
+    """The fast path's elevation: the residual MLP fitted to the Lidar lattice (mapping.observation_fit);
+    the weighted loss of its first and last step."""
+    if road_map.elevation is None or lidar is None or not len(lidar):
+        return 0.0, 0.0
     lr, w = config.learning_rates, config.loss_weights
-    first, last = 0.0, 0.0  # summed over the stages: the elevation fit, the colour fit
-    started = time.perf_counter()
-    if road_map.elevation is not None and lidar is not None and len(lidar):
-        a, b = fit_elevation(road_map, lidar, fast.elevation_lattice_m, fast.elevation_epochs,
-                             fast.elevation_min_steps, fast.elevation_batch, fast.elevation_smooth_pairs,
-                             lr.elevation_mlp, w.elevation,
-                             w.smoothness, rng)
-        first, last = first + a, last + b
-        road_map.refresh_elevation()
-    timings["elevation_fit_wall_s"] = time.perf_counter() - started
-    a, b = _observe_and_fit_colours(road_map, train, cameras, trajectory, config, fast, rng, progress, timings)
-    return [first + w.rgb * a, last + w.rgb * b]
+    first_last = fit_elevation(road_map, lidar, fast.elevation_lattice_m, fast.elevation_epochs,
+                               fast.elevation_min_steps, fast.elevation_batch, fast.elevation_smooth_pairs,
+                               lr.elevation_mlp, w.elevation, w.smoothness, rng)
+    road_map.refresh_elevation()
+    return first_last
 
 
 def _observe_and_fit_colours(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraModel],
@@ -299,11 +291,22 @@ def _observe_and_fit_colours(road_map: RoadMap, train: list[Keyframe], cameras: 
     return losses_first_last
 
 
+def _waited_for(value, timings: dict[str, float], key: str):
+    """An input that may still be in preparation (a Future: mapping.drive_inputs.LoadingDrive), once ready;
+    the wait goes into `timings`."""
+    if not isinstance(value, Future):
+        return value
+    started = time.perf_counter()
+    ready = value.result()
+    timings[key] = time.perf_counter() - started
+    return ready
+
+
 def reconstruct(
-    keyframes: list[Keyframe],
+    keyframes: list[Keyframe] | Future[list[Keyframe]],
     cameras: dict[str, CameraModel],
     trajectory: Trajectory,
-    lidar_ground_points: np.ndarray | None,
+    lidar_ground_points: np.ndarray | None | Future[np.ndarray | None],
     config: MapperConfig,
     reference_height_m: float,
     out_dir: Path | None = None,
@@ -314,18 +317,14 @@ def reconstruct(
     fast: FastPathSettings = FastPathSettings(),
     progress: bool = True,
 ) -> ReconstructionResult:
-    """Reconstruct the road surface seen by `keyframes` along `trajectory`; evaluate; export if out_dir."""
+    """Reconstruct the road surface seen by `keyframes` along `trajectory`; evaluate; export if out_dir.
+    `keyframes` and `lidar_ground_points` may be Futures (inputs still loading): the mesh is built first,
+    the Lidar waited for by the elevation fit, the keyframes after it."""
     start = time.perf_counter()
     torch.set_num_threads(config.threads if faithful else fast.threads)
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     variant = variant_for(ablation)
-    selected = select_keyframes(keyframes, trajectory, config.keyframe_spacing_m)
-    holdout = [k for i, k in enumerate(selected) if holdout_every > 0 and i % holdout_every == holdout_every // 2]
-    held = {id(k) for k in holdout}
-    train = [k for k in selected if id(k) not in held]
-    if not train:
-        raise ValueError("no training keyframes after selection")
     mesh = build_road_mesh(trajectory, config.corridor_half_width_m, config.mesh_side_m, reference_height_m,
                            flat=variant.flat_init)
     generator = torch.Generator().manual_seed(config.seed)
@@ -335,9 +334,20 @@ def reconstruct(
         config.window_before_m + config.window_after_m, 0.0 if faithful else fast.elevation_lattice_m, generator,
     )
     history = []
-    timings: dict[str, float] = {}
-    setup_s = time.perf_counter() - start
+    timings: dict[str, float] = {"setup_wall_s": time.perf_counter() - start}
+    lidar_ground_points = _waited_for(lidar_ground_points, timings, "lidar_wait_s")
     supervision = lidar_ground_points if variant.lidar_supervision else None
+    if not faithful:  # the elevation needs the Lidar only: it is fitted while the images may still be decoding
+        started = time.perf_counter()
+        elevation_first_last = _fit_elevation(road_map, supervision, config, fast, rng)
+        timings["elevation_fit_wall_s"] = time.perf_counter() - started
+    selected = select_keyframes(_waited_for(keyframes, timings, "keyframes_wait_s"), trajectory,
+                                config.keyframe_spacing_m)
+    holdout = [k for i, k in enumerate(selected) if holdout_every > 0 and i % holdout_every == holdout_every // 2]
+    held = {id(k) for k in holdout}
+    train = [k for k in selected if id(k) not in held]
+    if not train:
+        raise ValueError("no training keyframes after selection")
     if faithful:
         lidar_ids, lidar_z = lidar_vertex_targets(mesh, supervision)
         opt = _Optimisation(road_map, cameras, config, lidar_ids, lidar_z)
@@ -355,8 +365,10 @@ def reconstruct(
             opt.semantic_opt.flush()
         road_map.refresh_elevation()
     else:
-        history = _fit_observations(road_map, train, cameras, trajectory, supervision, config, fast, rng,
-                                    progress, timings)
+        colour_first, colour_last = _observe_and_fit_colours(road_map, train, cameras, trajectory, config, fast, rng,
+                                                             progress, timings)
+        w_rgb = config.loss_weights.rgb
+        history = [elevation_first_last[0] + w_rgb * colour_first, elevation_first_last[1] + w_rgb * colour_last]
     train_s = time.perf_counter() - start
     drive_s = trajectory.duration_s
     metrics = evaluate_map(
@@ -377,8 +389,7 @@ def reconstruct(
         optimise_wall_s=train_s,
         evaluate_wall_s=evaluate_s,
         **timings,
-        setup_wall_s=setup_s,
-        step_mean_s=(train_s - setup_s) / max(1, len(history)),
+        step_mean_s=(train_s - timings["setup_wall_s"]) / max(1, len(history)),
         drive_s=drive_s,
         realtime_factor=drive_s / train_s if train_s > 0 else None,
     )

@@ -161,3 +161,19 @@ def test_rome_is_camera_only_but_its_elevation_is_still_measured_against_the_lid
     with_points, without = runs
     assert np.array_equal(with_points.road_map.z_now, without.road_map.z_now)  # the points never reached the fit
     assert with_points.metrics["elev_error_cm"] is not None and without.metrics["elev_error_cm"] is None
+
+
+def test_inputs_still_loading_give_the_same_map_as_loaded_ones(scene):
+    from concurrent.futures import ThreadPoolExecutor
+
+    cfg = CONFIG.model_copy(update={"epochs": 1})
+    loaded = reconstruct(scene.keyframes[:24], scene.cameras, scene.trajectory, scene.lidar, cfg,
+                         scene.reference_height_m, None, progress=False)
+    with ThreadPoolExecutor(1) as pool:  # as mapping.drive_inputs.LoadingDrive hands them over
+        lidar, keyframes = pool.submit(lambda: scene.lidar), pool.submit(lambda: scene.keyframes[:24])
+        loading = reconstruct(keyframes, scene.cameras, scene.trajectory, lidar, cfg, scene.reference_height_m,
+                              None, progress=False)
+    assert np.array_equal(loaded.road_map.z_now, loading.road_map.z_now)
+    assert torch.equal(loaded.road_map.colour_params, loading.road_map.colour_params)
+    assert loaded.metrics["psnr_db"] == loading.metrics["psnr_db"]
+    assert "keyframes_wait_s" in loading.metrics and "keyframes_wait_s" not in loaded.metrics
