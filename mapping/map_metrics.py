@@ -6,12 +6,13 @@ true elevation raster."""
 from __future__ import annotations
 
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 
 import numpy as np
 
 from mapping.mesh_renderer import sampled_pixels
 from mapping.road_map import NO_LABEL, RoadMap, WindowIndex, render_view
-from mapping.road_mesh import locate
+from mapping.road_mesh import RoadMesh, locate
 from mapping.scene_data import CameraModel, GroundTruth, Keyframe, Trajectory
 from mapping.semantic_classes import NUM_MAP_CLASSES, ROAD_SURFACE_CLASSES
 
@@ -43,6 +44,7 @@ def miou_pct(conf: np.ndarray) -> float | None:
     return float(100.0 * np.mean(inter[present] / union[present])) if present.any() else None
 
 
+LOCATE_CHUNK = 1 << 16  # points located at once ahead of time
 OBSERVED_BLOCK_M = 1.0  # the observed area is rasterised on blocks of this size to skip points far from it
 
 
@@ -72,18 +74,69 @@ def observed_triangles(road_map: RoadMap, xy: np.ndarray) -> tuple[np.ndarray, n
     """Triangle under each point, restricted to triangles whose three vertices were supervised."""
     near = np.flatnonzero(_near_observed(road_map, xy))  # locate only points that can be in an observed triangle
     near_ids, near_w, near_ok = locate(road_map.mesh, xy[near])
-    seen = road_map.observed[np.where(near_ok[:, None], near_ids, 0)] > 0
     ids, w, ok = np.full((len(xy), 3), -1, np.int64), np.zeros((len(xy), 3)), np.zeros(len(xy), bool)
-    ids[near], w[near], ok[near] = near_ids, near_w, near_ok & seen[:, 0] & seen[:, 1] & seen[:, 2]
+    ids[near], w[near], ok[near] = near_ids, near_w, near_ok & _all_observed(road_map, near_ids, near_ok)
     return ids, w, ok
 
 
-def elev_error_cm(road_map: RoadMap, points: np.ndarray | None) -> float | None:
+def _all_observed(road_map: RoadMap, ids: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    seen = road_map.observed[np.where(ok[:, None], ids, 0)] > 0
+    return seen[:, 0] & seen[:, 1] & seen[:, 2]
+
+
+@dataclass(frozen=True)
+class Located:
+    """Points placed on the mesh (its x, y only, so before the fit): the triangle under each (vertex ids),
+    the barycentric weights, and whether it lies inside the mesh."""
+
+    ids: np.ndarray  # (M, 3) int32
+    weights: np.ndarray  # (M, 3) float32
+    inside: np.ndarray  # (M,) bool
+
+    @staticmethod
+    def of(mesh: RoadMesh, xy: np.ndarray) -> Located:
+        """In chunks: this runs beside the elevation fit, and numpy's fancy indexing holds the GIL for as long
+        as it runs (whole-array calls slowed the fit by 15 %)."""
+        ids, w, ok = np.empty((len(xy), 3), np.int32), np.empty((len(xy), 3), np.float32), np.empty(len(xy), bool)
+        for lo in range(0, len(xy), LOCATE_CHUNK):
+            part = slice(lo, lo + LOCATE_CHUNK)
+            ids[part], w[part], ok[part] = locate(mesh, xy[part])
+        return Located(ids, w, ok)
+
+    def observed(self, road_map: RoadMap) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """As observed_triangles."""
+        return self.ids, self.weights, self.inside & _all_observed(road_map, self.ids, self.inside)
+
+
+def truth_cells(gt: GroundTruth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows, columns and centres (M, 2) of every other true cell: 10 cm, the mesh resolution (the truth
+    rasters are 5 cm); the truth metrics are taken on these cells."""
+    h, w = gt.elevation_m.shape
+    ii, jj = np.mgrid[0:h:2, 0:w:2]
+    rows, cols = ii.ravel(), jj.ravel()
+    return rows, cols, np.stack([gt.origin_xy[0] + cols * gt.resolution_m, gt.origin_xy[1] + rows * gt.resolution_m], 1)
+
+
+@dataclass(frozen=True)
+class MetricPoints:
+    """Where the metrics read the map, located ahead of time: the Lidar ground points and the truth cells."""
+
+    lidar: Located | None
+    truth: Located | None
+
+    @staticmethod
+    def of(mesh: RoadMesh, lidar_points: np.ndarray | None, gt: GroundTruth | None) -> MetricPoints:
+        return MetricPoints(
+            Located.of(mesh, lidar_points[:, :2]) if lidar_points is not None and len(lidar_points) else None,
+            Located.of(mesh, truth_cells(gt)[2]) if gt is not None else None)
+
+
+def elev_error_cm(road_map: RoadMap, points: np.ndarray | None, located: Located | None = None) -> float | None:
     """Mean distance (cm) from Lidar ground points over the reconstructed area to the surface (the
-    perpendicular distance to the triangle under each point)."""
+    perpendicular distance to the triangle under each point). `located`: the points' Located, if made."""
     if points is None or len(points) == 0:
         return None
-    ids, _, ok = observed_triangles(road_map, points[:, :2])
+    ids, _, ok = located.observed(road_map) if located is not None else observed_triangles(road_map, points[:, :2])
     if not ok.any():
         return None
     ids, p = ids[ok], points[ok]
@@ -93,35 +146,39 @@ def elev_error_cm(road_map: RoadMap, points: np.ndarray | None) -> float | None:
     return float(100.0 * np.mean(np.abs(np.einsum("ij,ij->i", p - v[:, 0], n))))
 
 
-def elev_mae_gt_cm(road_map: RoadMap, gt: GroundTruth | None) -> float | None:
-    """Mean |z - z_true| (cm) over true-raster cells inside the reconstructed area."""
+def _at_truth_cells(road_map: RoadMap, gt: GroundTruth, located: Located | None):
+    rows, cols, xy = truth_cells(gt)
+    ids, w, ok = located.observed(road_map) if located is not None else observed_triangles(road_map, xy)
+    return rows[ok], cols[ok], ids[ok], w[ok]
+
+
+def elev_mae_gt_cm(road_map: RoadMap, gt: GroundTruth | None, located: Located | None = None) -> float | None:
+    """Mean |z - z_true| (cm) over the truth cells (truth_cells) inside the reconstructed area with a true
+    elevation. `located`: the truth cells' Located, if made."""
     if gt is None:
         return None
-    rows, cols = np.nonzero(np.isfinite(gt.elevation_m))
-    xy = np.stack([gt.origin_xy[0] + cols * gt.resolution_m, gt.origin_xy[1] + rows * gt.resolution_m], 1)
-    ids, w, ok = observed_triangles(road_map, xy)
-    if not ok.any():
+    rows, cols, ids, w = _at_truth_cells(road_map, gt, located)
+    true = gt.elevation_m[rows, cols]
+    known = np.isfinite(true)
+    if not known.any():
         return None
-    z = (road_map.z_now[ids[ok]] * w[ok]).sum(1)
-    return float(100.0 * np.mean(np.abs(z - gt.elevation_m[rows[ok], cols[ok]])))
+    z = (road_map.z_now[ids[known]] * w[known]).sum(1)
+    return float(100.0 * np.mean(np.abs(z - true[known])))
 
 
-def bev_miou_pct(road_map: RoadMap, gt: GroundTruth | None) -> float | None:
-    """mIoU (%) of the map's semantics against the true semantic grid (bird's-eye view), over every other
-    true cell (10 cm: the mesh resolution) inside triangles the map observed."""
+def bev_miou_pct(road_map: RoadMap, gt: GroundTruth | None, located: Located | None = None) -> float | None:
+    """mIoU (%) of the map's semantics against the true semantic grid (bird's-eye view), over the truth cells
+    (truth_cells) inside the reconstructed area with a map class."""
     if gt is None or gt.semantic is None or road_map.semantic_logits is None:
         return None
-    h, w = gt.semantic.shape
-    ii, jj = np.mgrid[0:h:2, 0:w:2]
-    xy = np.stack([gt.origin_xy[0] + jj.ravel() * gt.resolution_m, gt.origin_xy[1] + ii.ravel() * gt.resolution_m], 1)
-    ids, wt, ok = observed_triangles(road_map, xy)
-    if not ok.any():
+    rows, cols, ids, w = _at_truth_cells(road_map, gt, located)
+    true = gt.semantic[rows, cols]
+    valid = true < NUM_MAP_CLASSES
+    if not valid.any():
         return None
     logits = road_map.semantic_logits.detach().numpy()
-    pred = (logits[ids[ok]] * wt[ok][..., None]).sum(1).argmax(1)
-    true = gt.semantic[ii.ravel()[ok], jj.ravel()[ok]]
-    valid = true < NUM_MAP_CLASSES
-    return miou_pct(confusion(pred[valid], true[valid], np.ones(valid.sum(), bool)))
+    pred = (logits[ids[valid]] * w[valid][..., None]).sum(1).argmax(1)
+    return miou_pct(confusion(pred, true[valid], np.ones(valid.sum(), bool)))
 
 
 def _view_scores(
@@ -177,17 +234,20 @@ def evaluate_map(
     gt: GroundTruth | None,
     window_before_m: float,
     window_after_m: float,
+    points: MetricPoints | None = None,
 ) -> dict:
     """The paper's metrics and the truth's. `miou_mask_pct` compares rendered semantics with the held-out
     frames' segmentation masks; `miou_pct` is the bird's-eye mIoU against the true grid when `gt` has one,
     else `miou_mask_pct`. Every figure is a task on one pool of EVAL_THREADS threads (numpy and torch
     release the GIL in their array work; torch keeps one intra-op thread: two spun against each other on
-    this 2-core machine), the longest first."""
+    this 2-core machine), the longest first. `points`: MetricPoints.of(the mesh, lidar_points, gt), if made
+    (reconstruct locates them while it fits the elevation)."""
     windows = WindowIndex.of(road_map.mesh)
+    lidar_at, truth_at = (points.lidar, points.truth) if points is not None else (None, None)
     with ThreadPoolExecutor(EVAL_THREADS) as pool:
-        elev_error = pool.submit(elev_error_cm, road_map, lidar_points)
-        elev_mae = pool.submit(elev_mae_gt_cm, road_map, gt)
-        bev_miou = pool.submit(bev_miou_pct, road_map, gt)
+        elev_error = pool.submit(elev_error_cm, road_map, lidar_points, lidar_at)
+        elev_mae = pool.submit(elev_mae_gt_cm, road_map, gt, truth_at)
+        bev_miou = pool.submit(bev_miou_pct, road_map, gt, truth_at)
         args = (trajectory, window_before_m, window_after_m, windows)
         held = _view_scores(pool, road_map, cameras, _evenly(holdout, HOLDOUT_VIEWS_EVALUATED), *args)
         trained = _view_scores(pool, road_map, cameras, _evenly(train, TRAIN_VIEWS_EVALUATED), *args)

@@ -27,7 +27,7 @@ from tqdm import tqdm
 from daemon.config import MapperConfig
 from mapping import losses
 from mapping.map_export import export_map
-from mapping.map_metrics import evaluate_map
+from mapping.map_metrics import MetricPoints, evaluate_map
 from mapping.mesh_renderer import pixel_rays, rasterise, ray_triangle_weights, world_rays
 from mapping.observation_fit import fit_colours, fit_elevation, semantic_logits_from_counts
 from mapping.road_map import RoadMap, WindowIndex, new_road_map, variant_for
@@ -337,6 +337,9 @@ def reconstruct(
     timings: dict[str, float] = {"setup_wall_s": time.perf_counter() - start}
     lidar_ground_points = _waited_for(lidar_ground_points, timings, "lidar_wait_s")
     supervision = lidar_ground_points if variant.lidar_supervision else None
+    # the metrics' points are placed on the mesh beside the single-threaded fits (numpy releases the GIL)
+    side = ThreadPoolExecutor(1, thread_name_prefix="reconstruct-side")
+    metric_points = side.submit(MetricPoints.of, mesh, lidar_ground_points, gt)
     if not faithful:  # the elevation needs the Lidar only: it is fitted while the images may still be decoding
         started = time.perf_counter()
         elevation_first_last = _fit_elevation(road_map, supervision, config, fast, rng)
@@ -371,11 +374,15 @@ def reconstruct(
         history = [elevation_first_last[0] + w_rgb * colour_first, elevation_first_last[1] + w_rgb * colour_last]
     train_s = time.perf_counter() - start
     drive_s = trajectory.duration_s
+    # the export runs beside the evaluation: both only read the finished map
+    exported = side.submit(export_map, road_map, Path(out_dir), sorted(cameras)) if out_dir is not None else None
+    side.shutdown(wait=False)
     metrics = evaluate_map(
         road_map, cameras, holdout, train, trajectory, lidar_ground_points, gt,
-        config.window_before_m, config.window_after_m,
+        config.window_before_m, config.window_after_m, metric_points.result(),
     )
     evaluate_s = time.perf_counter() - start - train_s
+    files: dict[str, Path] = exported.result() if exported is not None else {}
     metrics.update(
         ablation=ablation or "none",
         path="faithful" if faithful else "fast",
@@ -393,9 +400,7 @@ def reconstruct(
         drive_s=drive_s,
         realtime_factor=drive_s / train_s if train_s > 0 else None,
     )
-    files: dict[str, Path] = {}
     if out_dir is not None:
-        files = export_map(road_map, Path(out_dir), sorted(cameras))
         path = Path(out_dir) / "metrics.json"
         path.write_text(json.dumps(metrics, indent=2))
         files["metrics"] = path

@@ -177,3 +177,14 @@ def test_inputs_still_loading_give_the_same_map_as_loaded_ones(scene):
     assert torch.equal(loaded.road_map.colour_params, loading.road_map.colour_params)
     assert loaded.metrics["psnr_db"] == loading.metrics["psnr_db"]
     assert "keyframes_wait_s" in loading.metrics and "keyframes_wait_s" not in loaded.metrics
+
+
+def test_metrics_from_points_located_ahead_of_time_match_the_direct_ones(scene, fast_run):
+    from mapping.map_metrics import MetricPoints, elev_error_cm
+
+    road_map = fast_run[0].road_map
+    points = MetricPoints.of(road_map.mesh, scene.lidar, scene.gt)  # x, y only: made before the fit
+    assert elev_error_cm(road_map, scene.lidar, points.lidar) == pytest.approx(elev_error_cm(road_map, scene.lidar),
+                                                                               rel=1e-5)
+    direct = elev_mae_gt_cm(road_map, scene.gt)
+    assert direct is not None and elev_mae_gt_cm(road_map, scene.gt, points.truth) == pytest.approx(direct, rel=1e-5)
