@@ -5,6 +5,7 @@ state_dict checkpoint."""
 from __future__ import annotations
 
 import json
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -68,6 +69,13 @@ def elevation_image(elevation: np.ndarray) -> np.ndarray:
 
 def export_map(road_map: RoadMap, out_dir: Path, cameras: list[str]) -> dict[str, Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
+    with ThreadPoolExecutor(1, thread_name_prefix="export-mesh") as pool:  # the mesh beside the rasters
+        mesh_files = pool.submit(_export_mesh, road_map, out_dir, cameras[0])
+        return _export_rasters(road_map, out_dir, cameras) | mesh_files.result()
+
+
+def _export_rasters(road_map: RoadMap, out_dir: Path, cameras: list[str]) -> dict[str, Path]:
+    """The bird's-eye rasters: RGB per camera, semantics and elevation as PNGs, the grids as .npy, bev.json."""
     res = road_map.mesh.side_m
     bev = bev_rasters(road_map, cameras, res)
     files: dict[str, Path] = {}
@@ -96,12 +104,18 @@ def export_map(road_map: RoadMap, out_dir: Path, cameras: list[str]) -> dict[str
     (out_dir / "bev.json").write_text(json.dumps(meta, indent=2))
     files["bev.json"] = out_dir / "bev.json"
 
+    return files
+
+
+def _export_mesh(road_map: RoadMap, out_dir: Path, camera: str) -> dict[str, Path]:
+    """The observed part of the mesh with `camera`'s vertex colours and the labels (PLY, GLB), the checkpoint."""
     faces = road_map.mesh.faces[(road_map.observed[road_map.mesh.faces] > 0).all(1)]
     used, local = used_vertices(faces, road_map.mesh.num_vertices)
     vertices = np.concatenate([road_map.mesh.xy[used], road_map.z_now[used, None]], 1)
-    colours = np.clip(road_map.vertex_colours(cameras[0], used) * 255 + 0.5, 0, 255).astype(np.uint8)
+    colours = np.clip(road_map.vertex_colours(camera, used) * 255 + 0.5, 0, 255).astype(np.uint8)
     mesh = trimesh.Trimesh(vertices, local.reshape(-1, 3), vertex_colors=colours, process=False)
     mesh.vertex_attributes["label"] = vertex_labels(road_map)[used]
+    files = {}
     for name in ("mesh.ply", "mesh.glb"):
         mesh.export(out_dir / name)
         files[name] = out_dir / name

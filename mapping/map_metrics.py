@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapping.mesh_renderer import sampled_pixels
-from mapping.road_map import NO_LABEL, RoadMap, WindowIndex, render_view
+from mapping.road_map import NO_LABEL, RoadMap, ViewGeometry, WindowIndex, view_geometry, view_labels, view_rgb
 from mapping.road_mesh import RoadMesh, locate
 from mapping.scene_data import CameraModel, GroundTruth, Keyframe, Trajectory
 from mapping.semantic_classes import NUM_MAP_CLASSES, ROAD_SURFACE_CLASSES
@@ -181,40 +181,36 @@ def bev_miou_pct(road_map: RoadMap, gt: GroundTruth | None, located: Located | N
     return miou_pct(confusion(pred, true[valid], np.ones(valid.sum(), bool)))
 
 
-def _view_scores(
-    pool: ThreadPoolExecutor,
-    road_map: RoadMap,
-    cameras: dict[str, CameraModel],
-    views: list[Keyframe],
-    trajectory: Trajectory,
-    window_before_m: float,
-    window_after_m: float,
-    windows: WindowIndex,
-    stride: int = EVAL_STRIDE,
-) -> list[Future]:
-    """Per view (rendered on `pool`): its PSNR on road pixels and its semantic confusion matrix, over the
-    pixels that see the mapped surface (faces whose vertices were all supervised)."""
-    mapped = (road_map.observed[road_map.mesh.faces] > 0).all(1)
-    road = np.array(ROAD_SURFACE_CLASSES)
+@dataclass(frozen=True)
+class _ViewSeen:
+    """A view's geometry against its camera image: what its PSNR needs once the colours are fitted."""
 
-    def one_view(kf: Keyframe) -> tuple[float | None, np.ndarray]:
-        s = float(trajectory.along_track_at(kf.timestamp))
-        faces = windows.faces(s - min(window_before_m, BEHIND_CAMERA_M), s + window_after_m)
-        camera = cameras[kf.camera]
-        view = render_view(road_map, faces[mapped[faces]], kf, camera, stride)
-        at = sampled_pixels(camera, stride)
-        image, semantics = kf.image.reshape(-1, 3)[at], kf.semantics.ravel()[at]
-        road_pixels = view.hit & np.isin(semantics, road)
-        value = psnr_db(view.rgb, image.astype(np.float32) / 255.0, road_pixels)
-        labelled = view.hit & (semantics < NUM_MAP_CLASSES) & (view.labels != NO_LABEL)
-        return value, confusion(view.labels, semantics, labelled)
-
-    return [pool.submit(one_view, kf) for kf in views]
+    camera: str
+    geometry: ViewGeometry
+    observed: np.ndarray  # (H', W', 3) float32 camera image at the sampled pixels, [0, 1]
+    road_pixels: np.ndarray  # (H', W') bool: pixels that see the mesh and show road surface
+    confusion: np.ndarray  # (C, C) rendered semantics against the view's segmentation mask
 
 
-def _mean_psnr(scores: list[Future]) -> float | None:
-    values = [f.result()[0] for f in scores if f.result()[0] is not None]
-    return float(np.mean(values)) if values else None
+def _view_seen(road_map: RoadMap, cameras: dict[str, CameraModel], kf: Keyframe, trajectory: Trajectory,
+               window_before_m: float, window_after_m: float, windows: WindowIndex, mapped: np.ndarray,
+               stride: int = EVAL_STRIDE) -> _ViewSeen:
+    """One view over the pixels that see the mapped surface (faces whose vertices were all supervised)."""
+    s = float(trajectory.along_track_at(kf.timestamp))
+    faces = windows.faces(s - min(window_before_m, BEHIND_CAMERA_M), s + window_after_m)
+    camera = cameras[kf.camera]
+    geometry = view_geometry(road_map, faces[mapped[faces]], kf, camera, stride)
+    at = sampled_pixels(camera, stride)
+    image, semantics = kf.image.reshape(-1, 3)[at], kf.semantics.ravel()[at]
+    hit = geometry.hit.reshape(at.shape)
+    labels = view_labels(road_map, geometry)
+    labelled = hit & (semantics < NUM_MAP_CLASSES) & (labels != NO_LABEL)
+    return _ViewSeen(kf.camera, geometry, image.astype(np.float32) / 255.0,
+                     hit & np.isin(semantics, np.array(ROAD_SURFACE_CLASSES)), confusion(labels, semantics, labelled))
+
+
+def _view_psnr(road_map: RoadMap, seen: _ViewSeen) -> float | None:
+    return psnr_db(view_rgb(road_map, seen.geometry, seen.camera), seen.observed, seen.road_pixels)
 
 
 def _evenly(views: list[Keyframe], count: int) -> list[Keyframe]:
@@ -224,7 +220,21 @@ def _evenly(views: list[Keyframe], count: int) -> list[Keyframe]:
     return [views[i] for i in np.linspace(0, len(views) - 1, count).astype(int)]
 
 
-def evaluate_map(
+@dataclass
+class PendingEvaluation:
+    """An evaluation started on its pool (start_evaluation) whose PSNRs wait for the map's colours."""
+
+    road_map: RoadMap
+    gt: GroundTruth | None
+    pool: ThreadPoolExecutor
+    elev_error: Future
+    elev_mae: Future
+    bev_miou: Future
+    held: list[Future]  # of _ViewSeen, held-out views
+    trained: list[Future]  # of _ViewSeen, training views
+
+
+def start_evaluation(
     road_map: RoadMap,
     cameras: dict[str, CameraModel],
     holdout: list[Keyframe],
@@ -235,29 +245,52 @@ def evaluate_map(
     window_before_m: float,
     window_after_m: float,
     points: MetricPoints | None = None,
-) -> dict:
-    """The paper's metrics and the truth's. `miou_mask_pct` compares rendered semantics with the held-out
-    frames' segmentation masks; `miou_pct` is the bird's-eye mIoU against the true grid when `gt` has one,
-    else `miou_mask_pct`. Every figure is a task on one pool of EVAL_THREADS threads (numpy and torch
-    release the GIL in their array work; torch keeps one intra-op thread: two spun against each other on
-    this 2-core machine), the longest first. `points`: MetricPoints.of(the mesh, lidar_points, gt), if made
-    (reconstruct locates them while it fits the elevation)."""
+) -> PendingEvaluation:
+    """Start every part of the evaluation that needs only the final surface and semantics (the elevation
+    figures, the bird's-eye mIoU, each view's render and semantic confusion) as tasks on a pool of
+    EVAL_THREADS threads, the longest first: numpy and torch release the GIL in their array work (torch keeps
+    one intra-op thread: two spun against each other on this 2-core machine). `points`: MetricPoints.of(the
+    mesh, lidar_points, gt), if made (reconstruct locates them while it fits the elevation)."""
     windows = WindowIndex.of(road_map.mesh)
+    mapped = (road_map.observed[road_map.mesh.faces] > 0).all(1)
     lidar_at, truth_at = (points.lidar, points.truth) if points is not None else (None, None)
-    with ThreadPoolExecutor(EVAL_THREADS) as pool:
-        elev_error = pool.submit(elev_error_cm, road_map, lidar_points, lidar_at)
-        elev_mae = pool.submit(elev_mae_gt_cm, road_map, gt, truth_at)
-        bev_miou = pool.submit(bev_miou_pct, road_map, gt, truth_at)
-        args = (trajectory, window_before_m, window_after_m, windows)
-        held = _view_scores(pool, road_map, cameras, _evenly(holdout, HOLDOUT_VIEWS_EVALUATED), *args)
-        trained = _view_scores(pool, road_map, cameras, _evenly(train, TRAIN_VIEWS_EVALUATED), *args)
-        conf = sum((f.result()[1] for f in held), np.zeros((NUM_MAP_CLASSES, NUM_MAP_CLASSES), np.int64))
+    pool = ThreadPoolExecutor(EVAL_THREADS, thread_name_prefix="evaluate")
+    elev_error = pool.submit(elev_error_cm, road_map, lidar_points, lidar_at)
+    elev_mae = pool.submit(elev_mae_gt_cm, road_map, gt, truth_at)
+    bev_miou = pool.submit(bev_miou_pct, road_map, gt, truth_at)
+
+    def views(keyframes: list[Keyframe], count: int) -> list[Future]:
+        return [pool.submit(_view_seen, road_map, cameras, kf, trajectory, window_before_m, window_after_m, windows,
+                            mapped) for kf in _evenly(keyframes, count)]
+
+    return PendingEvaluation(road_map, gt, pool, elev_error, elev_mae, bev_miou,
+                             views(holdout, HOLDOUT_VIEWS_EVALUATED), views(train, TRAIN_VIEWS_EVALUATED))
+
+
+def finish_evaluation(pending: PendingEvaluation) -> dict:
+    """The metrics of a started evaluation, its views shaded with the map's colours as they are now.
+    `miou_mask_pct` compares rendered semantics with the held-out frames' segmentation masks; `miou_pct` is
+    the bird's-eye mIoU against the true grid when the truth has one, else `miou_mask_pct`."""
+    road_map, gt = pending.road_map, pending.gt
+    with pending.pool as pool:
+        def mean_psnr(views: list[Future]) -> float | None:
+            shaded = [pool.submit(_view_psnr, road_map, view.result()) for view in views]
+            values = [v for v in (f.result() for f in shaded) if v is not None]
+            return float(np.mean(values)) if values else None
+
+        conf = sum((f.result().confusion for f in pending.held), np.zeros((NUM_MAP_CLASSES, NUM_MAP_CLASSES),
+                                                                         np.int64))
         miou_mask = miou_pct(conf) if road_map.semantic_logits is not None else None
         return {
-            "psnr_db": _mean_psnr(held),
-            "psnr_train_db": _mean_psnr(trained),
-            "miou_pct": bev_miou.result() if gt is not None and gt.semantic is not None else miou_mask,
+            "psnr_db": mean_psnr(pending.held),
+            "psnr_train_db": mean_psnr(pending.trained),
+            "miou_pct": pending.bev_miou.result() if gt is not None and gt.semantic is not None else miou_mask,
             "miou_mask_pct": miou_mask,
-            "elev_error_cm": elev_error.result(),
-            "elev_mae_gt_cm": elev_mae.result(),
+            "elev_error_cm": pending.elev_error.result(),
+            "elev_mae_gt_cm": pending.elev_mae.result(),
         }
+
+
+def evaluate_map(*args, **kwargs) -> dict:
+    """The paper's metrics and the truth's of a finished map (start_evaluation's arguments)."""
+    return finish_evaluation(start_evaluation(*args, **kwargs))

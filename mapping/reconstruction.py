@@ -27,7 +27,7 @@ from tqdm import tqdm
 from daemon.config import MapperConfig
 from mapping import losses
 from mapping.map_export import export_map
-from mapping.map_metrics import MetricPoints, evaluate_map
+from mapping.map_metrics import MetricPoints, finish_evaluation, start_evaluation
 from mapping.mesh_renderer import pixel_rays, rasterise, ray_triangle_weights, world_rays
 from mapping.observation_fit import fit_colours, fit_elevation, semantic_logits_from_counts
 from mapping.road_map import RoadMap, WindowIndex, new_road_map, variant_for
@@ -245,13 +245,9 @@ def _fit_elevation(road_map: RoadMap, lidar: np.ndarray | None, config: MapperCo
     return first_last
 
 
-def _observe_and_fit_colours(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraModel],
-                             trajectory: Trajectory, config: MapperConfig, fast: FastPathSettings,
-                             rng: np.random.Generator, progress: bool,
-                             timings: dict[str, float]) -> tuple[float, float]:
-    """Every keyframe's view of every vertex in reach, then semantics and colours fitted to them;
-    returns the colour loss of the first and the last step."""
-    lr = config.learning_rates
+def _observe(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraModel], trajectory: Trajectory,
+             fast: FastPathSettings, progress: bool, timings: dict[str, float]) -> VertexObservations:
+    """Every keyframe's view of every vertex in reach; sets the vertices' observation counts and semantics."""
     started = time.perf_counter()
     mesh = road_map.mesh
     windows = WindowIndex.of(mesh)
@@ -282,8 +278,16 @@ def _observe_and_fit_colours(road_map: RoadMap, train: list[Keyframe], cameras: 
         labelled = np.nonzero(obs.label_counts.sum(1) > 0)[0]
         road_map.semantic_logits[torch.from_numpy(labelled)] = semantic_logits_from_counts(obs.label_counts[labelled])
     timings["observe_wall_s"] = time.perf_counter() - started
+    return obs
+
+
+def _fit_colours(road_map: RoadMap, obs: VertexObservations, config: MapperConfig, fast: FastPathSettings,
+                 rng: np.random.Generator, timings: dict[str, float]) -> tuple[float, float]:
+    """Colour codes and decoders fitted to the observations; the colour loss of the first and the last step."""
+    seen = obs.seen
     if not len(seen):
         return 0.0, 0.0
+    lr = config.learning_rates
     started = time.perf_counter()
     losses_first_last = fit_colours(road_map, obs, seen, fast.colour_encoder_steps, fast.colour_refine_steps,
                                     fast.colour_batch, lr.colour_mlps, fast.lr_encoder, lr.colour_codes, rng)
@@ -351,6 +355,8 @@ def reconstruct(
     train = [k for k in selected if id(k) not in held]
     if not train:
         raise ValueError("no training keyframes after selection")
+    evaluation_args = (cameras, holdout, train, trajectory, lidar_ground_points, gt, config.window_before_m,
+                       config.window_after_m)
     if faithful:
         lidar_ids, lidar_z = lidar_vertex_targets(mesh, supervision)
         opt = _Optimisation(road_map, cameras, config, lidar_ids, lidar_z)
@@ -367,20 +373,20 @@ def reconstruct(
         if opt.semantic_opt is not None:
             opt.semantic_opt.flush()
         road_map.refresh_elevation()
+        evaluation = start_evaluation(road_map, *evaluation_args, metric_points.result())
     else:
-        colour_first, colour_last = _observe_and_fit_colours(road_map, train, cameras, trajectory, config, fast, rng,
-                                                             progress, timings)
+        obs = _observe(road_map, train, cameras, trajectory, fast, progress, timings)
+        # surface and semantics are final: the evaluation renders its views beside the colour fit
+        evaluation = start_evaluation(road_map, *evaluation_args, metric_points.result())
+        colour_first, colour_last = _fit_colours(road_map, obs, config, fast, rng, timings)
         w_rgb = config.loss_weights.rgb
         history = [elevation_first_last[0] + w_rgb * colour_first, elevation_first_last[1] + w_rgb * colour_last]
     train_s = time.perf_counter() - start
     drive_s = trajectory.duration_s
-    # the export runs beside the evaluation: both only read the finished map
+    # the export runs beside the evaluation's remaining work: both only read the finished map
     exported = side.submit(export_map, road_map, Path(out_dir), sorted(cameras)) if out_dir is not None else None
     side.shutdown(wait=False)
-    metrics = evaluate_map(
-        road_map, cameras, holdout, train, trajectory, lidar_ground_points, gt,
-        config.window_before_m, config.window_after_m, metric_points.result(),
-    )
+    metrics = finish_evaluation(evaluation)
     evaluate_s = time.perf_counter() - start - train_s
     files: dict[str, Path] = exported.result() if exported is not None else {}
     metrics.update(

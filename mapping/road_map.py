@@ -159,37 +159,50 @@ class WindowIndex:
 
 
 @dataclass(frozen=True)
-class RenderedView:
-    rgb: np.ndarray  # (H, W, 3) float32 in [0, 1]
-    labels: np.ndarray  # (H, W) uint8 class ids, NO_LABEL where the mesh is not seen or no semantics
-    hit: np.ndarray  # (H, W) bool: pixel sees the mesh
+class ViewGeometry:
+    """What a camera sees of the mesh at every `stride`-th pixel (an exact, z-buffered render): it depends on
+    the surface only, so colours can still be fitting while it is made."""
+
+    shape: tuple[int, int]  # (H', W') of the sampled pixels (mesh_renderer.sampled_pixels)
+    hit: np.ndarray  # (H' * W',) bool: the pixel sees the mesh
+    tri: np.ndarray  # (P, 3) vertex ids of the triangle each hit pixel sees
+    weights: torch.Tensor  # (P, 3) barycentric weights where the pixel's ray crosses it
 
 
 @torch.no_grad()
-def render_view(road_map: RoadMap, faces: np.ndarray, keyframe: Keyframe, camera: CameraModel,
-                stride: int = 1) -> RenderedView:
-    """Exact render (z-buffered) of the mesh faces `faces` (indices into mesh.faces) at every `stride`-th
-    pixel row and column: images of shape (H', W') matching `sampled_pixels(camera, stride)`."""
+def view_geometry(road_map: RoadMap, faces: np.ndarray, keyframe: Keyframe, camera: CameraModel,
+                  stride: int = 1) -> ViewGeometry:
+    """The mesh faces `faces` (indices into mesh.faces) as `camera` at `keyframe` sees them."""
     mesh = road_map.mesh
     tri_all = mesh.faces[faces]
     used, local = used_vertices(tri_all, mesh.num_vertices)  # only the vertices these faces use
     vertices = np.concatenate([mesh.xy[used], road_map.z_now[used, None].astype(np.float64)], 1)
     face_grid = rasterise(vertices, local.reshape(-1, 3), camera, keyframe.T_world_camera, stride).ravel()
-    h, wd = sampled_pixels(camera, stride).shape
     hit = face_grid >= 0
-    local = np.nonzero(hit)[0]
-    pixels = sampled_pixels(camera, stride).ravel()[local]
-    tri = tri_all[face_grid[local]]
+    pixels = sampled_pixels(camera, stride).ravel()[hit]
+    tri = tri_all[face_grid[hit]]
     w = pixel_weights(road_map, keyframe, camera, pixels, tri, torch.from_numpy(road_map.z_now[tri]))
-    ids, inverse = used_vertices(tri, mesh.num_vertices)
-    rgb = np.zeros((h * wd, 3), np.float32)
-    colours = torch.from_numpy(road_map.vertex_colours(camera.name, ids))
-    rgb[local] = (colours[inverse] * w[..., None]).sum(1).clamp(0, 1).numpy()
-    labels = np.full(h * wd, NO_LABEL, np.uint8)
+    return ViewGeometry(sampled_pixels(camera, stride).shape, hit, tri, w)
+
+
+@torch.no_grad()
+def view_labels(road_map: RoadMap, view: ViewGeometry) -> np.ndarray:
+    """(H', W') uint8 rendered class ids, NO_LABEL where the mesh is not seen or the map has no semantics."""
+    labels = np.full(view.hit.size, NO_LABEL, np.uint8)
     if road_map.semantic_logits is not None:
-        logits = (road_map.semantic_logits[tri] * w[..., None]).sum(1)
-        labels[local] = logits.argmax(1).numpy().astype(np.uint8)
-    return RenderedView(rgb.reshape(h, wd, 3), labels.reshape(h, wd), hit.reshape(h, wd))
+        logits = (road_map.semantic_logits[view.tri] * view.weights[..., None]).sum(1)
+        labels[view.hit] = logits.argmax(1).numpy().astype(np.uint8)
+    return labels.reshape(view.shape)
+
+
+@torch.no_grad()
+def view_rgb(road_map: RoadMap, view: ViewGeometry, camera: str) -> np.ndarray:
+    """(H', W', 3) float32 rendered colours in [0, 1] as `camera`'s decoder gives them (0 where not seen)."""
+    ids, inverse = used_vertices(view.tri, road_map.mesh.num_vertices)
+    rgb = np.zeros((view.hit.size, 3), np.float32)
+    colours = torch.from_numpy(road_map.vertex_colours(camera, ids))
+    rgb[view.hit] = (colours[inverse] * view.weights[..., None]).sum(1).clamp(0, 1).numpy()
+    return rgb.reshape(*view.shape, 3)
 
 
 def pixel_weights(
