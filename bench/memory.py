@@ -56,6 +56,7 @@ from daemon.log_format import read_log  # noqa: E402
 from daemon.messages import CameraFrame, GnssFix, ImuSample, SemanticMask, WheelSpeeds  # noqa: E402
 from daemon.topics import GNSS_FIX, IMU, WHEEL_SPEEDS, camera_topic, health_topic, mask_topic  # noqa: E402
 from mapping.local_frame import LocalFrame  # noqa: E402
+from mapping.worker_journal import read_journal  # noqa: E402
 
 SPEED = 20.0
 RADIUS = 2000.0
@@ -245,7 +246,7 @@ def run_drive(km: float, pairs: Future, lead_m: float, keep: bool) -> dict:
         if rc != 0:
             raise RuntimeError(f"worker exited {rc}: {(folder / 'worker.log').read_text()[-2000:]}")
         last = json.loads(health.latest().detail)
-        journal = json.loads((folder / "data" / "map" / "journal.json").read_text())
+        journal = read_journal(folder / "data" / "map")
         walls = [w["wall_s"] for w in journal["windows"] if "wall_s" in w]
         (folder / "rss_samples.json").write_text(json.dumps(sampler.samples))
         return {"km": km, "peak_rss_mb": round(sampler.peak_mb, 1), "peak_rss_mb_driving": round(driving_mb, 1),

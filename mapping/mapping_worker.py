@@ -10,13 +10,14 @@ window_after_m]; centres every half window, so the windows overlap by half) with
 `reconstruction.reconstruct` on the window's keyframes, fused trajectory (`drive_inputs.fuse_log_trajectory`)
 and Lidar ground points. What a window sees depends on the log's content only, never on arrival timing,
 so replaying a log twice gives the same map (tests/test_replay_determinism.py).
-Each window's BEV goes into the disk tiles (`mapping.map_tiles`), the latest
-previews into `<data>/map/previews`, and a line into the journal `<data>/map/journal.json` with its
-provenance (host time range, per-topic seq ranges, log segments named by recorder/replay health, the
-config's path and hash). On SIGTERM/SIGINT the worker drains the bus, finishes the remaining windows
-(the last one shorter), writes the final map under `<data>/map/final` and exits 0. Killed, it resumes
-from the journal, tiles and spool on its next start. A failed window is counted, reported and retried;
-after its last attempt it is recorded as failed in the journal and the worker moves on. With
+Each window's BEV goes into the disk tiles (`mapping.map_tiles`), the latest previews into
+`<data>/map/previews`, and a line into the journal `<data>/map/journal.jsonl` (`mapping.worker_journal`,
+append-only) with its provenance (host time range, per-topic seq ranges, log segments named by
+recorder/replay health, the config's path and hash). On SIGTERM/SIGINT the worker drains the bus,
+finishes the remaining windows (the last one shorter), writes the final map under `<data>/map/final` and
+exits 0. Killed, it resumes from the journal, tiles and spool on its next start. A failed window is
+counted, reported and retried; after its last attempt it is recorded as failed in the journal and the
+worker moves on. With
 `mapper.live_view.enabled` each finished window is also published on a Foxglove WebSocket server
 (`mapping.live_view`).
 """
@@ -78,6 +79,8 @@ from mapping.scene_data import Trajectory as PathTrajectory
 from mapping.semantic_classes import CLASS_COLOURS
 from mapping.sensor_time import ClockMap, fit_clock
 from mapping.trajectory import Trajectory
+from mapping.worker_journal import VERSION as JOURNAL_VERSION
+from mapping.worker_journal import append_line, new_state, progress_line, read_journal
 
 PROCESS = "mapper"
 FUSION_MARGIN_S = 20.0  # data kept (and fused) before the oldest unfinished window starts
@@ -363,8 +366,8 @@ class MappingWorker:
         self.state = WorkerState()
         self.lock = threading.Lock()
         self.spool = KeyframeSpool(self.folder / "spool", topic_table(config), chunk_s=2.0)
-        self.journal_path = self.folder / "journal.json"
         self.journal = self._load_journal()
+        self.odometry_saved = len(self.journal["odometry_t"])  # knots already in the journal
         self.odometry = Odometry(list(self.journal.get("odometry_t", [])), list(self.journal.get("odometry_s", [])),
                                  self.journal.get("odometry_last_speed_mps", 0.0))
         self.origin = LocalFrame(*self.journal["origin"]) if self.journal.get("origin") else None
@@ -387,24 +390,31 @@ class MappingWorker:
 
     # ---- persistence -------------------------------------------------------------------------------------
     def _archive_finished_map(self) -> None:
-        journal = self.folder / "journal.json"
-        if journal.exists() and json.loads(journal.read_text()).get("finished"):
+        journal = read_journal(self.folder)
+        if journal is not None and journal["finished"]:
             shutil.move(str(self.folder), str(self.folder.with_name(f"map-{time.strftime('%Y%m%d-%H%M%S')}")))
 
     def _load_journal(self) -> dict:
-        if self.journal_path.exists():
-            return json.loads(self.journal_path.read_text())
-        return {"version": 1, "config_path": self.config_path, "config_sha256": self.config_sha256,
-                "grid_resolution_m": self.res, "tile_cells": self.tile_cells, "cameras": self.cam_names,
-                "windows": [], "next_window": 0, "finished": False}
+        journal = read_journal(self.folder)
+        if journal is None:
+            header = {"version": JOURNAL_VERSION, "config_path": self.config_path,
+                      "config_sha256": self.config_sha256, "grid_resolution_m": self.res,
+                      "tile_cells": self.tile_cells, "cameras": self.cam_names}
+            append_line(self.folder, header)
+            return new_state(header)
+        if journal["skipped_lines"]:
+            self._error(f"journal: {journal['skipped_lines']} unreadable line(s) skipped (torn by a crash?)")
+        return journal
 
-    def _save_journal(self) -> None:
-        self.journal.update(odometry_t=self.odometry.knots_t, odometry_s=self.odometry.knots_s,
-                            odometry_last_speed_mps=self.odometry.last_speed_mps,
+    def _save_journal(self, window: dict | None = None) -> None:
+        """One line: `window` (if any) and the progress since the last line."""
+        self.journal.update(odometry_last_speed_mps=self.odometry.last_speed_mps,
                             mapped_until_m=self.state.mapped_until_m,
                             origin=None if self.origin is None else [self.origin.lat_deg, self.origin.lon_deg,
                                                                      self.origin.alt_m])
-        _atomic_write_text(self.journal_path, json.dumps(self.journal, indent=1))
+        append_line(self.folder, progress_line(self.journal, self.odometry.knots_t, self.odometry.knots_s,
+                                               self.odometry_saved, window))
+        self.odometry_saved = len(self.odometry.knots_t)
 
     def _restore_from_spool(self) -> tuple[dict[str, int], dict[str, int]]:
         """Last seq and newest host time per topic already spooled (a restart skips those when the bus still
@@ -616,7 +626,7 @@ class MappingWorker:
             self.state.windows_done += 1
             self.state.last_window_wall_s = entry["wall_s"]
         self.state.mapped_until_m = max(self.state.mapped_until_m, min(entry["end_m"], self.state.distance_m))
-        self._save_journal()
+        self._save_journal(entry)
         _, next_lo, _ = window_span(k + 1, self.mapper.window_before_m, self.mapper.window_after_m)
         self.reader.prune(self.odometry.time_at(next_lo) - int(FUSION_MARGIN_S * 1e9))
         return True

@@ -26,6 +26,7 @@ from drivers.sim.drive_log import simulate_drive
 from mapping import map_tiles
 from mapping.keyframe_spool import KeyframeSpool
 from mapping.mapping_worker import window_span, windows_for_drive
+from mapping.worker_journal import JOURNAL_NAME, read_journal
 from tests.daemon_fixtures import REPO, private_config
 
 SMALL_WINDOWS = {"window_before_m": 10.0, "window_after_m": 10.0, "epochs": 1, "corridor_half_width_m": 6.0,
@@ -109,8 +110,8 @@ def _start_worker(config_path: Path, log: Path) -> subprocess.Popen:
                             cwd=REPO, env=env, stdout=open(log, "ab"), stderr=subprocess.STDOUT)
 
 
-def _journal(path: Path) -> dict:
-    return json.loads(path.read_text()) if path.exists() else {"windows": []}
+def _journal(folder: Path) -> dict:
+    return read_journal(folder) or {"windows": []}
 
 
 def _wait_for(predicate, timeout_s: float, what: str, proc: subprocess.Popen | None = None):
@@ -130,7 +131,7 @@ def _wait_for(predicate, timeout_s: float, what: str, proc: subprocess.Popen | N
 def test_worker_maps_as_data_arrives_survives_kill_9_and_writes_the_final_map(city_drive, tmp_path):
     data = tmp_path / "data"
     config, config_path = private_config(tmp_path, mapper=SMALL_WINDOWS, recorder={"output_dir": str(data)})
-    journal_path = data / "map" / "journal.json"
+    journal_path = data / "map"  # the journal's folder
     log = tmp_path / "worker.log"
     procs = []
     try:
@@ -155,10 +156,14 @@ def test_worker_maps_as_data_arrives_survives_kill_9_and_writes_the_final_map(ci
         procs[0].wait()
         killed_ns = time.monotonic_ns()
         kept = _journal(journal_path)["windows"]
+        with open(journal_path / JOURNAL_NAME, "ab") as f:  # as if the kill had torn a line mid-write
+            f.write(b'{"window": {"index": 99, "sta')
         procs.append(_start_worker(config_path, log))
         player.join()
         _wait_for(lambda: (m := health.latest()) is not None and m.host_mono_ns > killed_ns, 120,
                   "the restarted worker's health", procs[1])  # it is up and handles SIGTERM
+        restarted = json.loads(health.latest().detail)
+        assert restarted["errors"] >= 1 and "journal: 1 unreadable line" in restarted["last_error"]
         procs[1].send_signal(signal.SIGTERM)
         assert procs[1].wait(timeout=1200) == 0, log.read_text()[-3000:]
     finally:
@@ -170,6 +175,7 @@ def test_worker_maps_as_data_arrives_survives_kill_9_and_writes_the_final_map(ci
     journal = _journal(journal_path)
     windows = journal["windows"]
     assert journal["finished"] and windows[:len(kept)] == kept and len(windows) > len(kept)
+    assert journal["skipped_lines"] == 1
     assert [w["index"] for w in windows] == list(range(len(windows)))
     assert all(w["status"] == "done" for w in windows), [w.get("error") for w in windows]
     distance = journal["odometry_s"][-1]
