@@ -137,18 +137,19 @@ class Subscriber:
 
 
 def open_subscriber(config: CarConfig, topic_name: str, *, start: str = "next", lossless: bool = False,
-                    wait_s: float = 0) -> Subscriber:
+                    wait_s: float = 0, after_seq: int | None = None) -> Subscriber:
     """Attach to a topic's ring, waiting up to wait_s for its writer to create it.
 
     start: "next" (new messages only), "oldest" (everything still in the ring) or "latest".
     lossless: register so that lossless publishes wait for this subscriber (while it lives).
+    after_seq (with "oldest"): resume after this seq (a restarted reader; see RingReader).
     """
     topic = _topic(config, topic_name)
     path = ring_path(config, topic_name)
     deadline = time.monotonic() + wait_s
     while True:
         try:
-            return Subscriber(topic, RingReader(path, start=start, lossless=lossless))
+            return Subscriber(topic, RingReader(path, start=start, lossless=lossless, after_seq=after_seq))
         except FileNotFoundError:
             if time.monotonic() >= deadline:
                 raise FileNotFoundError(f"topic {topic_name!r} has no ring at {path} "

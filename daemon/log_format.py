@@ -207,6 +207,7 @@ class LogWriter:
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self.counts: dict[str, int] = {}
+        self.last_seq: dict[str, int] = {}  # per topic, the highest message seq written
         self.bytes_written_estimate = 0
         self._closed = False
         meta = {
@@ -274,6 +275,7 @@ class LogWriter:
         self._writer.add_message(cid, log_time=int(message.host_mono_ns), data=data,
                                  publish_time=int(message.sensor_time_ns), sequence=int(message.seq) & 0xFFFFFFFF)
         self.counts[topic] = self.counts.get(topic, 0) + 1
+        self.last_seq[topic] = max(self.last_seq.get(topic, -1), int(message.seq))
         self.bytes_written_estimate += len(data) + 32
 
     def close(self, extra_metadata: dict[str, str] | None = None) -> None:
@@ -281,7 +283,7 @@ class LogWriter:
         if self._closed:
             return
         self._closed = True
-        final = {"messages_per_topic": json.dumps(self.counts)}
+        final = {"messages_per_topic": json.dumps(self.counts), "last_seq_per_topic": json.dumps(self.last_seq)}
         final.update(extra_metadata or {})
         self._writer.add_metadata(COUNTS_METADATA_NAME, final)
         self._writer.finish()
@@ -468,9 +470,21 @@ def read_log(paths: Iterable[str | Path] | str | Path, topics: Iterable[str] | N
 
 
 def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
-    """The metadata records of one file (name -> key/value), also from a truncated file."""
+    """The metadata records of one file (name -> key/value), also from a truncated file (scanned whole; a
+    closed file's are found through its summary)."""
     out: dict[str, dict[str, str]] = {}
     with open(path, "rb") as f:
+        try:
+            summary = make_reader(f).get_summary()
+        except Exception:  # noqa: BLE001 - no footer: a truncated file
+            summary = None
+        if summary is not None and summary.metadata_indexes:
+            for index in summary.metadata_indexes:
+                f.seek(index.offset)
+                record = next(StreamReader(f, skip_magic=True, record_size_limit=1 << 31).records)
+                out[record.name] = dict(record.metadata)
+            return out
+        f.seek(0)
         try:
             for record in StreamReader(f, record_size_limit=1 << 31).records:
                 if type(record).__name__ == "Metadata":
@@ -481,9 +495,11 @@ def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
 
 
 def recover_log(src: str | Path, dst: str | Path, config: CarConfig) -> FileReport:
-    """Rewrite a truncated file's complete records into a valid, closed file; return what was kept."""
+    """Rewrite a truncated file's complete records into a valid, closed file (with the source's own metadata:
+    its config, host and start time); return what was kept."""
     report = ReadReport()
-    with LogWriter(dst, config, metadata={"recovered_from": str(src)}) as writer:
+    metadata = dict(read_metadata(src).get(METADATA_NAME, {}), recovered_from=str(src))
+    with LogWriter(dst, config, metadata=metadata) as writer:
         for rec in read_log([src], report=report):
             writer.write(rec.topic, rec.message)
     return report.files[0]

@@ -3,7 +3,11 @@
 A segment is written as `roadlog_<UTC start>_<index>.mcap.open` and renamed to `.mcap` once closed; it
 is rotated every `recorder.segment_seconds` or `recorder.segment_bytes`; its complete chunks are fsynced
 once a second. At start-up every `.open` segment that a crash or power cut left behind is recovered into
-a readable `.mcap` (log_format.recover_log).
+a readable `.mcap` (log_format.recover_log). A recorder the supervisor restarted then resumes each topic
+after the last message that its daemon run's segments hold (`daemon_run` in their metadata, the highest
+seq per topic in their closing metadata), so what was published while it was down, or torn off with the
+crash's unfinished chunk, is recorded once, as long as the ring still holds it (older messages count as
+lost).
 The disk policy (daemon/disk_policy.py) deletes the oldest closed segments to keep the configured free
 space; when that is not enough the recorder closes its segment, counts what it cannot write per topic,
 and resumes once space returns. Messages written, lost to bus overtaking and dropped for lack of disk
@@ -34,8 +38,9 @@ from pathlib import Path
 from daemon import bus, disk_policy
 from daemon.config import EXIT_CONFIG_ERROR, CarConfig, data_dir, load_config_or_report
 from daemon.health import HealthCounters
-from daemon.log_format import LogWriter, recover_log
+from daemon.log_format import COUNTS_METADATA_NAME, METADATA_NAME, LogWriter, read_metadata, recover_log
 from daemon.messages import TimeAnchor
+from daemon.ring_buffer import process_start_ticks
 from daemon.supervisor import RESTARTS_ENV
 from daemon.topics import TIME_ANCHOR, health_topic, topic_table
 
@@ -120,6 +125,25 @@ class TopicTally:
         return {t: self.lost_bus.get(t, 0) + self.dropped_disk_full.get(t, 0) for t in sorted(topics)}
 
 
+def daemon_run() -> str:
+    """Which daemon run this process belongs to: its parent (the supervisor) by pid and start time."""
+    parent = os.getppid()
+    return f"{parent}:{process_start_ticks(parent) or 0}"
+
+
+def last_recorded_seqs(output_dir: Path, run: str) -> dict[str, int]:
+    """Per topic, the highest seq in the closed segments (recovered ones included) that recorders of daemon
+    run `run` wrote: the newest segments, back to the first from another run."""
+    out: dict[str, int] = {}
+    for segment in reversed(closed_segments(output_dir)):
+        meta = read_metadata(segment.path)
+        if meta.get(METADATA_NAME, {}).get("daemon_run") != run:
+            break
+        for topic, seq in json.loads(meta.get(COUNTS_METADATA_NAME, {}).get("last_seq_per_topic", "{}")).items():
+            out[topic] = max(out.get(topic, -1), seq)
+    return out
+
+
 def _delta(now: dict[str, int], before: dict[str, int]) -> dict[str, int]:
     return {t: n - before.get(t, 0) for t, n in sorted(now.items()) if n != before.get(t, 0)}
 
@@ -132,6 +156,7 @@ class Recorder:
         self.config_path = config_path
         self.rc = config.recorder
         self.output_dir = output_dir
+        self.run = daemon_run()
         output_dir.mkdir(parents=True, exist_ok=True)
         self.recovered = recover_unclosed(output_dir, config)
         self.next_index = next_segment_index(output_dir)
@@ -157,7 +182,8 @@ class Recorder:
         name = segment_name(time.time_ns(), self.next_index)
         self.next_index += 1
         self.open_path = self.output_dir / (name + OPEN_SUFFIX)
-        self.writer = LogWriter(self.open_path, self.config, config_path=self.config_path)
+        self.writer = LogWriter(self.open_path, self.config, config_path=self.config_path,
+                                metadata={"daemon_run": self.run})
         self._sync_fd = os.open(self.open_path, os.O_RDONLY)  # fsync through it: LogWriter keeps its file private
         self.opened_mono = self._last_sync = time.monotonic()
         self._bytes_at_disk_check = 0
@@ -336,10 +362,12 @@ def run(config: CarConfig, output_dir: Path, stop: threading.Event, config_path:
     wanted = logged_topics(config)
     subscribers: dict[str, bus.Subscriber] = {}
     # First start in a daemon run: everything in the rings (the daemon made them empty before starting its
-    # processes). After a restart: from now on (what was published while it was down is not recorded).
-    # Topics that appear later: from their first message.
-    restarted = int(os.environ.get(RESTARTS_ENV, "0")) > 0
-    start_of = {t: "next" if restarted else "oldest" for t in wanted}
+    # processes). After a restart: from the message after the last one this run's segments hold (recovered
+    # from the crash), so what was published while it was down is recorded as long as the ring still holds
+    # it (what it no longer holds is counted lost). Topics that appear later: from their first message.
+    resume = last_recorded_seqs(output_dir, rec.run) if int(os.environ.get(RESTARTS_ENV, "0")) > 0 else {}
+    if resume:
+        log.info("restarted: resuming after the last recorded seq of %d topics", len(resume))
     last_subscribe = last_health = 0.0
     try:
         while not stop.is_set():
@@ -349,10 +377,10 @@ def run(config: CarConfig, output_dir: Path, stop: threading.Event, config_path:
                 for topic in wanted:
                     if topic not in subscribers:
                         try:
-                            subscribers[topic] = bus.open_subscriber(config, topic, start=start_of[topic],
-                                                                     lossless=lossless)
+                            subscribers[topic] = bus.open_subscriber(config, topic, start="oldest",
+                                                                     lossless=lossless, after_seq=resume.get(topic))
                         except FileNotFoundError:
-                            start_of[topic] = "oldest"
+                            pass
             if now - last_health >= HEALTH_PERIOD_S:
                 last_health = now
                 mono, utc = time.monotonic_ns(), time.time_ns()

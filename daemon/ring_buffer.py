@@ -392,13 +392,18 @@ class RingReader:
     """One reader of a ring: follows the writer, detects being overtaken and counts what it lost.
 
     start: "next" (records written from now on), "oldest" (everything still in the ring),
-    "latest" (the newest record, then what follows). lossless: take a reader slot and publish the
-    read position there, so lossless writes wait for this reader.
+    "latest" (the newest record, then what follows). after_seq (with "oldest"): resume a reader that
+    already took every record up to this seq: earlier records are passed over, and records the ring no
+    longer holds since then count as lost (ignored when the ring's sequence has not reached it: a new
+    ring). lossless: take a reader slot and publish the read position there, so lossless writes wait for
+    this reader.
     """
 
-    def __init__(self, path: str, *, start: str = "next", lossless: bool = False):
+    def __init__(self, path: str, *, start: str = "next", lossless: bool = False, after_seq: int | None = None):
         if start not in ("next", "oldest", "latest"):
             raise ValueError(f"start must be 'next', 'oldest' or 'latest', not {start!r}")
+        if after_seq is not None and start != "oldest":
+            raise ValueError("after_seq resumes from the oldest record: start must be 'oldest'")
         self.path = path
         self.lossless = lossless
         self.lost = 0
@@ -407,6 +412,8 @@ class RingReader:
         self._slot: int | None = None
         self.expected: int | None = None  # seq of the next message this reader should see
         self._attach(_Mapping(path, writable_data=False), start)
+        if after_seq is not None and after_seq < self._m.snapshot()[2]:
+            self.expected = after_seq + 1  # read() passes over what comes before
 
     def _attach(self, m: _Mapping, start: str) -> None:
         self._m = m
@@ -509,7 +516,7 @@ class RingReader:
                 self.pos = q[_W_TAIL]
                 continue
             seq, total, meta, bulk = loaded
-            if seq == PAD_SEQ:
+            if seq == PAD_SEQ or seq < self.expected:  # padding, or taken before a resume (after_seq)
                 self.pos = pos + total
                 continue
             if seq > self.expected:

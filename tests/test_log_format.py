@@ -1,5 +1,6 @@
 """The MCAP log format: every message type round-trips; truncated files read back their complete prefix."""
 
+import json
 import os
 import random
 from pathlib import Path
@@ -134,7 +135,8 @@ def test_truncated_file_reads_complete_prefix_without_exception(tmp_path):
 def test_recover_log_makes_a_readable_closed_file(tmp_path):
     msgs = _messages(20)
     path = tmp_path / "open.mcap"
-    with LogWriter(path, CONFIG, chunk_size=8 * 1024) as writer:
+    with LogWriter(path, CONFIG, metadata={"start_time_utc_ns": "123", "daemon_run": "7:42"},
+                   chunk_size=8 * 1024) as writer:
         for topic, msg in msgs:
             writer.write(topic, msg)
     data = path.read_bytes()
@@ -145,5 +147,9 @@ def test_recover_log_makes_a_readable_closed_file(tmp_path):
     report = ReadReport()
     back = list(read_log([fixed], report=report))
     assert report.files[0].complete and len(back) == kept.messages
-    assert read_metadata(fixed)["roadlog"]["recovered_from"] == str(path)
+    meta = read_metadata(fixed)
+    assert meta["roadlog"]["recovered_from"] == str(path)
+    assert meta["roadlog"]["start_time_utc_ns"] == "123" and meta["roadlog"]["daemon_run"] == "7:42"  # the source's
+    last = json.loads(meta["roadlog.counts"]["last_seq_per_topic"])
+    assert last and all(seq == max(r.message.seq for r in back if r.topic == t) for t, seq in last.items())
     os.remove(path)

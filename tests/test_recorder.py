@@ -25,6 +25,7 @@ from daemon.disk_policy import Segment, required_free_bytes, segments_to_delete
 from daemon.log_format import read_log, read_metadata
 from daemon.messages import CameraFrame, CanFrame, ImuSample, LidarPacket
 from daemon.recorder import OPEN_SUFFIX, closed_segments, segment_name
+from daemon.supervisor import RESTARTS_ENV
 from daemon.topics import CAN_FRAMES, IMU, LIDAR_PACKETS, TIME_ANCHOR, camera_topic, health_topic
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -203,6 +204,28 @@ def test_killed_recorder_leaves_an_open_segment_the_next_start_recovers(car, tmp
     assert recovered[0]["messages"] > 100
     assert 100 < len(back) <= len(sent[LIDAR_PACKETS])
     assert back == sent[LIDAR_PACKETS][: len(back)]
+
+
+def test_a_restarted_recorder_records_what_was_published_while_it_was_down_once(car, tmp_path):
+    config_path = car()
+    config = load_config(config_path)
+    out = tmp_path / "logs"
+    for t in (CAMERA, LIDAR_PACKETS, IMU, CAN_FRAMES):
+        bus.open_publisher(config, t).close()
+    rec = RecorderProcess(config_path, out, env={RESTARTS_ENV: "0"})
+    before = publish_drive(config, 60, random.Random(5))
+    rec.wait_written({t: len(m) for t, m in before.items()})
+    assert rec.stop(signal.SIGKILL) == -signal.SIGKILL  # its open chunk (the newest messages) is torn off
+    while_down = publish_drive(config, 40, random.Random(6))
+    # the supervisor's restart (same daemon run: same parent); it recovers the crash's segment first
+    rec = RecorderProcess(config_path, out, env={RESTARTS_ENV: "1"})
+    after = publish_drive(config, 20, random.Random(7))
+    rec.wait_written({t: len(after[t]) for t in after})
+    assert rec.stop() == 0
+    assert len(rec.detail["recovered"]) == 1 and rec.detail["lost"] == {}
+    back = recorded(out)
+    for topic in before:
+        assert back[topic] == before[topic] + while_down[topic] + after[topic], topic  # each once, in order
 
 
 def test_disk_policy_deletes_oldest_closed_segments_then_stops_and_resumes(car, tmp_path):

@@ -139,6 +139,23 @@ def test_start_positions(path):
     retire(path + ".empty")
 
 
+def test_a_resumed_reader_takes_what_follows_its_last_seq_and_counts_what_is_gone(path):
+    writer = RingWriter(path, 4 * PAGE)
+    for seq in range(10):
+        writer.write(meta_for(seq), pattern(seq, 200))
+    resumed = RingReader(path, start="oldest", after_seq=6)  # its previous incarnation took 0..6
+    assert [resumed.read(0).seq for _ in range(3)] == [7, 8, 9] and resumed.read(0) is None
+    assert resumed.lost == 0 and resumed.received == 3
+    for seq in range(10, 300):  # the ring holds ~60 of these: 10.. are overwritten
+        writer.write(meta_for(seq), pattern(seq, 200))
+    late = RingReader(path, start="oldest", after_seq=9)
+    first = late.read(0)
+    assert first.seq > 10 and late.lost == first.seq - 10  # 10 .. first-1 are gone, and counted
+    assert RingReader(path, start="oldest", after_seq=1000).read(0).seq == first.seq  # not this ring's sequence
+    with pytest.raises(ValueError, match="start must be 'oldest'"):
+        RingReader(path, start="next", after_seq=3)
+
+
 def test_read_timeout_returns_none_after_the_timeout(path):
     RingWriter(path, 16 * PAGE)
     reader = RingReader(path)
