@@ -93,6 +93,7 @@ class LidarConfig(_Strict):
     model: Literal["ouster-os-128", "ouster-os-32", "hesai-pandar128", "velodyne-vls128"]
     bind_address: str = "0.0.0.0"
     port: int = Field(7502, ge=1, le=65535)
+    imu_port: int | None = Field(None, ge=0, le=65535)  # None: the metadata's udp_port_imu; 0: IMU off
     metadata_file: str
     columns_per_frame: Literal[512, 1024, 2048] = 1024
     rate_hz: Literal[10, 20] = 10

@@ -57,6 +57,7 @@ def health_topic(process: str) -> str:
 
 
 LIDAR_PACKETS = "lidar/packets"
+LIDAR_IMU = "lidar/imu"  # the Lidar's own IMU (Ouster: UDP udp_port_imu)
 GNSS_FIX = "gnss/fix"
 IMU = "imu"
 CAN_FRAMES = "can/frames"
@@ -83,6 +84,7 @@ def topic_table(config: CarConfig) -> dict[str, Topic]:
     if sensors.lidar is not None:
         packets_per_s = sensors.lidar.columns_per_frame / 16 * sensors.lidar.rate_hz
         topics.append(Topic(LIDAR_PACKETS, LidarPacket, packets_per_s, 128 * MB, True, "lidar"))
+        topics.append(Topic(LIDAR_IMU, ImuSample, 100.0, 4 * MB, True, "lidar"))
     if sensors.gnss is not None:
         topics.append(Topic(GNSS_FIX, GnssFix, sensors.gnss.rate_hz, 4 * MB, True, "gnss"))
         topics.append(Topic(IMU, ImuSample, sensors.gnss.imu_rate_hz, 8 * MB, True, "gnss"))

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -20,8 +21,8 @@ import yaml
 from daemon import bus
 from daemon.config import load_config
 from daemon.health import HealthCounters
-from daemon.messages import DriverHealth, LidarPacket
-from daemon.topics import LIDAR_PACKETS, health_topic
+from daemon.messages import DriverHealth, ImuSample, LidarPacket
+from daemon.topics import LIDAR_IMU, LIDAR_PACKETS, health_topic
 from drivers.lidar import udp_driver
 from drivers.lidar.ouster_encoder import encode_frame_packets
 from drivers.lidar.ouster_metadata import metadata_to_json, parse_metadata, simulated_os128_metadata
@@ -208,6 +209,65 @@ def test_real_ouster_captures_through_the_socket_decode_without_rejects(stem, tm
     assert sensor_times == first_valid_times(sent, layout)
 
 
+def test_the_lidar_imu_of_a_real_capture_is_published_as_the_ouster_sdk_reads_it(tmp_path):
+    """The OS-1-128 capture's Lidar and IMU datagrams, in capture order, each to its own UDP port of the
+    driver process; garbage IMU datagrams between them are counted and skipped."""
+    import ouster.sdk.core as ouster
+
+    stem = "OS-1-128_v2.3.0_1024x10"
+    meta = parse_metadata(OUSTER / f"{stem}.json")
+    capture = read_pcap_udp(OUSTER / f"{CAPTURES[stem]}.pcap").datagrams
+    imu_port = free_udp_port()
+    driver = DriverProcess(write_config(tmp_path, (OUSTER / f"{stem}.json").read_text(), imu_port=imu_port))
+    try:
+        imu_sub = bus.open_subscriber(driver.car, LIDAR_IMU, start="oldest", wait_s=5)
+        ports = {meta.udp_port_lidar: driver.car.sensors.lidar.port, meta.udp_port_imu: imu_port}
+        imu_sent = [d.payload for d in capture if d.dst_port == meta.udp_port_imu]
+        garbage = [b"\x01" * 40, imu_sent[0][:24] + struct.pack("<6f", float("nan"), 0, 0, 0, 0, 0)]
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            for i, d in enumerate(capture):
+                if d.dst_port in ports:
+                    s.sendto(d.payload, ("127.0.0.1", ports[d.dst_port]))
+                if i == 100:
+                    for g in garbage:
+                        s.sendto(g, ("127.0.0.1", imu_port))
+                time.sleep(0.0002)
+        got = []
+        deadline = time.monotonic() + 10
+        while len(got) < len(imu_sent) and time.monotonic() < deadline:
+            if (msg := imu_sub.read(timeout_s=0.2)) is not None:
+                got.append(msg)
+        out, health = driver.stop()
+    finally:
+        driver.close()
+    assert len(imu_sent) == 30 and len(got) == 30
+    fmt, g = ouster.PacketFormat(ouster.SensorInfo((OUSTER / f"{stem}.json").read_text())), 9.80665
+    for sample, payload in zip(got, imu_sent, strict=True):
+        buf = np.frombuffer(payload, np.uint8)
+        assert sample.sensor_time_ns == fmt.imu_accel_ts(buf)
+        assert np.allclose(sample.accel_mps2, [g * fmt.imu_la_x(buf), g * fmt.imu_la_y(buf), g * fmt.imu_la_z(buf)])
+        assert np.allclose(sample.gyro_rps, np.radians([fmt.imu_av_x(buf), fmt.imu_av_y(buf), fmt.imu_av_z(buf)]))
+    assert 9.0 < np.linalg.norm(got[0].accel_mps2) < 11.0  # a sensor at rest reads gravity
+    assert f"imu=listening on {imu_port} imu_samples=30 imu_rejected=2" in out
+    assert health.rejected == 2 and health.published > 0
+
+
+def test_an_imu_profile_without_a_decoder_or_a_taken_port_leaves_the_lidar_running(tmp_path):
+    config = load_config(write_config(tmp_path, metadata_to_json(simulated_os128_metadata(512)))).sensors.lidar
+    newer = parse_metadata(OUSTER / "imu_zm_no_lidar_0.json")  # firmware 3.1: ACCEL32_GYRO32_NMEA
+    stats, health = udp_driver.LidarDriverStats(), HealthCounters("lidar")
+    assert udp_driver._open_imu_socket(config, newer, stats, health) is None
+    assert stats.imu == "not decoded: IMU profile ACCEL32_GYRO32_NMEA" and "has no decoder" in health.last_error
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind(("0.0.0.0", 0))
+        busy = config.model_copy(update={"imu_port": taken.getsockname()[1]})
+        stats, health = udp_driver.LidarDriverStats(), HealthCounters("lidar")
+        assert udp_driver._open_imu_socket(busy, simulated_os128_metadata(512), stats, health) is None
+        assert stats.imu.startswith("not listening") and health.errors == 1
+    off = config.model_copy(update={"imu_port": 0})
+    assert udp_driver._open_imu_socket(off, simulated_os128_metadata(512), stats, health) is None
+
+
 def test_a_restarted_sensor_is_counted_anew(tmp_path):
     meta = simulated_os128_metadata(512)
     layout = packet_layout(meta)
@@ -268,6 +328,7 @@ def test_unusable_metadata_and_a_taken_port_are_clear_errors(tmp_path, capsys):
 class DriverRun:
     def __init__(self) -> None:
         self.packets: list[LidarPacket] = []
+        self.imu: list[ImuSample] = []
         self.healths: list[DriverHealth] = []
         self.listening = threading.Event()
         self.stats: udp_driver.LidarDriverStats | None = None
@@ -276,6 +337,8 @@ class DriverRun:
     def publish(self, topic: str, message: object) -> None:
         if topic == LIDAR_PACKETS:
             self.packets.append(message)
+        elif topic == LIDAR_IMU:
+            self.imu.append(message)
         else:
             self.healths.append(message)
             self.listening.set()

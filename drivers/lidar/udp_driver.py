@@ -29,8 +29,9 @@ import numpy as np
 from daemon.config import LidarConfig, load_config, resolve_path
 from daemon.health import HealthCounters
 from daemon.messages import LidarPacket
-from daemon.topics import LIDAR_PACKETS, health_topic
+from daemon.topics import LIDAR_IMU, LIDAR_PACKETS, health_topic
 from drivers.lidar.ouster_decoder import count_missing_packets, decode_packets, newest_packet, packet_sequence
+from drivers.lidar.ouster_imu import LEGACY_IMU_BYTES, decode_imu_packet, imu_profile_supported
 from drivers.lidar.ouster_metadata import OusterMetadata, parse_metadata
 from drivers.lidar.ouster_packet_layout import OusterPacketLayout, packet_layout
 
@@ -43,6 +44,9 @@ _ANCILLARY_BYTES = socket.CMSG_SPACE(16) + socket.CMSG_SPACE(4)
 _TIMESPEC = struct.Struct("=qq")
 _DROP_COUNT = struct.Struct("=I")
 RESTART_AFTER_S = 60.0  # a numbering jump of more than this many seconds of packets is a sensor restart
+IMU_RECEIVE_BUFFER_BYTES = 1 << 20  # ~20,000 LEGACY IMU packets: 200 s at 100 Hz
+IMU_BATCH = 64  # IMU datagrams taken from the socket at once
+IMU_ROW_BYTES = 512  # larger datagrams are rejected by their real size (MSG_TRUNC)
 
 Publish = Callable[[str, object], None]
 
@@ -65,6 +69,10 @@ class LidarDriverStats:
     socket_errors: int = 0
     batches: int = 0
     largest_batch: int = 0
+    imu: str = "off"  # "listening on PORT", "off", or why not
+    imu_samples: int = 0  # published on lidar/imu
+    imu_rejected: int = 0  # IMU datagrams of the wrong size or with values that are not numbers
+    imu_kernel_drops: int = 0
 
     def summary(self) -> str:
         return " ".join(f"{f.name}={getattr(self, f.name)}" for f in dataclasses.fields(self))
@@ -225,6 +233,49 @@ def _handle_batch(buf: ReceiveBuffer, n: int, layout: OusterPacketLayout, prod_s
     health.dropped, health.sequence_gaps = loss.missing, loss.gaps
 
 
+def _open_imu_socket(config: LidarConfig, metadata: OusterMetadata, stats: LidarDriverStats,
+                     health: HealthCounters) -> socket.socket | None:
+    """The IMU's socket, or None (off, an IMU profile without a decoder, or the port cannot be bound: the
+    Lidar is recorded all the same, and the reason is reported)."""
+    port = metadata.udp_port_imu if config.imu_port is None else config.imu_port
+    if port == 0:
+        return None
+    if not imu_profile_supported(metadata.udp_profile_imu):
+        stats.imu = f"not decoded: IMU profile {metadata.udp_profile_imu}"
+        health.last_error = f"IMU packets not recorded: profile {metadata.udp_profile_imu} has no decoder"
+        return None
+    try:
+        sock, _ = open_lidar_socket(config.bind_address, port, IMU_RECEIVE_BUFFER_BYTES)
+    except OSError as exc:
+        stats.imu = f"not listening: {exc.strerror}"
+        health.count_error(f"IMU packets not recorded: {exc.strerror}")
+        return None
+    stats.imu = f"listening on {port}"
+    return sock
+
+
+def _handle_imu(sock: socket.socket, buf: ReceiveBuffer, publish: Publish, stats: LidarDriverStats,
+                health: HealthCounters) -> None:
+    """Publish the IMU packets queued on `sock`; count and report the ones that do not decode."""
+    seen = LidarDriverStats()  # this socket's own overflow count and errors
+    n = _receive_queued(sock, buf, 0, time.monotonic_ns() - time.time_ns(), seen, health)
+    stats.imu_kernel_drops = seen.kernel_drops
+    stats.socket_errors += seen.socket_errors
+    for i in range(n):
+        size = int(buf.sizes[i])  # the datagram's real length: rows hold at most IMU_ROW_BYTES of it
+        try:
+            if size > buf.rows.shape[1]:
+                raise ValueError(f"IMU datagram of {size} B (a LEGACY IMU packet is {LEGACY_IMU_BYTES} B)")
+            sample = decode_imu_packet(buf.rows[i, :size].tobytes(), int(buf.arrival_ns[i]))
+        except ValueError as exc:
+            stats.imu_rejected += 1
+            health.rejected += 1
+            health.last_error = str(exc)
+            continue
+        publish(LIDAR_IMU, sample)
+        stats.imu_samples += 1
+
+
 def _publish_health(publish: Publish, health: HealthCounters, stats: LidarDriverStats) -> None:
     snap = health.snapshot()
     detail = stats.summary() + (f"; last error: {health.last_error}" if health.last_error else "")
@@ -274,6 +325,10 @@ def run_lidar_driver(
     buf = ReceiveBuffer.allocate(batch_packets, layout.packet_size)
     poller = select.poll()
     poller.register(sock, select.POLLIN)
+    imu_sock = _open_imu_socket(config, metadata, stats, health)
+    imu_buf = ReceiveBuffer.allocate(IMU_BATCH, IMU_ROW_BYTES)
+    if imu_sock is not None:
+        poller.register(imu_sock, select.POLLIN)
     try:
         _publish_health(publish, health, stats)
         next_health = time.monotonic() + health_period_s
@@ -283,13 +338,18 @@ def run_lidar_driver(
                 _publish_health(publish, health, stats)
                 next_health = max(next_health + health_period_s, now)
             wait_ms = max(0, round(1000 * min(idle_wait_s, next_health - now)))
-            if not poller.poll(wait_ms):
+            ready = {fd for fd, _ in poller.poll(wait_ms)}
+            if imu_sock is not None and imu_sock.fileno() in ready:
+                _handle_imu(imu_sock, imu_buf, publish, stats, health)
+            if sock.fileno() not in ready:
                 continue
             n = _gather_batch(sock, buf, period_s, stats, health)
             if n:
                 _handle_batch(buf, n, layout, prod_sn, publish, health, stats, loss)
     finally:
         sock.close()
+        if imu_sock is not None:
+            imu_sock.close()
     _publish_health(publish, health, stats)
     return stats
 
@@ -320,7 +380,7 @@ def main(argv: list[str] | None = None) -> int:
     if metadata.columns_per_frame != config.columns_per_frame or metadata.fps != config.rate_hz:
         print(f"lidar driver: warning: the sensor metadata says {metadata.lidar_mode}, the config "
               f"{config.columns_per_frame}x{config.rate_hz}; decoding as the metadata says", file=sys.stderr)
-    publishers = {topic: open_publisher(car, topic) for topic in (LIDAR_PACKETS, health_topic(PROCESS))}
+    publishers = {topic: open_publisher(car, topic) for topic in (LIDAR_PACKETS, LIDAR_IMU, health_topic(PROCESS))}
     health = HealthCounters(PROCESS, expected_rate_hz=packets_per_second(metadata))
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -1,0 +1,37 @@
+"""Ouster IMU packets (UDP `udp_port_imu`, 100 Hz) into ImuSample messages.
+
+Only the LEGACY IMU profile is decoded: 48 bytes, little-endian: the packet's system time, the
+accelerometer's and the gyroscope's read times (uint64 ns, the sensor's clock: the one its Lidar packets
+are stamped with), then linear acceleration x, y, z (float32, g) and angular velocity x, y, z (float32,
+deg/s) in the sensor's IMU frame (`imu_to_sensor_transform` in the metadata). A sample's time is its
+accelerometer read time (the gyroscope's follows within ~0.2 ms). Firmware 3.1's ACCEL32_GYRO32_NMEA
+profile (eight measurements a packet) is not decoded: the driver reports it and records the Lidar only.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+
+from daemon.messages import ImuSample
+
+LEGACY_IMU = struct.Struct("<QQQ6f")
+LEGACY_IMU_BYTES = LEGACY_IMU.size  # 48
+STANDARD_GRAVITY_MPS2 = 9.80665
+
+
+def imu_profile_supported(profile: str) -> bool:
+    return profile == "LEGACY"
+
+
+def decode_imu_packet(payload: bytes | memoryview, host_mono_ns: int) -> ImuSample:
+    """One LEGACY IMU packet; ValueError for one of another size or with a value that is not finite."""
+    if len(payload) != LEGACY_IMU_BYTES:
+        raise ValueError(f"IMU datagram of {len(payload)} B (a LEGACY IMU packet is {LEGACY_IMU_BYTES} B)")
+    _, accel_ns, _, ax, ay, az, gx, gy, gz = LEGACY_IMU.unpack(payload)
+    values = (ax, ay, az, gx, gy, gz)
+    if not all(math.isfinite(v) for v in values):
+        raise ValueError(f"IMU packet with a value that is not a number: {values}")
+    g, rad = STANDARD_GRAVITY_MPS2, math.pi / 180.0
+    return ImuSample(sensor_time_ns=accel_ns, host_mono_ns=host_mono_ns,
+                     accel_mps2=(ax * g, ay * g, az * g), gyro_rps=(gx * rad, gy * rad, gz * rad))
