@@ -28,7 +28,7 @@ from drivers.can.can_driver import open_can_bus
 from drivers.sim.live_drive import open_gnss_pty, run_live_drive
 from tests.daemon_fixtures import REPO
 
-DRIVER_TOPICS = ("lidar/packets", "can/frames", "wheel_speeds")
+DRIVER_TOPICS = ("lidar/packets", "lidar/imu", "can/frames", "wheel_speeds")
 CAMERAS = ("front_wide", "front_left", "front_right")
 
 
@@ -90,8 +90,8 @@ def live_setup(tmp_path, city_drive):
     s = data["sensors"]
     for cam in s["cameras"]:
         cam["device"] = str(city_drive)
-    s["lidar"].update(port=_free_port(socket.SOCK_DGRAM), metadata_file=str(REPO / "configs" / s["lidar"][
-        "metadata_file"]))
+    s["lidar"].update(port=_free_port(socket.SOCK_DGRAM), imu_port=_free_port(socket.SOCK_DGRAM),
+                      metadata_file=str(REPO / "configs" / s["lidar"]["metadata_file"]))
     s["gnss"]["port"] = pty.path
     s["can"].update(dbc_file=str(REPO / "configs" / s["can"]["dbc_file"]),
                     options={"port": random.randint(40000, 49000)})
@@ -112,7 +112,8 @@ def _play(config, drive: Path, pty, stop=None):
     bus = open_can_bus(config.sensors.can)
     try:
         return run_live_drive(drive, lidar_address=("127.0.0.1", config.sensors.lidar.port), gnss_fd=pty.master_fd,
-                              can_bus=bus, stop=stop, rate=1.0)
+                              can_bus=bus, stop=stop, rate=1.0,
+                              lidar_imu_address=("127.0.0.1", config.sensors.lidar.imu_port))
     finally:
         bus.shutdown()
 
@@ -129,7 +130,7 @@ def test_daemon_logs_every_message_restarts_drivers_and_recovers_segments(live_s
     _wait(lambda: _get(daemon.port, "/livez")[0] == 200, 60, "the status endpoint")
     _wait(daemon.drivers_up, 90, "every driver's first health report")
     stats = _play(config, city_drive, pty)
-    assert stats.errors == 0
+    assert stats.errors == 0 and stats.lidar_imu_packets > 400  # the Lidar's IMU at 100 Hz, ~5 s
     time.sleep(2.0)  # the sim cameras play their own copy of the drive, started with their process
 
     # status and metrics over HTTP while running

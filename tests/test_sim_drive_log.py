@@ -19,7 +19,17 @@ from scipy.spatial.transform import Rotation
 from daemon.config import load_config
 from daemon.log_format import read_log, read_metadata
 from daemon.messages import GnssFix
-from daemon.topics import CAN_FRAMES, GNSS_FIX, IMU, LIDAR_PACKETS, TIME_ANCHOR, WHEEL_SPEEDS, camera_topic, mask_topic
+from daemon.topics import (
+    CAN_FRAMES,
+    GNSS_FIX,
+    IMU,
+    LIDAR_IMU,
+    LIDAR_PACKETS,
+    TIME_ANCHOR,
+    WHEEL_SPEEDS,
+    camera_topic,
+    mask_topic,
+)
 from drivers.gnss.gnss_messages import GnssDecoder
 from drivers.gnss.stream_framer import StreamFramer
 from drivers.sim.drive_log import main as simulate_main
@@ -51,7 +61,11 @@ def test_drive_log_is_complete_ordered_and_decodable(drive):
         assert counts[camera_topic(cam.name)] == counts[mask_topic(cam.name)] == pytest.approx(15, abs=1)
     assert counts[LIDAR_PACKETS] == pytest.approx(SECONDS * 640, rel=0.1)
     assert counts[GNSS_FIX] == pytest.approx(SECONDS * 10, abs=2)
-    assert counts[IMU] == pytest.approx(SECONDS * 100, abs=2)
+    assert counts[IMU] == counts[LIDAR_IMU] == pytest.approx(SECONDS * 100, abs=2)  # the GNSS's and the Lidar's
+    lidar_imu = [r.message for r in records if r.topic == LIDAR_IMU]
+    assert 9.0 < np.mean([np.linalg.norm(m.accel_mps2) for m in lidar_imu]) < 10.6  # gravity and a bit of motion
+    lidar_stamps = [r.message.sensor_time_ns for r in records if r.topic == LIDAR_PACKETS]
+    assert abs(lidar_imu[0].sensor_time_ns - lidar_stamps[0]) < 1_000_000_000  # on the Lidar's clock
     assert counts[CAN_FRAMES] == 2 * counts[WHEEL_SPEEDS] == pytest.approx(SECONDS * 100, abs=2)
     assert counts[TIME_ANCHOR] >= 2
     times = [r.log_time_ns for r in records]

@@ -6,6 +6,7 @@ are stamped with), then linear acceleration x, y, z (float32, g) and angular vel
 deg/s) in the sensor's IMU frame (`imu_to_sensor_transform` in the metadata). A sample's time is its
 accelerometer read time (the gyroscope's follows within ~0.2 ms). Firmware 3.1's ACCEL32_GYRO32_NMEA
 profile (eight measurements a packet) is not decoded: the driver reports it and records the Lidar only.
+`encode_imu_packet` is the inverse, for the simulator.
 """
 
 from __future__ import annotations
@@ -35,3 +36,12 @@ def decode_imu_packet(payload: bytes | memoryview, host_mono_ns: int) -> ImuSamp
     g, rad = STANDARD_GRAVITY_MPS2, math.pi / 180.0
     return ImuSample(sensor_time_ns=accel_ns, host_mono_ns=host_mono_ns,
                      accel_mps2=(ax * g, ay * g, az * g), gyro_rps=(gx * rad, gy * rad, gz * rad))
+
+
+def encode_imu_packet(sample: ImuSample, gyro_after_ns: int = 200_000) -> bytes:
+    """The LEGACY packet the sensor would send for `sample` (for the simulator; the gyroscope read
+    `gyro_after_ns` after the accelerometer, the packet stamped at the accelerometer read)."""
+    g, deg = STANDARD_GRAVITY_MPS2, 180.0 / math.pi
+    t = int(sample.sensor_time_ns)
+    return LEGACY_IMU.pack(t, t, t + gyro_after_ns, *(v / g for v in sample.accel_mps2),
+                           *(v * deg for v in sample.gyro_rps))

@@ -2,8 +2,9 @@
 sensor topics in host arrival order) and, beside it, PATH.gt.npz with the ground truth.
 
 Camera frames and Lidar scans are rendered in worker processes; GNSS/IMU bytes go through the GNSS
-driver's own framer and decoder and CAN frames through the CAN driver's decoder, so the logged fixes,
-IMU samples and wheel speeds are exactly what those drivers would have published.
+driver's own framer and decoder and CAN frames through the CAN driver's decoder, the Lidar's own IMU
+through its LEGACY packets and the Lidar driver's decoder, so the logged fixes, IMU samples and wheel
+speeds are exactly what those drivers would have published.
 
 Ground truth (PATH.gt.npz), all in the scenario's local ENU frame:
   enu_origin_lat_lon_alt (3,); grid_origin_xy (2,) lower-left corner of cell (0, 0); grid_resolution_m;
@@ -33,11 +34,23 @@ import numpy as np
 
 from daemon.config import CarConfig, load_config, resolve_path
 from daemon.log_format import LogWriter
-from daemon.messages import CameraFrame, CanFrame, LidarPacket, SemanticMask, TimeAnchor
-from daemon.topics import CAN_FRAMES, GNSS_FIX, IMU, LIDAR_PACKETS, TIME_ANCHOR, WHEEL_SPEEDS, camera_topic, mask_topic
+from daemon.messages import CameraFrame, CanFrame, ImuSample, LidarPacket, SemanticMask, TimeAnchor
+from daemon.topics import (
+    CAN_FRAMES,
+    GNSS_FIX,
+    IMU,
+    LIDAR_IMU,
+    LIDAR_PACKETS,
+    TIME_ANCHOR,
+    WHEEL_SPEEDS,
+    camera_topic,
+    mask_topic,
+)
 from drivers.can.wheel_speed_codec import WheelSpeedDecoder, load_dbc, wheel_speed_layout
 from drivers.gnss.gnss_messages import GnssDecoder
 from drivers.gnss.stream_framer import StreamFramer
+from drivers.lidar.ouster_imu import decode_imu_packet, encode_imu_packet
+from drivers.lidar.ouster_metadata import parse_metadata
 from drivers.sim import can_sim, gnss_sim, imu_sim
 from drivers.sim.camera_renderer import camera_rig, render_view
 from drivers.sim.camera_response import encode_jpeg, expose, vignetting_map
@@ -60,6 +73,7 @@ from mapping.local_frame import LocalFrame
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "sim.yaml"
 LIDAR_GT_EVERY = 5
+LIDAR_IMU_RATE_HZ = 100.0  # an Ouster's IMU packets
 TRAJECTORY_HZ = 200.0
 
 # Worker state, inherited through fork (set before the pool starts).
@@ -171,6 +185,24 @@ def _gnss_imu_messages(scene: Scene, clocks: dict[str, SensorClock], frame: Loca
     return out
 
 
+def _lidar_imu_messages(scene: Scene, clocks: dict[str, SensorClock], rng: np.random.Generator
+                        ) -> list[tuple[int, str, object]]:
+    """The Lidar's own IMU at 100 Hz on the Lidar's clock, as the Lidar driver decodes its LEGACY packets."""
+    lidar = scene.config.sensors.lidar
+    metadata = parse_metadata(_LIDAR_METADATA)
+    imu_to_vehicle = lidar.extrinsics.matrix() @ metadata.imu_to_sensor_transform
+    times = _event_times(LIDAR_IMU_RATE_HZ, rng.uniform(0, 1.0 / LIDAR_IMU_RATE_HZ), scene.seconds)
+    force, rate = imu_sim.imu_readings(scene.ego, imu_to_vehicle, times, rng)
+    stamps = sensor_stamp_ns(clocks["lidar"], times, rng)
+    arrivals = host_arrival_ns(clocks["lidar"], times, rng)
+    out = []
+    for i in range(len(times)):
+        packet = encode_imu_packet(ImuSample(sensor_time_ns=int(stamps[i]), accel_mps2=tuple(force[i]),
+                                             gyro_rps=tuple(rate[i])))
+        out.append((int(arrivals[i]), LIDAR_IMU, decode_imu_packet(packet, int(arrivals[i]))))
+    return out
+
+
 def _can_messages(scene: Scene, clocks: dict[str, SensorClock], dbc_path: Path, rng: np.random.Generator
                   ) -> list[tuple[int, str, object]]:
     can_cfg = scene.config.sensors.can
@@ -253,6 +285,9 @@ def simulate_drive(scenario: str, seconds: float | None, out: Path, config: CarC
 
     _SCENE, _CLOCKS = scene, clocks
     _LIDAR_METADATA = resolve_path(config_file, sensors.lidar.metadata_file) if sensors.lidar else None
+    if sensors.lidar is not None:
+        for item in _lidar_imu_messages(scene, clocks, np.random.default_rng([seed, 9])):
+            push(*item)
     gt_points: list[np.ndarray] = []
     gt_classes: list[np.ndarray] = []
     seq: dict[str, int] = {}

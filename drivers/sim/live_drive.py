@@ -1,8 +1,9 @@
 """Live mode: plays a simulated drive log (made by `roadlog simulate`) into virtual devices at its real
-rate, for the drivers and the daemon to read as if the car were driving: Lidar packets as UDP datagrams
-to 127.0.0.1, GNSS/IMU as NMEA + UBX bytes into a pseudo-terminal, CAN frames onto a python-can bus
-(udp_multicast crosses processes). Cameras play the same log through the `sim` camera backend; give
-it the same `start_mono_ns` and log origin to stay in step.
+rate, for the drivers and the daemon to read as if the car were driving: Lidar packets (and the Lidar's
+IMU as LEGACY IMU packets, to its own port) as UDP datagrams to 127.0.0.1, GNSS/IMU as NMEA + UBX bytes
+into a pseudo-terminal, CAN frames onto a python-can bus (udp_multicast crosses processes). Cameras play
+the same log through the `sim` camera backend; give it the same `start_mono_ns` and log origin to stay
+in step.
 
 Each record is sent when host monotonic time reaches start_mono_ns + (log time - log_origin_ns) / rate.
 The GNSS bytes are remade from the logged fixes and IMU samples (drivers/sim/gnss_sim.py, imu_sim.py):
@@ -24,11 +25,13 @@ from pathlib import Path
 import can
 import numpy as np
 
-from daemon.config import CarConfig, load_config
+from daemon.config import CarConfig, LidarConfig, load_config, resolve_path
 from daemon.log_format import read_log, read_metadata
 from daemon.messages import CanFrame, GnssFix, ImuSample, LidarPacket
-from daemon.topics import CAN_FRAMES, GNSS_FIX, IMU, LIDAR_PACKETS
+from daemon.topics import CAN_FRAMES, GNSS_FIX, IMU, LIDAR_IMU, LIDAR_PACKETS
 from drivers.can.can_driver import open_can_bus
+from drivers.lidar.ouster_imu import encode_imu_packet
+from drivers.lidar.ouster_metadata import parse_metadata
 from drivers.sim import gnss_sim, imu_sim
 from drivers.sim.sensor_clocks import ESF_TICK_NS
 from mapping.local_frame import LocalFrame
@@ -40,6 +43,7 @@ RTK_SIGMA_M = 0.05
 @dataclass
 class LiveDriveStats:
     lidar_packets: int = 0
+    lidar_imu_packets: int = 0
     gnss_fixes: int = 0
     imu_samples: int = 0
     can_frames: int = 0
@@ -98,6 +102,15 @@ class _GnssBytes:
         return imu_sim.esf_raw_bytes(np.array(sample.accel_mps2), np.array(sample.gyro_rps), tick)
 
 
+def lidar_imu_port(config_path: Path, lidar: LidarConfig) -> int | None:
+    """Where the Lidar driver listens for the IMU (None: it does not): the config's port, else the sensor
+    metadata's."""
+    port = lidar.imu_port
+    if port is None:
+        port = parse_metadata(resolve_path(config_path, lidar.metadata_file)).udp_port_imu
+    return port or None
+
+
 def log_origin(drive_mcap: Path) -> int:
     """The host monotonic time at which the simulated drive started (its log's start_mono_ns)."""
     meta = read_metadata(drive_mcap).get("roadlog", {})
@@ -106,16 +119,18 @@ def log_origin(drive_mcap: Path) -> int:
 
 def run_live_drive(drive_mcap: Path, *, lidar_address: tuple[str, int] | None = None, gnss_fd: int | None = None,
                    can_bus: can.BusABC | None = None, stop: threading.Event | None = None, rate: float = 1.0,
-                   start_mono_ns: int | None = None, log_origin_ns: int | None = None) -> LiveDriveStats:
+                   start_mono_ns: int | None = None, log_origin_ns: int | None = None,
+                   lidar_imu_address: tuple[str, int] | None = None) -> LiveDriveStats:
     """Play the drive into the given devices (None leaves that sensor out) until the log ends or `stop`."""
     stop = stop or threading.Event()
     start = time.monotonic_ns() if start_mono_ns is None else start_mono_ns
     origin = log_origin(drive_mcap) if log_origin_ns is None else log_origin_ns
-    topics = [t for t, on in ((LIDAR_PACKETS, lidar_address), (GNSS_FIX, gnss_fd), (IMU, gnss_fd),
-                              (CAN_FRAMES, can_bus)) if on is not None]
+    topics = [t for t, on in ((LIDAR_PACKETS, lidar_address), (LIDAR_IMU, lidar_imu_address), (GNSS_FIX, gnss_fd),
+                              (IMU, gnss_fd), (CAN_FRAMES, can_bus)) if on is not None]
     stats = LiveDriveStats()
     gnss = _GnssBytes()
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM) if lidar_address is not None else None
+    udp = lidar_address is not None or lidar_imu_address is not None
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM) if udp else None
     try:
         for record in read_log([drive_mcap], topics=topics):
             due = start + int((record.log_time_ns - origin) / rate)
@@ -127,7 +142,11 @@ def run_live_drive(drive_mcap: Path, *, lidar_address: tuple[str, int] | None = 
             if time.monotonic_ns() - due > LATE_NS:
                 stats.late += 1
             try:
-                _send(record.message, sock, lidar_address, gnss_fd, can_bus, gnss, stats)
+                if record.topic == LIDAR_IMU:
+                    sock.sendto(encode_imu_packet(record.message), lidar_imu_address)
+                    stats.lidar_imu_packets += 1
+                else:
+                    _send(record.message, sock, lidar_address, gnss_fd, can_bus, gnss, stats)
             except (OSError, can.CanError) as exc:
                 stats.errors += 1
                 stats.last_error = f"{record.topic}: {exc}"
@@ -173,11 +192,13 @@ def main(argv: list[str] | None = None) -> int:
     pty = open_gnss_pty() if sensors.gnss is not None else None
     bus = open_can_bus(sensors.can) if sensors.can is not None else None
     lidar = ("127.0.0.1", sensors.lidar.port) if sensors.lidar is not None else None
+    imu_port = lidar_imu_port(args.config, sensors.lidar) if sensors.lidar is not None else None
+    lidar_imu = ("127.0.0.1", imu_port) if imu_port else None
     if pty is not None:
         print(f"GNSS pseudo-terminal: {pty.path}", flush=True)
     try:
         stats = run_live_drive(args.drive, lidar_address=lidar, gnss_fd=pty.master_fd if pty else None,
-                               can_bus=bus, rate=args.rate)
+                               can_bus=bus, rate=args.rate, lidar_imu_address=lidar_imu)
     except KeyboardInterrupt:
         return 130
     finally:
