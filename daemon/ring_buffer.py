@@ -400,6 +400,7 @@ class RingReader:
     """
 
     def __init__(self, path: str, *, start: str = "next", lossless: bool = False, after_seq: int | None = None):
+        self._slot: int | None = None  # before anything can fail: __del__ releases it
         if start not in ("next", "oldest", "latest"):
             raise ValueError(f"start must be 'next', 'oldest' or 'latest', not {start!r}")
         if after_seq is not None and start != "oldest":
@@ -409,7 +410,6 @@ class RingReader:
         self.lost = 0
         self.received = 0
         self.skipped = 0
-        self._slot: int | None = None
         self.expected: int | None = None  # seq of the next message this reader should see
         self._attach(_Mapping(path, writable_data=False), start)
         if after_seq is not None and after_seq < self._m.snapshot()[2]:
