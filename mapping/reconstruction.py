@@ -27,7 +27,7 @@ from tqdm import tqdm
 from daemon.config import MapperConfig
 from mapping import losses
 from mapping.map_export import export_map
-from mapping.map_metrics import MetricPoints, finish_evaluation, start_evaluation
+from mapping.map_metrics import MetricPoints, PendingEvaluation, finish_evaluation, start_evaluation
 from mapping.mesh_renderer import pixel_rays, rasterise, ray_triangle_weights, world_rays
 from mapping.observation_fit import fit_colours, fit_elevation, semantic_logits_from_counts
 from mapping.road_map import RoadMap, WindowIndex, new_road_map, variant_for
@@ -343,52 +343,59 @@ def reconstruct(
     supervision = lidar_ground_points if variant.lidar_supervision else None
     # the metrics' points are placed on the mesh beside the single-threaded fits (numpy releases the GIL)
     side = ThreadPoolExecutor(1, thread_name_prefix="reconstruct-side")
-    metric_points = side.submit(MetricPoints.of, mesh, lidar_ground_points, gt)
-    if not faithful:  # the elevation needs the Lidar only: it is fitted while the images may still be decoding
-        started = time.perf_counter()
-        elevation_first_last = _fit_elevation(road_map, supervision, config, fast, rng)
-        timings["elevation_fit_wall_s"] = time.perf_counter() - started
-    selected = select_keyframes(_waited_for(keyframes, timings, "keyframes_wait_s"), trajectory,
-                                config.keyframe_spacing_m)
-    holdout = [k for i, k in enumerate(selected) if holdout_every > 0 and i % holdout_every == holdout_every // 2]
-    held = {id(k) for k in holdout}
-    train = [k for k in selected if id(k) not in held]
-    if not train:
-        raise ValueError("no training keyframes after selection")
-    evaluation_args = (cameras, holdout, train, trajectory, lidar_ground_points, gt, config.window_before_m,
-                       config.window_after_m)
-    if faithful:
-        lidar_ids, lidar_z = lidar_vertex_targets(mesh, supervision)
-        opt = _Optimisation(road_map, cameras, config, lidar_ids, lidar_z)
-        batches = _batches(train, trajectory, config.batch_size)
-        with tqdm(total=config.epochs * len(batches), desc="emie-map", disable=not progress, unit="step") as bar:
-            for _ in range(config.epochs):
-                road_map.refresh_elevation()
-                for b in rng.permutation(len(batches)):
-                    terms = opt.step(*batches[b])
-                    history.append(sum(terms.values()))
-                    bar.set_postfix(loss=f"{history[-1]:.4f}")
-                    bar.update()
-        opt.colour_opt.flush()
-        if opt.semantic_opt is not None:
-            opt.semantic_opt.flush()
-        road_map.refresh_elevation()
-        evaluation = start_evaluation(road_map, *evaluation_args, metric_points.result())
-    else:
-        obs = _observe(road_map, train, cameras, trajectory, fast, progress, timings)
-        # surface and semantics are final: the evaluation renders its views beside the colour fit
-        evaluation = start_evaluation(road_map, *evaluation_args, metric_points.result())
-        colour_first, colour_last = _fit_colours(road_map, obs, config, fast, rng, timings)
-        w_rgb = config.loss_weights.rgb
-        history = [elevation_first_last[0] + w_rgb * colour_first, elevation_first_last[1] + w_rgb * colour_last]
-    train_s = time.perf_counter() - start
-    drive_s = trajectory.duration_s
-    # the export runs beside the evaluation's remaining work: both only read the finished map
-    exported = side.submit(export_map, road_map, Path(out_dir), sorted(cameras)) if out_dir is not None else None
-    side.shutdown(wait=False)
-    metrics = finish_evaluation(evaluation)
-    evaluate_s = time.perf_counter() - start - train_s
-    files: dict[str, Path] = exported.result() if exported is not None else {}
+    evaluation: PendingEvaluation | None = None
+    try:
+        metric_points = side.submit(MetricPoints.of, mesh, lidar_ground_points, gt)
+        if not faithful:  # the elevation needs the Lidar only: it is fitted while the images may still be decoding
+            started = time.perf_counter()
+            elevation_first_last = _fit_elevation(road_map, supervision, config, fast, rng)
+            timings["elevation_fit_wall_s"] = time.perf_counter() - started
+        selected = select_keyframes(_waited_for(keyframes, timings, "keyframes_wait_s"), trajectory,
+                                    config.keyframe_spacing_m)
+        holdout = [k for i, k in enumerate(selected) if holdout_every > 0 and i % holdout_every == holdout_every // 2]
+        held = {id(k) for k in holdout}
+        train = [k for k in selected if id(k) not in held]
+        if not train:
+            raise ValueError("no training keyframes after selection")
+        evaluation_args = (cameras, holdout, train, trajectory, lidar_ground_points, gt, config.window_before_m,
+                           config.window_after_m)
+        if faithful:
+            lidar_ids, lidar_z = lidar_vertex_targets(mesh, supervision)
+            opt = _Optimisation(road_map, cameras, config, lidar_ids, lidar_z)
+            batches = _batches(train, trajectory, config.batch_size)
+            with tqdm(total=config.epochs * len(batches), desc="emie-map", disable=not progress, unit="step") as bar:
+                for _ in range(config.epochs):
+                    road_map.refresh_elevation()
+                    for b in rng.permutation(len(batches)):
+                        terms = opt.step(*batches[b])
+                        history.append(sum(terms.values()))
+                        bar.set_postfix(loss=f"{history[-1]:.4f}")
+                        bar.update()
+            opt.colour_opt.flush()
+            if opt.semantic_opt is not None:
+                opt.semantic_opt.flush()
+            road_map.refresh_elevation()
+            evaluation = start_evaluation(road_map, *evaluation_args, metric_points.result())
+        else:
+            obs = _observe(road_map, train, cameras, trajectory, fast, progress, timings)
+            # surface and semantics are final: the evaluation renders its views beside the colour fit
+            evaluation = start_evaluation(road_map, *evaluation_args, metric_points.result())
+            colour_first, colour_last = _fit_colours(road_map, obs, config, fast, rng, timings)
+            w_rgb = config.loss_weights.rgb
+            history = [elevation_first_last[0] + w_rgb * colour_first, elevation_first_last[1] + w_rgb * colour_last]
+        train_s = time.perf_counter() - start
+        drive_s = trajectory.duration_s
+        # the export runs beside the evaluation's remaining work: both only read the finished map
+        exported = side.submit(export_map, road_map, Path(out_dir), sorted(cameras)) if out_dir is not None else None
+        side.shutdown(wait=False)
+        metrics = finish_evaluation(evaluation)
+        evaluate_s = time.perf_counter() - start - train_s
+        files: dict[str, Path] = exported.result() if exported is not None else {}
+    except BaseException:  # a failed reconstruction leaves no queued background work (the worker retries)
+        side.shutdown(wait=False, cancel_futures=True)
+        if evaluation is not None:
+            evaluation.pool.shutdown(wait=False, cancel_futures=True)
+        raise
     metrics.update(
         ablation=ablation or "none",
         path="faithful" if faithful else "fast",

@@ -188,3 +188,30 @@ def test_metrics_from_points_located_ahead_of_time_match_the_direct_ones(scene, 
                                                                                rel=1e-5)
     direct = elev_mae_gt_cm(road_map, scene.gt)
     assert direct is not None and elev_mae_gt_cm(road_map, scene.gt, points.truth) == pytest.approx(direct, rel=1e-5)
+
+
+def test_a_failing_reconstruction_cancels_its_background_work(scene, monkeypatch):
+    import time
+
+    import mapping.map_metrics as map_metrics
+    import mapping.reconstruction as reconstruction
+
+    rendered = []
+    view_seen = map_metrics._view_seen
+
+    def slow_view(*args, **kwargs):
+        rendered.append(1)
+        time.sleep(0.2)
+        return view_seen(*args, **kwargs)
+
+    def broken(*args, **kwargs):
+        time.sleep(0.1)  # the evaluation has started its views
+        raise RuntimeError("colour fit failed")
+
+    monkeypatch.setattr(map_metrics, "_view_seen", slow_view)
+    monkeypatch.setattr(reconstruction, "_fit_colours", broken)
+    with pytest.raises(RuntimeError, match="colour fit failed"):
+        reconstruct(scene.keyframes[:24], scene.cameras, scene.trajectory, scene.lidar,
+                    CONFIG.model_copy(update={"epochs": 1}), scene.reference_height_m, None, progress=False)
+    time.sleep(1.5)  # long enough for every queued view to have rendered, had they not been cancelled
+    assert 0 < len(rendered) <= 2 * map_metrics.EVAL_THREADS
