@@ -12,6 +12,7 @@ from daemon.config import CarConfig
 from daemon.topics import camera_process
 
 Mode = Literal["live", "replay"]
+MAPPER_NICE = 10  # the mapper's CPU priority below the drivers' and the recorder's
 
 
 @dataclass(frozen=True)
@@ -24,6 +25,7 @@ class ProcessSpec:
     restart_on_success: bool = True  # False: a clean exit means "done" (replay at the end of its logs)
     stop_timeout_s: float = 10.0  # how long it may take to exit after SIGTERM
     start_after: tuple[str, ...] = ()  # processes that must be up (have published health) before it starts
+    nice: int = 0  # CPU priority below the others' by this much (`nice` increment)
 
 
 def process_table(
@@ -64,7 +66,8 @@ def process_table(
         table.append(ProcessSpec("recorder", "daemon.recorder", cfg + out + anchors + lossless, heartbeat_s=15.0,
                                  stop_timeout_s=30.0))
     if config.mapper.enabled:
+        # the log comes first: on a busy machine the drivers and the recorder get the CPU before the mapper
         table.append(ProcessSpec("mapper", "mapping.mapping_worker", cfg + out, heartbeat_s=120.0,
-                                 stop_timeout_s=map_stop_timeout_s, restart_on_success=False))
+                                 stop_timeout_s=map_stop_timeout_s, restart_on_success=False, nice=MAPPER_NICE))
     table.append(ProcessSpec("status", "daemon.status_server", cfg + out, heartbeat_s=0.0))
     return table

@@ -91,6 +91,8 @@ class Supervisor:
     # --- process control -----------------------------------------------------------------------
     def _start(self, child: Child) -> None:
         cmd = [sys.executable, "-m", child.spec.module, *child.spec.args]
+        if child.spec.nice:  # coreutils `nice` execs the process: its pid and parent stay the same
+            cmd = ["nice", "-n", str(child.spec.nice), *cmd]
         child.popen = subprocess.Popen(cmd, env=dict(self.env, **{RESTARTS_ENV: str(child.restarts)}))
         child.state = "running"
         child.started_at = time.monotonic()

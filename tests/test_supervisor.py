@@ -220,3 +220,18 @@ def test_process_table_live_and_replay(config):
                      for rate in ("max", "1.0")}
     assert "--lossless" in recorder_args["max"] and "--lossless" not in recorder_args["1.0"]
     assert "--lossless" not in next(p for p in live if p.name == "recorder").args
+    assert {p.name: p.nice for p in live if p.nice} == {"mapper": 10}  # the log before the map
+
+
+def test_a_process_runs_at_its_cpu_priority(config):
+    cfg, path = config
+    sup = Supervisor(cfg, [_spec("mapper", path, nice=7), _spec("recorder", path)], env=ENV)
+    thread = _run_in_thread(sup)
+    try:
+        _wait_for_health(cfg, ["mapper", "recorder"])
+        mine = os.getpriority(os.PRIO_PROCESS, 0)
+        priority = {n: os.getpriority(os.PRIO_PROCESS, sup.children[n].popen.pid) for n in ("mapper", "recorder")}
+        assert priority == {"mapper": min(19, mine + 7), "recorder": mine}
+    finally:
+        sup.stop_event.set()
+        thread.join(30)
