@@ -289,8 +289,3 @@ def finish_evaluation(pending: PendingEvaluation) -> dict:
             "elev_error_cm": pending.elev_error.result(),
             "elev_mae_gt_cm": pending.elev_mae.result(),
         }
-
-
-def evaluate_map(*args, **kwargs) -> dict:
-    """The paper's metrics and the truth's of a finished map (start_evaluation's arguments)."""
-    return finish_evaluation(start_evaluation(*args, **kwargs))
