@@ -11,6 +11,10 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+# A sensor stamp within this of its host arrival time is on the host's own monotonic clock (an OAK camera,
+# the time anchors): mapping.sensor_time takes it as it is, and a replay moves it with the host times.
+HOST_CLOCK_WITHIN_NS = 1_000_000_000
+
 Vec3 = tuple[float, float, float]
 
 

@@ -3,10 +3,13 @@
 Messages of one or many segments are played in log-time order, paced by their recorded log times
 (`--rate 1.0`, or any factor) or as fast as the consumers allow (`--rate max`: every publish is lossless,
 so it waits for registered lossless subscribers such as the mapping worker instead of overrunning them).
-Each message gets a fresh seq from the publisher and keeps its sensor_time_ns; its host_mono_ns is its
-recorded arrival time moved onto this host's clock (log time + the offset at the start), and the recorded
-monotonic/UTC time anchors are published the same way, so the relations between every sensor's clock and
-the host clock are those of the drive, at any rate: a consumer cannot tell replay from a live drive. Only
+Each message gets a fresh seq from the publisher; its host_mono_ns is its recorded arrival time moved
+onto this host's clock (log time + the offset at the start). A sensor's own stamps are kept, except those
+on the recording host's monotonic clock (a topic whose stamps lie within HOST_CLOCK_WITHIN_NS of their
+arrival: an OAK camera, the time anchors), which move with the host times: so the relations between every
+sensor's clock and the host clock are those of the drive, at any rate, and a consumer cannot tell replay
+from a live drive (kept as they were, a camera's stamps looked free-running and its frames were placed at
+their arrival, 35 ms late on the simulated drive: 0.35 m along the road). Only
 the drivers' topics and the time anchors are played: topics the car's topic table lacks and topics that
 live processes publish themselves (health, poses) are skipped and counted. Progress goes once a second,
 as JSON in `detail`, on the replay's health topic.
@@ -32,6 +35,7 @@ from daemon import bus
 from daemon.config import EXIT_CONFIG_ERROR, CarConfig, load_config_or_report
 from daemon.health import HealthCounters
 from daemon.log_format import LogRecord, ReadReport, read_log
+from daemon.messages import HOST_CLOCK_WITHIN_NS
 from daemon.process_table import process_table
 from daemon.topics import TIME_ANCHOR, health_topic, topic_table
 
@@ -209,6 +213,7 @@ def replay(config: CarConfig, paths: list[str | Path], *, rate: float | None = 1
     player = _Player(config, progress, lossless=rate is None, stop=stop)
     wall0 = time.monotonic_ns()
     shift = wall0 - start_ns  # recorded host times -> this host's clock
+    host_clocked: dict[str, bool] = {}  # per topic, from its first message: stamps on the recording host's clock
     try:
         for rec in merged_records(span, start_ns, end_ns, progress.report):
             if stop.is_set():
@@ -219,6 +224,9 @@ def replay(config: CarConfig, paths: list[str | Path], *, rate: float | None = 1
             else:
                 if rate is not None:
                     player.wait_until(wall0 + int((rec.log_time_ns - start_ns) / rate))
+                if host_clocked.setdefault(rec.topic,
+                                           abs(rec.message.sensor_time_ns - rec.log_time_ns) < HOST_CLOCK_WITHIN_NS):
+                    rec.message.sensor_time_ns += shift
                 if not player.publish(rec.topic, rec.message, rec.log_time_ns + shift):
                     break
             progress.reached_ns = rec.log_time_ns

@@ -16,7 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-HOST_SYNCED_WITHIN_NS = 1_000_000_000
+from daemon.messages import HOST_CLOCK_WITHIN_NS
+
 UTC_WITHIN_NS = 3600 * 1_000_000_000
 
 
@@ -51,7 +52,7 @@ def fit_clock(stamps_ns: np.ndarray, host_ns: np.ndarray, anchors: list[tuple[in
     """The map of one topic's stamps onto the host clock, from (stamp, host arrival) pairs and (mono, utc) anchors."""
     stamps = np.asarray(stamps_ns, np.int64)
     host = np.asarray(host_ns, np.int64)
-    if len(stamps) == 0 or np.median(np.abs(host - stamps)) < HOST_SYNCED_WITHIN_NS:
+    if len(stamps) == 0 or np.median(np.abs(host - stamps)) < HOST_CLOCK_WITHIN_NS:
         return ClockMap("host")
     if anchors:
         mono = np.array([a[0] for a in anchors], np.int64)

@@ -152,6 +152,32 @@ def test_a_recorded_drive_replays_unchanged(configs, tmp_path):
     assert detail["published_per_topic"][TIME_ANCHOR] >= 1 and detail["skipped_per_topic"][health_topic("recorder")]
 
 
+def test_stamps_on_the_recording_hosts_clock_move_with_the_host_times(configs, tmp_path):
+    """A camera stamped on the host's monotonic clock (captured 35 ms before its arrival) keeps that latency
+    after replay; a free-running IMU keeps its own stamps."""
+    config_path = configs(tmp_path)
+    config = load_config(config_path)
+    cam = camera_topic("front_wide")
+    t0 = 3_600_000_000_000  # the recording host's monotonic clock
+    recorded = []
+    for i in range(20):
+        arrival = t0 + i * 100_000_000
+        recorded.append((cam, CameraFrame(sensor_time_ns=arrival - 35_000_000, host_mono_ns=arrival,
+                                          camera="front_wide", data=bytes(100))))
+        recorded.append((IMU, ImuSample(sensor_time_ns=7_000 + i * 10_000, host_mono_ns=arrival + 1)))
+    log = write_log(tmp_path / "drive.mcap", config_path, recorded)
+    subs = {t: bus.open_subscriber(config, t, lossless=True, wait_s=0) for t in (cam, IMU)
+            if bus.open_publisher(config, t).close() is None}
+    proc = run_replay(config_path, [log], "--rate", "max")
+    got = collect(subs, {cam: 20, IMU: 20}, proc)
+    assert proc.wait(timeout=20) == 0, proc.stderr.read()
+    frames, samples = [m for _, m in got[cam]], [m for _, m in got[IMU]]
+    assert len(frames) == len(samples) == 20
+    assert {f.host_mono_ns - f.sensor_time_ns for f in frames} == {35_000_000}  # the capture-to-arrival latency
+    assert frames[0].host_mono_ns != t0  # on this host's clock now
+    assert [s.sensor_time_ns for s in samples] == [7_000 + i * 10_000 for i in range(20)]
+
+
 def bus_can_frame(i: int) -> CanFrame:
     return CanFrame(sensor_time_ns=i * 100 + 3, arbitration_id=0x100 + i % 7, channel="can0", data=bytes([i] * 8))
 
@@ -167,7 +193,8 @@ def test_max_rate_waits_for_a_slow_lossless_subscriber(configs, tmp_path):
     config_path = configs(tmp_path, ring_bytes={LIDAR_PACKETS: 300_000})  # room for ~11 packets
     config = load_config(config_path)
     rng = random.Random(6)
-    packets = [LidarPacket(i, 5_000 + i, 1_000_000 + 1_000 * i, "lidar", rng.randbytes(24_896)) for i in range(200)]
+    packets = [LidarPacket(i, 9_000_000_000 + i, 1_000_000 + 1_000 * i, "lidar", rng.randbytes(24_896))  # free-running
+               for i in range(200)]
     log = write_log(tmp_path / "a.mcap", config_path, [(LIDAR_PACKETS, p) for p in packets])
     bus.open_publisher(config, LIDAR_PACKETS).close()
     slow = bus.open_subscriber(config, LIDAR_PACKETS, lossless=True)
