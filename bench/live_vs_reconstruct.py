@@ -6,9 +6,11 @@ reconstruction's export), and measured with one code path: PSNR of their renderi
 mesh, per-camera colours) on road pixels at the reconstruction's held-out views (`psnr_db`: the live
 map trained on them, it holds none out) and at 12 views both trained on (`psnr_train_db`, the fair
 comparison), Elev-error (mean vertical distance from the recorded Lidar ground points to the raster
-surface) and the mean absolute elevation error against the simulator's true elevation, each over what
-both maps cover. `within_tolerance`: |gap| <= 0.5 dB (psnr_train_db) and 0.5 cm (both elevation
-figures). The reconstruction's own metrics (its renderer, its coverage) are printed beside them.
+surface), the mean absolute elevation error against the simulator's true elevation and the bird's-eye
+mIoU against its true semantic grid (every other 5 cm cell), each over what both maps cover.
+`within_tolerance`: |gap| <= 0.5 dB (psnr_train_db), 0.5 cm (both elevation figures) and 5 points of
+mIoU (the live map is made window by window). The reconstruction's own metrics (its renderer, its
+coverage) are printed beside them.
 Drives are cached under /tmp/maplab/.
 
     .venv/bin/python bench/live_vs_reconstruct.py [--quick] [--scenario city] [--seconds 10]
@@ -36,12 +38,13 @@ sys.path.insert(0, str(ROOT))
 
 from daemon.config import load_config  # noqa: E402
 from mapping.local_frame import LocalFrame  # noqa: E402
-from mapping.map_metrics import psnr_db  # noqa: E402
+from mapping.map_metrics import confusion, miou_pct, psnr_db  # noqa: E402
 from mapping.mesh_renderer import pixel_rays, rasterise, ray_triangle_weights, sampled_pixels, world_rays  # noqa: E402
 from mapping.reconstruct_command import DriveTruth, run_reconstruction  # noqa: E402
 from mapping.reconstruction import select_keyframes  # noqa: E402
+from mapping.road_map import NO_LABEL  # noqa: E402
 from mapping.scene_data import CameraModel, Keyframe  # noqa: E402
-from mapping.semantic_classes import ROAD_SURFACE_CLASSES  # noqa: E402
+from mapping.semantic_classes import NUM_MAP_CLASSES, ROAD_SURFACE_CLASSES  # noqa: E402
 
 _spec = importlib.util.spec_from_file_location("mapping_bench", Path(__file__).with_name("mapping.py"))
 mapping_bench = importlib.util.module_from_spec(_spec)  # its drive cache (simulated once, under /tmp/maplab)
@@ -51,7 +54,7 @@ HOLDOUT_EVERY = 10  # as `reconstruct` holds out its evaluation views
 STRIDE = 2  # views rendered at every 2nd pixel row and column, as map_metrics does
 VIEW_REACH_M = 35.0  # faces further from the camera are not drawn
 TRAIN_VIEWS = 12  # as map_metrics evaluates training views
-PSNR_TOLERANCE_DB, ELEV_TOLERANCE_CM = 0.5, 0.5
+PSNR_TOLERANCE_DB, ELEV_TOLERANCE_CM, MIOU_TOLERANCE_PCT = 0.5, 0.5, 5.0
 
 
 @dataclass(frozen=True)
@@ -59,6 +62,7 @@ class RasterMap:
     """A BEV map: cell (i, j) centred at (x0 + j*res, y0 + i*res) in the ENU frame `frame`."""
 
     elevation: np.ndarray
+    labels: np.ndarray  # (H, W) uint8 class ids, NO_LABEL where unmapped
     rgb: dict[str, np.ndarray]  # camera -> (H, W, 3) uint8
     origin_xy: tuple[float, float]
     resolution_m: float
@@ -73,8 +77,18 @@ class RasterMap:
         for cam in meta["cameras"]:
             image = cv2.imread(str(folder / f"bev_rgb_{cam}.png"), cv2.IMREAD_COLOR)
             rgb[cam] = np.flipud(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))  # the PNGs are north-up
-        return RasterMap(np.load(folder / "bev_elevation.npy"), rgb, tuple(meta["origin_xy"]),
-                         float(meta["resolution_m"]), frame)
+        return RasterMap(np.load(folder / "bev_elevation.npy"), np.load(folder / "bev_semantics.npy"), rgb,
+                         tuple(meta["origin_xy"]), float(meta["resolution_m"]), frame)
+
+    def label_at(self, enu: np.ndarray, frame: LocalFrame) -> np.ndarray:
+        """Class of the cell under each point given in `frame` (NO_LABEL outside the map)."""
+        own = self._into_own_frame(enu, frame)
+        f = np.rint((own[:, :2] - np.asarray(self.origin_xy)) / self.resolution_m).astype(int)
+        h, w = self.labels.shape
+        inside = (f[:, 1] >= 0) & (f[:, 0] >= 0) & (f[:, 1] < h) & (f[:, 0] < w)
+        out = np.full(len(enu), NO_LABEL, np.uint8)
+        out[inside] = self.labels[f[inside, 1], f[inside, 0]]
+        return out
 
     def height_above(self, enu: np.ndarray, frame: LocalFrame) -> np.ndarray:
         """Height of points given in `frame` above the bilinear surface (NaN where a neighbour cell is unmapped)."""
@@ -172,6 +186,13 @@ def compare(maps: dict[str, RasterMap], holdout: list[Keyframe], train: list[Key
     for name in maps:
         out[name]["elev_mae_gt_cm"] = float(100 * np.mean(np.abs(dz[name][both])))
         out[name]["truth_cells"] = int(both.sum())
+    # against the true semantic grid, the same cells
+    true_label = truth.semantic[ii, jj].ravel()
+    predicted = {name: m.label_at(cells, frame) for name, m in maps.items()}
+    labelled = (true_label < NUM_MAP_CLASSES) & np.logical_and.reduce([p < NUM_MAP_CLASSES
+                                                                       for p in predicted.values()])
+    for name in maps:
+        out[name]["miou_pct"] = miou_pct(confusion(predicted[name], true_label, labelled))
     return out
 
 
@@ -223,12 +244,12 @@ def main() -> int:
         figures = compare(maps, holdout, train, drive.cameras, drive.lidar_ground_points, truth)
 
     live, rec = figures["live"], figures["reconstruct"]
-    gaps = {f"{k}_gap": (live[k] - rec[k]) if live[k] is not None and rec[k] is not None else None
-            for k in ("psnr_db", "psnr_train_db", "elev_error_cm", "elev_mae_gt_cm")}
+    keys = ("psnr_db", "psnr_train_db", "elev_error_cm", "elev_mae_gt_cm", "miou_pct")
+    gaps = {f"{k}_gap": (live[k] - rec[k]) if live[k] is not None and rec[k] is not None else None for k in keys}
     within = (gaps["psnr_train_db_gap"] is not None and abs(gaps["psnr_train_db_gap"]) <= PSNR_TOLERANCE_DB
               and abs(gaps["elev_error_cm_gap"]) <= ELEV_TOLERANCE_CM
-              and abs(gaps["elev_mae_gt_cm_gap"]) <= ELEV_TOLERANCE_CM)
-    keys = ("psnr_db", "psnr_train_db", "elev_error_cm", "elev_mae_gt_cm")
+              and abs(gaps["elev_mae_gt_cm_gap"]) <= ELEV_TOLERANCE_CM
+              and gaps["miou_pct_gap"] is not None and abs(gaps["miou_pct_gap"]) <= MIOU_TOLERANCE_PCT)
     native = {k: result.metrics.get(k) for k in keys}
     print(f"{'':<14}" + "".join(f"{k:>16}" for k in keys))
     for name, f in [*figures.items(), ("reconstruct*", native)]:
