@@ -72,7 +72,7 @@ class RecorderProcess:
 
     def stop(self, sig=signal.SIGTERM) -> int:
         self.proc.send_signal(sig)
-        rc = self.proc.wait(timeout=20)
+        rc = self.proc.wait(timeout=60)  # draining takes up to DRAIN_LIMIT_S, then the closing fsync (slow disks)
         self.stderr = self.proc.stderr.read()
         self.health.close()
         return rc
