@@ -38,7 +38,7 @@ sys.path.insert(0, str(ROOT))
 
 from daemon.config import load_config  # noqa: E402
 from mapping.local_frame import LocalFrame  # noqa: E402
-from mapping.map_metrics import confusion, miou_pct, psnr_db  # noqa: E402
+from mapping.map_metrics import confusion, miou_pct, psnr_db, truth_cells  # noqa: E402
 from mapping.mesh_renderer import pixel_rays, rasterise, ray_triangle_weights, sampled_pixels, world_rays  # noqa: E402
 from mapping.reconstruct_command import DriveTruth, run_reconstruction  # noqa: E402
 from mapping.reconstruction import select_keyframes  # noqa: E402
@@ -175,19 +175,17 @@ def compare(maps: dict[str, RasterMap], holdout: list[Keyframe], train: list[Key
     for name in maps:
         out[name]["elev_error_cm"] = float(100 * np.mean(np.abs(dz[name][both])))
         out[name]["lidar_points"] = int(both.sum())
-    # against the true elevation, every other 5 cm cell
-    g = truth.elevation
-    ii, jj = np.mgrid[0:g.elevation_m.shape[0]:2, 0:g.elevation_m.shape[1]:2]
-    true_z = g.elevation_m[ii, jj].ravel()
-    cells = np.stack([g.origin_xy[0] + jj.ravel() * g.resolution_m, g.origin_xy[1] + ii.ravel() * g.resolution_m,
-                      np.nan_to_num(true_z)], 1)
+    # against the true elevation, at the truth metrics' cells (every other 5 cm cell)
+    rows, cols, xy = truth_cells(truth.elevation)
+    true_z = truth.elevation.elevation_m[rows, cols]
+    cells = np.concatenate([xy, np.nan_to_num(true_z)[:, None]], 1)
     dz = {name: m.height_above(cells, frame) for name, m in maps.items()}
     both = np.isfinite(true_z) & np.logical_and.reduce([np.isfinite(v) for v in dz.values()])
     for name in maps:
         out[name]["elev_mae_gt_cm"] = float(100 * np.mean(np.abs(dz[name][both])))
         out[name]["truth_cells"] = int(both.sum())
     # against the true semantic grid, the same cells
-    true_label = truth.semantic[ii, jj].ravel()
+    true_label = truth.semantic[rows, cols]
     predicted = {name: m.label_at(cells, frame) for name, m in maps.items()}
     labelled = (true_label < NUM_MAP_CLASSES) & np.logical_and.reduce([p < NUM_MAP_CLASSES
                                                                        for p in predicted.values()])

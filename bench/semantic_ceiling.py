@@ -23,7 +23,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mapping.map_metrics import confusion  # noqa: E402
+from mapping.map_metrics import confusion, truth_cells  # noqa: E402
 from mapping.reconstruct_command import DriveTruth  # noqa: E402
 from mapping.road_mesh import build_road_mesh, locate  # noqa: E402
 from mapping.scene_data import Trajectory  # noqa: E402
@@ -63,13 +63,10 @@ def vertex_labels(truth: DriveTruth, xy: np.ndarray, side_m: float, footprint: b
 def ceiling(truth: DriveTruth, trajectory: Trajectory, side_m: float, footprint: bool) -> dict:
     mesh = build_road_mesh(trajectory, HALF_WIDTH_M, side_m, 0.0)
     labels = vertex_labels(truth, mesh.xy, side_m, footprint)
-    g = truth.elevation
-    h, w = truth.semantic.shape
-    ii, jj = np.mgrid[0:h:2, 0:w:2]
-    xy = np.stack([g.origin_xy[0] + jj.ravel() * g.resolution_m, g.origin_xy[1] + ii.ravel() * g.resolution_m], 1)
+    rows, cols, xy = truth_cells(truth.elevation)  # the cells the bird's-eye mIoU is taken on
     ids, weights, ok = locate(mesh, xy)
     pred = (labels[ids[ok]] * weights[ok][..., None]).sum(1).argmax(1)
-    true = truth.semantic[ii.ravel()[ok], jj.ravel()[ok]]
+    true = truth.semantic[rows[ok], cols[ok]]
     valid = true < NUM_MAP_CLASSES
     conf = confusion(pred[valid], true[valid], np.ones(int(valid.sum()), bool))
     inter = np.diag(conf).astype(np.float64)

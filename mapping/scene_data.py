@@ -65,8 +65,3 @@ class GroundTruth:
     origin_xy: tuple[float, float]  # centre of cell (0, 0)
     resolution_m: float
     semantic: np.ndarray | None = None  # (H, W) uint8 class ids (>= NUM_MAP_CLASSES: no map class)
-
-    def cell_centres(self) -> np.ndarray:
-        h, w = self.elevation_m.shape
-        jj, ii = np.meshgrid(np.arange(w), np.arange(h))
-        return np.stack([self.origin_xy[0] + jj * self.resolution_m, self.origin_xy[1] + ii * self.resolution_m], -1)
