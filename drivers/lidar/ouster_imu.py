@@ -25,10 +25,12 @@ def imu_profile_supported(profile: str) -> bool:
     return profile == "LEGACY"
 
 
-def decode_imu_packet(payload: bytes | memoryview, host_mono_ns: int) -> ImuSample:
-    """One LEGACY IMU packet; ValueError for one of another size or with a value that is not finite."""
-    if len(payload) != LEGACY_IMU_BYTES:
-        raise ValueError(f"IMU datagram of {len(payload)} B (a LEGACY IMU packet is {LEGACY_IMU_BYTES} B)")
+def decode_imu_packet(payload: bytes | memoryview, host_mono_ns: int, size: int | None = None) -> ImuSample:
+    """One LEGACY IMU packet; ValueError for one of another size or with a value that is not finite. `size`:
+    the datagram's real length when `payload` may be cut short (a receive buffer's row)."""
+    size = len(payload) if size is None else size
+    if size != LEGACY_IMU_BYTES:
+        raise ValueError(f"IMU datagram of {size} B (a LEGACY IMU packet is {LEGACY_IMU_BYTES} B)")
     _, accel_ns, _, ax, ay, az, gx, gy, gz = LEGACY_IMU.unpack(payload)
     values = (ax, ay, az, gx, gy, gz)
     if not all(math.isfinite(v) for v in values):

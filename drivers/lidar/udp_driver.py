@@ -31,7 +31,7 @@ from daemon.health import HealthCounters
 from daemon.messages import LidarPacket
 from daemon.topics import LIDAR_IMU, LIDAR_PACKETS, health_topic
 from drivers.lidar.ouster_decoder import count_missing_packets, decode_packets, newest_packet, packet_sequence
-from drivers.lidar.ouster_imu import LEGACY_IMU_BYTES, decode_imu_packet, imu_profile_supported
+from drivers.lidar.ouster_imu import decode_imu_packet, imu_profile_supported
 from drivers.lidar.ouster_metadata import OusterMetadata, parse_metadata
 from drivers.lidar.ouster_packet_layout import OusterPacketLayout, packet_layout
 
@@ -233,12 +233,19 @@ def _handle_batch(buf: ReceiveBuffer, n: int, layout: OusterPacketLayout, prod_s
     health.dropped, health.sequence_gaps = loss.missing, loss.gaps
 
 
+def imu_port(config: LidarConfig, metadata: OusterMetadata) -> int | None:
+    """Where the driver listens for the sensor's IMU packets: the config's port, else the metadata's; None
+    when the config sets 0 (IMU off)."""
+    port = metadata.udp_port_imu if config.imu_port is None else config.imu_port
+    return port or None
+
+
 def _open_imu_socket(config: LidarConfig, metadata: OusterMetadata, stats: LidarDriverStats,
                      health: HealthCounters) -> socket.socket | None:
     """The IMU's socket, or None (off, an IMU profile without a decoder, or the port cannot be bound: the
     Lidar is recorded all the same, and the reason is reported)."""
-    port = metadata.udp_port_imu if config.imu_port is None else config.imu_port
-    if port == 0:
+    port = imu_port(config, metadata)
+    if port is None:
         return None
     if not imu_profile_supported(metadata.udp_profile_imu):
         stats.imu = f"not decoded: IMU profile {metadata.udp_profile_imu}"
@@ -262,11 +269,9 @@ def _handle_imu(sock: socket.socket, buf: ReceiveBuffer, publish: Publish, stats
     stats.imu_kernel_drops = seen.kernel_drops
     stats.socket_errors += seen.socket_errors
     for i in range(n):
-        size = int(buf.sizes[i])  # the datagram's real length: rows hold at most IMU_ROW_BYTES of it
-        try:
-            if size > buf.rows.shape[1]:
-                raise ValueError(f"IMU datagram of {size} B (a LEGACY IMU packet is {LEGACY_IMU_BYTES} B)")
-            sample = decode_imu_packet(buf.rows[i, :size].tobytes(), int(buf.arrival_ns[i]))
+        try:  # the row holds at most IMU_ROW_BYTES of the datagram; its real length is in sizes
+            sample = decode_imu_packet(buf.rows[i, :buf.sizes[i]].tobytes(), int(buf.arrival_ns[i]),
+                                       size=int(buf.sizes[i]))
         except ValueError as exc:
             stats.imu_rejected += 1
             health.rejected += 1

@@ -25,13 +25,14 @@ from pathlib import Path
 import can
 import numpy as np
 
-from daemon.config import CarConfig, LidarConfig, load_config, resolve_path
+from daemon.config import CarConfig, load_config, resolve_path
 from daemon.log_format import read_log, read_metadata
 from daemon.messages import CanFrame, GnssFix, ImuSample, LidarPacket
 from daemon.topics import CAN_FRAMES, GNSS_FIX, IMU, LIDAR_IMU, LIDAR_PACKETS
 from drivers.can.can_driver import open_can_bus
 from drivers.lidar.ouster_imu import encode_imu_packet
 from drivers.lidar.ouster_metadata import parse_metadata
+from drivers.lidar.udp_driver import imu_port
 from drivers.sim import gnss_sim, imu_sim
 from drivers.sim.sensor_clocks import ESF_TICK_NS
 from mapping.local_frame import LocalFrame
@@ -102,15 +103,6 @@ class _GnssBytes:
         return imu_sim.esf_raw_bytes(np.array(sample.accel_mps2), np.array(sample.gyro_rps), tick)
 
 
-def lidar_imu_port(config_path: Path, lidar: LidarConfig) -> int | None:
-    """Where the Lidar driver listens for the IMU (None: it does not): the config's port, else the sensor
-    metadata's."""
-    port = lidar.imu_port
-    if port is None:
-        port = parse_metadata(resolve_path(config_path, lidar.metadata_file)).udp_port_imu
-    return port or None
-
-
 def log_origin(drive_mcap: Path) -> int:
     """The host monotonic time at which the simulated drive started (its log's start_mono_ns)."""
     meta = read_metadata(drive_mcap).get("roadlog", {})
@@ -142,11 +134,8 @@ def run_live_drive(drive_mcap: Path, *, lidar_address: tuple[str, int] | None = 
             if time.monotonic_ns() - due > LATE_NS:
                 stats.late += 1
             try:
-                if record.topic == LIDAR_IMU:
-                    sock.sendto(encode_imu_packet(record.message), lidar_imu_address)
-                    stats.lidar_imu_packets += 1
-                else:
-                    _send(record.message, sock, lidar_address, gnss_fd, can_bus, gnss, stats)
+                _send(record.topic, record.message, sock, lidar_address, lidar_imu_address, gnss_fd, can_bus, gnss,
+                      stats)
             except (OSError, can.CanError) as exc:
                 stats.errors += 1
                 stats.last_error = f"{record.topic}: {exc}"
@@ -156,8 +145,12 @@ def run_live_drive(drive_mcap: Path, *, lidar_address: tuple[str, int] | None = 
     return stats
 
 
-def _send(message: object, sock, lidar_address, gnss_fd, can_bus, gnss: _GnssBytes, stats: LiveDriveStats) -> None:
-    if isinstance(message, LidarPacket):
+def _send(topic: str, message: object, sock, lidar_address, lidar_imu_address, gnss_fd, can_bus, gnss: _GnssBytes,
+          stats: LiveDriveStats) -> None:
+    if topic == LIDAR_IMU:  # an ImuSample too: the topic tells the Lidar's from the GNSS receiver's
+        sock.sendto(encode_imu_packet(message), lidar_imu_address)
+        stats.lidar_imu_packets += 1
+    elif isinstance(message, LidarPacket):
         sock.sendto(bytes(message.data), lidar_address)
         stats.lidar_packets += 1
     elif isinstance(message, GnssFix):
@@ -192,8 +185,9 @@ def main(argv: list[str] | None = None) -> int:
     pty = open_gnss_pty() if sensors.gnss is not None else None
     bus = open_can_bus(sensors.can) if sensors.can is not None else None
     lidar = ("127.0.0.1", sensors.lidar.port) if sensors.lidar is not None else None
-    imu_port = lidar_imu_port(args.config, sensors.lidar) if sensors.lidar is not None else None
-    lidar_imu = ("127.0.0.1", imu_port) if imu_port else None
+    port = None if sensors.lidar is None else imu_port(
+        sensors.lidar, parse_metadata(resolve_path(args.config, sensors.lidar.metadata_file)))
+    lidar_imu = ("127.0.0.1", port) if port else None
     if pty is not None:
         print(f"GNSS pseudo-terminal: {pty.path}", flush=True)
     try:
