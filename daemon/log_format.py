@@ -469,9 +469,10 @@ def read_log(paths: Iterable[str | Path] | str | Path, topics: Iterable[str] | N
     yield from heapq.merge(*iterators, key=lambda r: r.log_time_ns)
 
 
-def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
-    """The metadata records of one file (name -> key/value), also from a truncated file (scanned whole; a
-    closed file's are found through its summary)."""
+def read_metadata(path: str | Path, until: str | None = None) -> dict[str, dict[str, str]]:
+    """The metadata records of one file (name -> key/value), also from a truncated file (scanned, up to the
+    record named `until` if given: the writer puts METADATA_NAME first; a closed file's are found through
+    its summary)."""
     out: dict[str, dict[str, str]] = {}
     with open(path, "rb") as f:
         try:
@@ -489,6 +490,8 @@ def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
             for record in StreamReader(f, record_size_limit=1 << 31).records:
                 if type(record).__name__ == "Metadata":
                     out[record.name] = dict(record.metadata)
+                    if record.name == until:
+                        break
         except Exception:  # noqa: BLE001 - a truncated tail just ends the scan
             pass
     return out
@@ -498,7 +501,7 @@ def recover_log(src: str | Path, dst: str | Path, config: CarConfig) -> FileRepo
     """Rewrite a truncated file's complete records into a valid, closed file (with the source's own metadata:
     its config, host and start time); return what was kept."""
     report = ReadReport()
-    metadata = dict(read_metadata(src).get(METADATA_NAME, {}), recovered_from=str(src))
+    metadata = dict(read_metadata(src, until=METADATA_NAME).get(METADATA_NAME, {}), recovered_from=str(src))
     with LogWriter(dst, config, metadata=metadata) as writer:
         for rec in read_log([src], report=report):
             writer.write(rec.topic, rec.message)
