@@ -368,9 +368,9 @@ class MappingWorker:
         self.spool = KeyframeSpool(self.folder / "spool", topic_table(config), chunk_s=2.0)
         self.journal = self._load_journal()
         self.odometry_saved = len(self.journal["odometry_t"])  # knots already in the journal
-        self.odometry = Odometry(list(self.journal.get("odometry_t", [])), list(self.journal.get("odometry_s", [])),
-                                 self.journal.get("odometry_last_speed_mps", 0.0))
-        self.origin = LocalFrame(*self.journal["origin"]) if self.journal.get("origin") else None
+        self.odometry = Odometry(list(self.journal["odometry_t"]), list(self.journal["odometry_s"]),
+                                 self.journal["odometry_last_speed_mps"])
+        self.origin = LocalFrame(*self.journal["origin"]) if self.journal["origin"] else None
         self.lidar_meta = (parse_metadata(resolve_path(config_path, config.sensors.lidar.metadata_file))
                            if config.sensors.lidar is not None else None)
         last_seq, newest = self._restore_from_spool()
@@ -380,7 +380,7 @@ class MappingWorker:
         self._refill_small()
         self.state.windows_done = sum(1 for w in self.journal["windows"] if w["status"] == "done")
         self.state.windows_failed = sum(1 for w in self.journal["windows"] if w["status"] == "failed")
-        self.state.mapped_until_m = self.journal.get("mapped_until_m", 0.0)
+        self.state.mapped_until_m = self.journal["mapped_until_m"]
         self.live_view = None
         if self.mapper.live_view.enabled:
             try:
@@ -663,7 +663,7 @@ class MappingWorker:
         out.mkdir(parents=True, exist_ok=True)
         meta = {"windows": self.journal["windows"], "config": {"path": self.config_path,
                                                                 "sha256": self.config_sha256},
-                "distance_m": self.state.distance_m, "origin_lat_lon_alt": self.journal.get("origin")}
+                "distance_m": self.state.distance_m, "origin_lat_lon_alt": self.journal["origin"]}
         if map_tiles.tile_indices(self.tiles_dir):
             grid = map_tiles.write_mosaic_npy(self.tiles_dir, self.tile_cells, self.res,
                                               {"elevation": out / "bev_elevation.npy",

@@ -179,10 +179,10 @@ def view_geometry(road_map: RoadMap, faces: np.ndarray, keyframe: Keyframe, came
     vertices = np.concatenate([mesh.xy[used], road_map.z_now[used, None].astype(np.float64)], 1)
     face_grid = rasterise(vertices, local.reshape(-1, 3), camera, keyframe.T_world_camera, stride).ravel()
     hit = face_grid >= 0
-    pixels = sampled_pixels(camera, stride).ravel()[hit]
+    sampled = sampled_pixels(camera, stride)
     tri = tri_all[face_grid[hit]]
-    w = pixel_weights(road_map, keyframe, camera, pixels, tri, torch.from_numpy(road_map.z_now[tri]))
-    return ViewGeometry(sampled_pixels(camera, stride).shape, hit, tri, w)
+    w = pixel_weights(road_map, keyframe, camera, sampled.ravel()[hit], tri, torch.from_numpy(road_map.z_now[tri]))
+    return ViewGeometry(sampled.shape, hit, tri, w)
 
 
 @torch.no_grad()

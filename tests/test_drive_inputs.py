@@ -6,10 +6,11 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from daemon.config import load_config
+from daemon.config import ConfigError, load_config
+from daemon.log_format import LogWriter
 from mapping.drive_inputs import load_drive
 from mapping.lidar_ground import TILE_CELLS, GroundFilter, TrajectoryGround, ground_points
-from mapping.reconstruct_command import DriveTruth
+from mapping.reconstruct_command import DriveTruth, config_from_logs
 from mapping.trajectory import Trajectory
 from tests.daemon_fixtures import REPO
 
@@ -111,10 +112,6 @@ def test_ground_filter_keeps_the_road_and_drops_a_car_on_it():
 
 
 def test_recorded_config_brings_its_lidar_metadata_or_asks_for_a_config(drive, tmp_path):
-    from daemon.config import ConfigError
-    from daemon.log_format import LogWriter
-    from mapping.reconstruct_command import config_from_logs
-
     _, _, log = drive
     config, config_path = config_from_logs([str(log)])
     assert (config_path.parent / config.sensors.lidar.metadata_file).read_text().startswith("{")

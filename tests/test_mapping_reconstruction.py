@@ -1,10 +1,15 @@
+import time
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 import torch
 import trimesh
 
+import mapping.map_metrics as map_metrics
+import mapping.reconstruction as reconstruction
 from daemon.config import MapperConfig
-from mapping.map_metrics import elev_mae_gt_cm
+from mapping.map_metrics import MetricPoints, elev_error_cm, elev_mae_gt_cm
 from mapping.observation_fit import fit_elevation, semantic_logits_from_counts
 from mapping.reconstruction import reconstruct
 from mapping.road_map import ABLATIONS, new_road_map, variant_for
@@ -164,8 +169,6 @@ def test_rome_is_camera_only_but_its_elevation_is_still_measured_against_the_lid
 
 
 def test_inputs_still_loading_give_the_same_map_as_loaded_ones(scene):
-    from concurrent.futures import ThreadPoolExecutor
-
     cfg = CONFIG.model_copy(update={"epochs": 1})
     loaded = reconstruct(scene.keyframes[:24], scene.cameras, scene.trajectory, scene.lidar, cfg,
                          scene.reference_height_m, None, progress=False)
@@ -180,8 +183,6 @@ def test_inputs_still_loading_give_the_same_map_as_loaded_ones(scene):
 
 
 def test_metrics_from_points_located_ahead_of_time_match_the_direct_ones(scene, fast_run):
-    from mapping.map_metrics import MetricPoints, elev_error_cm
-
     road_map = fast_run[0].road_map
     points = MetricPoints.of(road_map.mesh, scene.lidar, scene.gt)  # x, y only: made before the fit
     assert elev_error_cm(road_map, scene.lidar, points.lidar) == pytest.approx(elev_error_cm(road_map, scene.lidar),
@@ -191,11 +192,6 @@ def test_metrics_from_points_located_ahead_of_time_match_the_direct_ones(scene, 
 
 
 def test_a_failing_reconstruction_cancels_its_background_work(scene, monkeypatch):
-    import time
-
-    import mapping.map_metrics as map_metrics
-    import mapping.reconstruction as reconstruction
-
     rendered = []
     view_seen = map_metrics._view_seen
 
