@@ -26,6 +26,7 @@ from tqdm import tqdm
 
 from daemon.config import MapperConfig
 from mapping import losses
+from mapping.lidar_detail import fit_lidar_detail
 from mapping.map_export import export_map
 from mapping.map_metrics import MetricPoints, PendingEvaluation, finish_evaluation, start_evaluation
 from mapping.mesh_renderer import pixel_rays, rasterise, ray_triangle_weights, world_rays
@@ -35,7 +36,7 @@ from mapping.road_mesh import RoadMesh, build_road_mesh, locate
 from mapping.row_sparse_adam import RowSparseAdam
 from mapping.scene_data import CameraModel, GroundTruth, Keyframe, Trajectory
 from mapping.semantic_classes import NUM_MAP_CLASSES
-from mapping.vertex_observations import VertexObservations, observe_keyframe
+from mapping.vertex_observations import MeshFootprint, VertexObservations, observe_keyframe
 
 
 @dataclass
@@ -57,6 +58,10 @@ class FastPathSettings:
     behind_m: float = 3.0  # a keyframe observes vertices from this far behind its trajectory point ...
     ahead_m: float = 12.0  # ... to this far ahead: far views blur. city31 (elevation fit as above): 20 m psnr
     # 27.72 dB, bird's-eye mIoU 78.4; 12 m 28.87 dB, 78.3; 8 m 28.29 dB, 77.4
+    lidar_detail_passes: int = 8  # Jacobi passes of the Lidar detail (mapping.lidar_detail); 0 = none.
+    # city10, bird's-eye mIoU: none 80.9 %; prior 0.3: 85.4, 0.1: 85.9, 0.03: 86.3; PSNR and Elev-error
+    # no worse (28.67 -> 28.65 dB, 0.62 -> 0.34 cm), MAE vs truth 1.60 -> 1.53 cm
+    lidar_detail_prior: float = 0.03  # points' worth of zero detail at each vertex
     colour_encoder_steps: int = 200  # joint encoder/decoder steps on a sample of vertices
     colour_refine_steps: int = 2  # full-batch steps on every code, decoders fixed (city31: 5 steps
     # 28.87 dB, 8.1 s; 2 steps 28.89 dB, 4.5 s)
@@ -255,12 +260,13 @@ def _observe(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, Camera
 
     def observe(keyframes: list[Keyframe]) -> VertexObservations:
         part = VertexObservations.empty(mesh.num_vertices, road_map.decoder.camera_names)
+        footprint = MeshFootprint.of(mesh.neighbours)
         for kf in keyframes:
             s = float(trajectory.along_track_at(kf.timestamp))
             a, b = np.searchsorted(windows.vertex_s, [s - fast.behind_m, s + fast.ahead_m])
             ids = windows.vertex_order[a:b]
             points = np.concatenate([mesh.xy[ids], road_map.z_now[ids, None].astype(np.float64)], 1)
-            observe_keyframe(part, ids, points, kf, cameras[kf.camera])
+            observe_keyframe(part, ids, points, kf, cameras[kf.camera], footprint)
             bar.update()
         return part
 
@@ -350,6 +356,13 @@ def reconstruct(
             started = time.perf_counter()
             elevation_first_last = _fit_elevation(road_map, supervision, config, fast, rng)
             timings["elevation_fit_wall_s"] = time.perf_counter() - started
+            if (road_map.elevation is not None and supervision is not None and len(supervision)
+                    and fast.lidar_detail_passes):
+                started = time.perf_counter()
+                detail = fit_lidar_detail(road_map.z_now, metric_points.result().lidar, supervision[:, 2],
+                                          fast.lidar_detail_passes, fast.lidar_detail_prior)
+                timings["lidar_detail_wall_s"] = time.perf_counter() - started
+                timings["lidar_detail_mean_cm"] = 100.0 * float(np.abs(detail).mean())
         selected = select_keyframes(_waited_for(keyframes, timings, "keyframes_wait_s"), trajectory,
                                     config.keyframe_spacing_m)
         holdout = [k for i, k in enumerate(selected) if holdout_every > 0 and i % holdout_every == holdout_every // 2]
