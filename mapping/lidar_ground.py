@@ -2,12 +2,12 @@
 
 Points are moved into the world frame column by column with the vehicle pose at each column's time
 (motion compensated). The ground filter keeps points within a height band around the trajectory's
-ground height under them, then, on a 0.5 m grid, only points close to the lowest point of their cell:
-points on cars and other things standing on the road are dropped. The trajectory's ground height is
-rasterised once per drive (TrajectoryGround): each `cell_m` cell within the corridor holds the height of
-the trajectory point nearest to the cell's centre, so that the filter looks each point up in its cell
-instead of searching for its nearest trajectory point (a k-d tree query per point cost 10 of the 24 s of
-loading a 31 s drive).
+ground height under them, then, on a 0.5 m grid, only points close to the lowest point of their cell
+or on a flat patch at most a curb's height above it: points on cars and other things standing on the
+road are dropped. The trajectory's ground height is rasterised once per drive (TrajectoryGround): each
+`ground_cell_m` cell within the corridor holds the height of the trajectory point nearest to the cell's
+centre, so that the filter looks each point up in its cell instead of searching for its nearest
+trajectory point (a k-d tree query per point cost 10 of the 24 s of loading a 31 s drive).
 """
 
 from __future__ import annotations
@@ -37,7 +37,15 @@ class GroundFilter:
     band_m: float = 0.35  # kept when within this of the trajectory ground height
     corridor_half_width_m: float = 15.0
     cell_m: float = 0.5
-    above_cell_min_m: float = 0.08  # kept when within this of the lowest point of its grid cell
+    above_cell_min_m: float = 0.08  # kept when within this of the lowest point of its grid cell ...
+    # ... or when on a flat raised patch: a `flat_cell_m` cell whose points (at least `flat_min_points`) lie
+    # within `flat_span_m` of each other, at most `raised_max_m` above the lowest point of the grid cell. A grid
+    # cell straddling a curb otherwise drops the curb top (15 cm above the gutter), which the Lidar detail
+    # needs; a car's side spans its whole height in any cell and is still dropped.
+    flat_cell_m: float = 0.25
+    flat_span_m: float = 0.04
+    flat_min_points: int = 4
+    raised_max_m: float = 0.2
     voxel_m: float = 0.1  # at most one point per voxel of this size (per scan)
     ground_cell_m: float = 0.25  # cell of the trajectory ground raster (TrajectoryGround)
 
@@ -156,9 +164,18 @@ def ground_points(world: np.ndarray, road: TrajectoryGround, settings: GroundFil
     pts = world[near]
     if len(pts) == 0:
         return pts
+    z = pts[:, 2]
     _, inverse = _first_per_cell(np.floor(pts[:, :2] / settings.cell_m).astype(np.int64))
     cell_min = np.full(inverse.max() + 1, np.inf)
-    np.minimum.at(cell_min, inverse, pts[:, 2])
-    pts = pts[pts[:, 2] - cell_min[inverse] < settings.above_cell_min_m]
+    np.minimum.at(cell_min, inverse, z)
+    low = cell_min[inverse]
+    _, fine = _first_per_cell(np.floor(pts[:, :2] / settings.flat_cell_m).astype(np.int64))
+    fine_min, fine_max = np.full(fine.max() + 1, np.inf), np.full(fine.max() + 1, -np.inf)
+    np.minimum.at(fine_min, fine, z)
+    np.maximum.at(fine_max, fine, z)
+    flat = ((fine_max - fine_min < settings.flat_span_m)
+            & (np.bincount(fine, minlength=len(fine_min)) >= settings.flat_min_points))[fine]
+    raised = flat & (fine_min[fine] - low < settings.raised_max_m)
+    pts = pts[(z - low < settings.above_cell_min_m) | raised]
     first, _ = _first_per_cell(np.floor(pts / settings.voxel_m).astype(np.int64))
     return pts[np.sort(first)]
