@@ -93,44 +93,52 @@ def bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return top * (1 - fv) + bottom * fv
 
 
-@dataclass
-class MeshFootprint:
-    """What reading labels over the vertices' footprints needs: the mesh's neighbour table and, for one
-    thread, a scratch array giving each vertex's slot in the keyframe being observed."""
-
-    neighbours: np.ndarray  # (N, 6) RoadMesh.neighbours
-    slot: np.ndarray  # (N,) int64 scratch
-
-    @staticmethod
-    def of(neighbours: np.ndarray) -> MeshFootprint:
-        return MeshFootprint(neighbours, np.zeros(len(neighbours), np.int64))
-
-
 HALF_EDGE_WEIGHT = 0.5  # the hat function half-way to a neighbour
 EDGE_DIRECTIONS = (1, 4, 5)  # RoadMesh.neighbours columns that name every undirected edge once
 
 
+@dataclass
+class MeshFootprint:
+    """What reading labels over the vertices' footprints needs: for each edge direction the neighbour of
+    every vertex (-1: none) and, for one thread, a scratch array giving each vertex's slot in the keyframe
+    being observed."""
+
+    edge_ends: list[np.ndarray]  # per EDGE_DIRECTIONS entry, (N,) int32 contiguous
+    slot: np.ndarray  # (N,) int64 scratch
+
+    @staticmethod
+    def of(neighbours: np.ndarray) -> MeshFootprint:
+        return MeshFootprint([np.ascontiguousarray(neighbours[:, d]) for d in EDGE_DIRECTIONS],
+                             np.zeros(len(neighbours), np.int64))
+
+
 def _label_at(keyframe: Keyframe, uv: np.ndarray) -> np.ndarray:
-    return keyframe.semantics[np.rint(uv[:, 1]).astype(np.int64), np.rint(uv[:, 0]).astype(np.int64)]
+    h, w = keyframe.semantics.shape
+    pixel = np.rint(uv[:, 1]).astype(np.int64) * w + np.rint(uv[:, 0]).astype(np.int64)
+    return keyframe.semantics.reshape(-1)[pixel]
 
 
 def _label_half_edges(obs: VertexObservations, ids: np.ndarray, uv: np.ndarray, ok: np.ndarray,
                       keyframe: Keyframe, footprint: MeshFootprint) -> None:
     """Labels half-way along every edge whose two ends the keyframe sees, half to each end. Over 10 cm the
     projection is affine to well under a pixel, so the half-way point projects half-way between the ends."""
+    seen = ids[ok]
     slot = footprint.slot
-    slot[ids] = np.arange(len(ids))
-    for direction in EDGE_DIRECTIONS:
-        j = footprint.neighbours[ids, direction]
-        k = slot[np.maximum(j, 0)]
-        k = np.where(k < len(ids), k, 0)
-        both = np.flatnonzero((j >= 0) & (ids[k] == j) & ok)
-        both = both[ok[k[both]]]
-        label = _label_at(keyframe, 0.5 * (uv[both] + uv[k[both]]))
+    slot[seen] = np.arange(len(seen))
+    uv_seen = uv[ok]
+    counts = obs.label_counts.reshape(-1)
+    classes = obs.label_counts.shape[1]
+    for ends in footprint.edge_ends:
+        j = ends[seen]
+        k = slot[j]  # j = -1 reads the last vertex's slot: rejected below as it is not -1
+        k = np.where(k < len(seen), k, 0)
+        both = np.flatnonzero(seen[k] == j)
+        k = k[both]
+        label = _label_at(keyframe, 0.5 * (uv_seen[both] + uv_seen[k]))
         good = label < NUM_MAP_CLASSES
-        a, b, label = ids[both[good]], j[both[good]], label[good].astype(np.int64)
-        obs.label_counts[a, label] += HALF_EDGE_WEIGHT  # within one direction both ends are unique
-        obs.label_counts[b, label] += HALF_EDGE_WEIGHT
+        label = label[good].astype(np.int64)
+        counts[seen[both[good]] * classes + label] += HALF_EDGE_WEIGHT  # within one direction both ends are
+        counts[j[both[good]] * classes + label] += HALF_EDGE_WEIGHT  # unique
 
 
 def observe_keyframe(obs: VertexObservations, ids: np.ndarray, points_world: np.ndarray, keyframe: Keyframe,
@@ -146,7 +154,7 @@ def observe_keyframe(obs: VertexObservations, ids: np.ndarray, points_world: np.
     ids, uv, label = ids[good], uv[good], label[good].astype(np.int64)
     if len(ids) == 0:
         return 0
-    obs.label_counts[ids, label] += 1.0  # ids are unique within one keyframe
+    obs.label_counts.reshape(-1)[ids * obs.label_counts.shape[1] + label] += 1.0  # ids are unique in a keyframe
     c = obs.camera_names.index(camera.name)
     obs.colour_sum[ids, c] += bilinear(keyframe.image, uv) / 255.0
     obs.colour_count[ids, c] += 1.0
