@@ -12,24 +12,38 @@ weights, solved by a few Jacobi passes; a vertex with few points keeps the smoot
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from mapping.map_metrics import Located
+
+THREADS = 2  # each pass's sums are split over the points: numpy's gathers and bincount run partly without
+# the GIL (city31's 3.4 M points: 0.51 -> 0.41 s a pass on a quiet machine, 1.15 -> 0.44 s on a busy one)
 
 
 def fit_lidar_detail(z: np.ndarray, located: Located, heights: np.ndarray, passes: int, prior: float) -> np.ndarray:
     """Add the detail to the vertex elevations `z` (N,) in place, for the Lidar ground points placed by
     `located` with heights `heights` (M,); returns the detail (N,)."""
-    ids, w = located.ids[located.inside], located.weights[located.inside]
-    target = heights[located.inside].astype(np.float32)
     n = len(z)
-    flat = ids.ravel()
-    support = np.bincount(flat, w.ravel(), minlength=n).astype(np.float32) + np.float32(prior)
-    detail = np.zeros(n, np.float32)
-    for _ in range(passes):
+    inside = np.flatnonzero(located.inside)
+    parts = [(located.ids[part], located.weights[part], heights[part].astype(np.float32))
+             for part in np.array_split(inside, THREADS)]
+
+    def support(part) -> np.ndarray:
+        ids, w, _ = part
+        return np.bincount(ids.ravel(), w.ravel(), minlength=n)
+
+    def pull(part) -> np.ndarray:
+        ids, w, target = part
         residual = target - (z[ids] * w).sum(1)
-        pull = np.bincount(flat, (w * residual[:, None]).ravel(), minlength=n).astype(np.float32)
-        step = (pull - np.float32(prior) * detail) / support
-        detail += step
-        z += step
+        return np.bincount(ids.ravel(), (w * residual[:, None]).ravel(), minlength=n)
+
+    detail = np.zeros(n, np.float32)
+    with ThreadPoolExecutor(THREADS, thread_name_prefix="lidar-detail") as pool:
+        total = (sum(pool.map(support, parts)) + prior).astype(np.float32)
+        for _ in range(passes):
+            step = ((sum(pool.map(pull, parts)) - prior * detail) / total).astype(np.float32)
+            detail += step
+            z += step
     return detail
