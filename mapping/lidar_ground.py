@@ -38,11 +38,10 @@ class GroundFilter:
     corridor_half_width_m: float = 15.0
     cell_m: float = 0.5
     above_cell_min_m: float = 0.08  # kept when within this of the lowest point of its grid cell ...
-    # ... or when on a flat raised patch: a `flat_cell_m` cell whose points (at least `flat_min_points`) lie
-    # within `flat_span_m` of each other, at most `raised_max_m` above the lowest point of the grid cell. A grid
-    # cell straddling a curb otherwise drops the curb top (15 cm above the gutter), which the Lidar detail
+    # ... or when on a flat raised patch: a quarter of the grid cell whose points (at least `flat_min_points`)
+    # lie within `flat_span_m` of each other, at most `raised_max_m` above the lowest point of the grid cell. A
+    # grid cell straddling a curb otherwise drops the curb top (15 cm above the gutter), which the Lidar detail
     # needs; a car's side spans its whole height in any cell and is still dropped.
-    flat_cell_m: float = 0.25
     flat_span_m: float = 0.04
     flat_min_points: int = 4
     raised_max_m: float = 0.2
@@ -155,6 +154,32 @@ def _first_per_cell(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return first, inverse.ravel()
 
 
+def _on_ground(pts: np.ndarray, settings: GroundFilter) -> np.ndarray:
+    """Which points are close to their grid cell's lowest point or on a flat raised quarter of the cell.
+    One sort serves both: the key orders points by grid cell, then by quarter within it."""
+    quarter = np.floor(pts[:, :2] / (0.5 * settings.cell_m)).astype(np.int64)
+    cell = quarter >> 1
+    key = ((cell[:, 0] + 1_000_001) * 2_000_003 + (cell[:, 1] + 1_000_001)) * 4 + (quarter[:, 0] & 1) * 2 + (
+        quarter[:, 1] & 1)
+    order = np.argsort(key, kind="stable")
+    key, z = key[order], pts[order, 2]
+
+    def runs(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # start of each run of equal keys, run of each
+        starts = np.flatnonzero(np.concatenate([[True], k[1:] != k[:-1]]))
+        return starts, np.repeat(np.arange(len(starts)), np.diff(np.append(starts, len(k))))
+
+    cell_starts, cell_of = runs(key >> 2)
+    low = np.minimum.reduceat(z, cell_starts)[cell_of]
+    q_starts, q_of = runs(key)
+    q_low, q_high = np.minimum.reduceat(z, q_starts), np.maximum.reduceat(z, q_starts)
+    q_count = np.diff(np.append(q_starts, len(z)))
+    flat = (q_high - q_low < settings.flat_span_m) & (q_count >= settings.flat_min_points)
+    raised = flat[q_of] & (q_low[q_of] - low < settings.raised_max_m)
+    keep = np.empty(len(z), bool)
+    keep[order] = (z - low < settings.above_cell_min_m) | raised
+    return keep
+
+
 def ground_points(world: np.ndarray, road: TrajectoryGround, settings: GroundFilter) -> np.ndarray:
     """The points of `world` that lie on the road surface (see the module docstring)."""
     if len(world) == 0:
@@ -164,18 +189,6 @@ def ground_points(world: np.ndarray, road: TrajectoryGround, settings: GroundFil
     pts = world[near]
     if len(pts) == 0:
         return pts
-    z = pts[:, 2]
-    _, inverse = _first_per_cell(np.floor(pts[:, :2] / settings.cell_m).astype(np.int64))
-    cell_min = np.full(inverse.max() + 1, np.inf)
-    np.minimum.at(cell_min, inverse, z)
-    low = cell_min[inverse]
-    _, fine = _first_per_cell(np.floor(pts[:, :2] / settings.flat_cell_m).astype(np.int64))
-    fine_min, fine_max = np.full(fine.max() + 1, np.inf), np.full(fine.max() + 1, -np.inf)
-    np.minimum.at(fine_min, fine, z)
-    np.maximum.at(fine_max, fine, z)
-    flat = ((fine_max - fine_min < settings.flat_span_m)
-            & (np.bincount(fine, minlength=len(fine_min)) >= settings.flat_min_points))[fine]
-    raised = flat & (fine_min[fine] - low < settings.raised_max_m)
-    pts = pts[(z - low < settings.above_cell_min_m) | raised]
+    pts = pts[_on_ground(pts, settings)]
     first, _ = _first_per_cell(np.floor(pts / settings.voxel_m).astype(np.int64))
     return pts[np.sort(first)]
