@@ -118,14 +118,13 @@ def _label_at(keyframe: Keyframe, uv: np.ndarray) -> np.ndarray:
     return keyframe.semantics.reshape(-1)[pixel]
 
 
-def _label_half_edges(obs: VertexObservations, ids: np.ndarray, uv: np.ndarray, ok: np.ndarray,
-                      keyframe: Keyframe, footprint: MeshFootprint) -> None:
-    """Labels half-way along every edge whose two ends the keyframe sees, half to each end. Over 10 cm the
-    projection is affine to well under a pixel, so the half-way point projects half-way between the ends."""
-    seen = ids[ok]
+def _label_half_edges(obs: VertexObservations, seen: np.ndarray, uv: np.ndarray, keyframe: Keyframe,
+                      footprint: MeshFootprint) -> None:
+    """Labels half-way along every edge whose two ends the keyframe sees (`seen`, at pixels `uv`), half to
+    each end. Over 10 cm the projection is affine to well under a pixel, so the half-way point projects
+    half-way between the ends."""
     slot = footprint.slot
     slot[seen] = np.arange(len(seen))
-    uv_seen = uv[ok]
     counts = obs.label_counts.reshape(-1)
     classes = obs.label_counts.shape[1]
     for ends in footprint.edge_ends:
@@ -134,7 +133,7 @@ def _label_half_edges(obs: VertexObservations, ids: np.ndarray, uv: np.ndarray, 
         k = np.where(k < len(seen), k, 0)
         both = np.flatnonzero(seen[k] == j)
         k = k[both]
-        label = _label_at(keyframe, 0.5 * (uv_seen[both] + uv_seen[k]))
+        label = _label_at(keyframe, 0.5 * (uv[both] + uv[k]))
         good = label < NUM_MAP_CLASSES
         label = label[good].astype(np.int64)
         counts[seen[both[good]] * classes + label] += HALF_EDGE_WEIGHT  # within one direction both ends are
@@ -146,9 +145,9 @@ def observe_keyframe(obs: VertexObservations, ids: np.ndarray, points_world: np.
     """Add one keyframe's view of the vertices `ids` (unique; world positions `points_world`), the labels
     over their footprints if `footprint` is given; returns how many vertices it labelled at their centre."""
     uv, ok = project_points(points_world, camera, keyframe.T_world_camera)
-    if footprint is not None:
-        _label_half_edges(obs, ids, uv, ok, keyframe, footprint)
     ids, uv = ids[ok], uv[ok]
+    if footprint is not None:
+        _label_half_edges(obs, ids, uv, keyframe, footprint)
     label = _label_at(keyframe, uv)
     good = label < NUM_MAP_CLASSES
     ids, uv, label = ids[good], uv[good], label[good].astype(np.int64)
