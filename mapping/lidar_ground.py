@@ -145,12 +145,17 @@ class TrajectoryGround:
         return out
 
 
-def _first_per_cell(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(first index, inverse) of the distinct rows of an int64 cell array, through one int64 key per row."""
+def _cell_key(cells: np.ndarray) -> np.ndarray:
+    """One int64 key per row of an int64 cell array, equal for equal rows and ordered as the rows."""
     key = np.zeros(len(cells), np.int64)
     for k in range(cells.shape[1]):
         key = key * 2_000_003 + (cells[:, k] + 1_000_001)
-    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+    return key
+
+
+def _first_per_cell(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(first index, inverse) of the distinct rows of an int64 cell array, through one int64 key per row."""
+    _, first, inverse = np.unique(_cell_key(cells), return_index=True, return_inverse=True)
     return first, inverse.ravel()
 
 
@@ -159,8 +164,7 @@ def _on_ground(pts: np.ndarray, settings: GroundFilter) -> np.ndarray:
     One sort serves both: the key orders points by grid cell, then by quarter within it."""
     quarter = np.floor(pts[:, :2] / (0.5 * settings.cell_m)).astype(np.int64)
     cell = quarter >> 1
-    key = ((cell[:, 0] + 1_000_001) * 2_000_003 + (cell[:, 1] + 1_000_001)) * 4 + (quarter[:, 0] & 1) * 2 + (
-        quarter[:, 1] & 1)
+    key = _cell_key(cell) * 4 + (quarter[:, 0] & 1) * 2 + (quarter[:, 1] & 1)
     order = np.argsort(key, kind="stable")
     key, z = key[order], pts[order, 2]
 
