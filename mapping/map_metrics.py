@@ -121,14 +121,8 @@ def truth_cells(gt: GroundTruth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 class MetricPoints:
     """Where the metrics read the map, located ahead of time: the Lidar ground points and the truth cells."""
 
-    lidar: Located | None
-    truth: Located | None
-
-    @staticmethod
-    def of(mesh: RoadMesh, lidar_points: np.ndarray | None, gt: GroundTruth | None) -> MetricPoints:
-        return MetricPoints(
-            Located.of(mesh, lidar_points[:, :2]) if lidar_points is not None and len(lidar_points) else None,
-            Located.of(mesh, truth_cells(gt)[2]) if gt is not None else None)
+    lidar: Located | None  # Located.of(mesh, the Lidar ground points' x, y)
+    truth: Located | None  # Located.of(mesh, truth_cells(gt)[2])
 
 
 def elev_error_cm(road_map: RoadMap, points: np.ndarray | None, located: Located | None = None) -> float | None:
@@ -249,8 +243,8 @@ def start_evaluation(
     """Start every part of the evaluation that needs only the final surface and semantics (the elevation
     figures, the bird's-eye mIoU, each view's render and semantic confusion) as tasks on a pool of
     EVAL_THREADS threads, the longest first: numpy and torch release the GIL in their array work (torch keeps
-    one intra-op thread: two spun against each other on this 2-core machine). `points`: MetricPoints.of(the
-    mesh, lidar_points, gt), if made (reconstruct locates them while it fits the elevation)."""
+    one intra-op thread: two spun against each other on this 2-core machine). `points`: the Lidar points and
+    truth cells placed on the mesh, if placed ahead of time (reconstruct does before the fits)."""
     windows = WindowIndex.of(road_map.mesh)
     mapped = (road_map.observed[road_map.mesh.faces] > 0).all(1)
     lidar_at, truth_at = (points.lidar, points.truth) if points is not None else (None, None)

@@ -20,8 +20,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from mapping.map_metrics import Located
 from mapping.road_map import RoadMap
-from mapping.road_mesh import locate
 from mapping.vertex_observations import VertexObservations
 
 LABEL_PRIOR = 0.1
@@ -35,11 +35,11 @@ def semantic_logits_from_counts(counts: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.log(p).astype(np.float32))
 
 
-def lidar_lattice_targets(road_map: RoadMap, points: np.ndarray, lattice_m: float):
+def lidar_lattice_targets(road_map: RoadMap, points: np.ndarray, located: Located, lattice_m: float):
     """Lattice nodes (K, 2 int) with Lidar ground points nearby, their mean residual target over z0 (K,),
-    their mean z0 (K,) and their point counts (K,)."""
-    ids, w, ok = locate(road_map.mesh, points[:, :2])
-    ids, w, p = ids[ok], w[ok], points[ok]
+    their mean z0 (K,) and their point counts (K,). `located`: the points placed on the mesh."""
+    ok = located.inside
+    ids, w, p = located.ids[ok], located.weights[ok], points[ok]
     z0 = (road_map.mesh.z0[ids] * w).sum(1)
     local = p[:, :2] - np.asarray(road_map.elevation.origin_xy)
     node = np.rint(local / lattice_m).astype(np.int64)
@@ -64,14 +64,14 @@ def _lattice_edges(nodes: np.ndarray) -> np.ndarray:
     return np.concatenate(out)
 
 
-def fit_elevation(road_map: RoadMap, points: np.ndarray, lattice_m: float, epochs: float, min_steps: int,
-                  batch: int, smooth_pairs: int, lr: float, w_elevation: float, w_smooth: float,
+def fit_elevation(road_map: RoadMap, points: np.ndarray, located: Located, lattice_m: float, epochs: float,
+                  min_steps: int, batch: int, smooth_pairs: int, lr: float, w_elevation: float, w_smooth: float,
                   rng: np.random.Generator) -> tuple[float, float]:
-    """Fit the residual MLP to the Lidar ground points (L1) with lattice smoothness, `epochs` passes over
-    the lattice nodes in minibatches of `batch` nodes and `smooth_pairs` neighbour pairs (at least
-    `min_steps` steps), the learning rate decaying from `lr` to 5 % of it along a cosine; returns the
-    weighted loss of the first and the last step."""
-    nodes, target, z0, _ = lidar_lattice_targets(road_map, points, lattice_m)
+    """Fit the residual MLP to the Lidar ground points (L1; `located`: the points placed on the mesh) with
+    lattice smoothness, `epochs` passes over the lattice nodes in minibatches of `batch` nodes and
+    `smooth_pairs` neighbour pairs (at least `min_steps` steps), the learning rate decaying from `lr` to 5 %
+    of it along a cosine; returns the weighted loss of the first and the last step."""
+    nodes, target, z0, _ = lidar_lattice_targets(road_map, points, located, lattice_m)
     steps = max(min_steps, int(np.ceil(epochs * len(nodes) / batch)))
     edges = _lattice_edges(nodes)
     xy = torch.from_numpy((nodes * lattice_m).astype(np.float32))

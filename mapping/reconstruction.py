@@ -28,7 +28,14 @@ from daemon.config import MapperConfig
 from mapping import losses
 from mapping.lidar_detail import fit_lidar_detail
 from mapping.map_export import export_map
-from mapping.map_metrics import MetricPoints, PendingEvaluation, finish_evaluation, start_evaluation
+from mapping.map_metrics import (
+    Located,
+    MetricPoints,
+    PendingEvaluation,
+    finish_evaluation,
+    start_evaluation,
+    truth_cells,
+)
 from mapping.mesh_renderer import pixel_rays, rasterise, ray_triangle_weights, world_rays
 from mapping.observation_fit import fit_colours, fit_elevation, semantic_logits_from_counts
 from mapping.road_map import RoadMap, WindowIndex, new_road_map, variant_for
@@ -239,14 +246,14 @@ def _batches(keyframes: list[Keyframe], trajectory: Trajectory, size: int) -> li
     return out
 
 
-def _fit_elevation(road_map: RoadMap, lidar: np.ndarray | None, config: MapperConfig,
+def _fit_elevation(road_map: RoadMap, lidar: np.ndarray | None, located: Located | None, config: MapperConfig,
                    fast: FastPathSettings, rng: np.random.Generator) -> tuple[float, float]:
     """The fast path's elevation: the residual MLP fitted to the Lidar lattice (mapping.observation_fit);
     the weighted loss of its first and last step."""
     if road_map.elevation is None or lidar is None or not len(lidar):
         return 0.0, 0.0
     lr, w = config.learning_rates, config.loss_weights
-    first_last = fit_elevation(road_map, lidar, fast.elevation_lattice_m, fast.elevation_epochs,
+    first_last = fit_elevation(road_map, lidar, located, fast.elevation_lattice_m, fast.elevation_epochs,
                                fast.elevation_min_steps, fast.elevation_batch, fast.elevation_smooth_pairs,
                                lr.elevation_mlp, w.elevation, w.smoothness, rng)
     road_map.refresh_elevation()
@@ -350,19 +357,22 @@ def reconstruct(
     timings: dict[str, float] = {"setup_wall_s": time.perf_counter() - start}
     lidar_ground_points = _waited_for(lidar_ground_points, timings, "lidar_wait_s")
     supervision = lidar_ground_points if variant.lidar_supervision else None
-    # the metrics' points are placed on the mesh beside the single-threaded fits (numpy releases the GIL)
+    # the truth cells are placed on the mesh beside the Lidar points (numpy releases the GIL), which the
+    # elevation fit, the Lidar detail and the metrics share
     side = ThreadPoolExecutor(1, thread_name_prefix="reconstruct-side")
     evaluation: PendingEvaluation | None = None
     try:
-        metric_points = side.submit(MetricPoints.of, mesh, lidar_ground_points, gt)
+        truth_at = side.submit(Located.of, mesh, truth_cells(gt)[2]) if gt is not None else None
+        have_lidar = lidar_ground_points is not None and len(lidar_ground_points) > 0
+        lidar_at = Located.of(mesh, lidar_ground_points[:, :2]) if have_lidar else None
         if not faithful:  # the elevation needs the Lidar only: it is fitted while the images may still be decoding
             started = time.perf_counter()
-            elevation_first_last = _fit_elevation(road_map, supervision, config, fast, rng)
+            elevation_first_last = _fit_elevation(road_map, supervision, lidar_at, config, fast, rng)
             timings["elevation_fit_wall_s"] = time.perf_counter() - started
             if (road_map.elevation is not None and supervision is not None and len(supervision)
                     and fast.lidar_detail_passes):
                 started = time.perf_counter()
-                detail = fit_lidar_detail(road_map.z_now, metric_points.result().lidar, supervision[:, 2],
+                detail = fit_lidar_detail(road_map.z_now, lidar_at, supervision[:, 2],
                                           fast.lidar_detail_passes, fast.lidar_detail_prior)
                 timings["lidar_detail_wall_s"] = time.perf_counter() - started
                 timings["lidar_detail_mean_cm"] = 100.0 * float(np.abs(detail).mean())
@@ -375,6 +385,7 @@ def reconstruct(
             raise ValueError("no training keyframes after selection")
         evaluation_args = (cameras, holdout, train, trajectory, lidar_ground_points, gt, config.window_before_m,
                            config.window_after_m)
+        metric_points = MetricPoints(lidar_at, truth_at.result() if truth_at is not None else None)
         if faithful:
             lidar_ids, lidar_z = lidar_vertex_targets(mesh, supervision)
             opt = _Optimisation(road_map, cameras, config, lidar_ids, lidar_z)
@@ -391,11 +402,11 @@ def reconstruct(
             if opt.semantic_opt is not None:
                 opt.semantic_opt.flush()
             road_map.refresh_elevation()
-            evaluation = start_evaluation(road_map, *evaluation_args, metric_points.result())
+            evaluation = start_evaluation(road_map, *evaluation_args, metric_points)
         else:
             obs = _observe(road_map, train, cameras, trajectory, fast, progress, timings)
             # surface and semantics are final: the evaluation renders its views beside the colour fit
-            evaluation = start_evaluation(road_map, *evaluation_args, metric_points.result())
+            evaluation = start_evaluation(road_map, *evaluation_args, metric_points)
             colour_first, colour_last = _fit_colours(road_map, obs, config, fast, rng, timings)
             w_rgb = config.loss_weights.rgb
             history = [elevation_first_last[0] + w_rgb * colour_first, elevation_first_last[1] + w_rgb * colour_last]

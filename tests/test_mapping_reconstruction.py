@@ -10,7 +10,7 @@ import mapping.map_metrics as map_metrics
 import mapping.reconstruction as reconstruction
 from daemon.config import MapperConfig
 from mapping.lidar_detail import fit_lidar_detail
-from mapping.map_metrics import Located, MetricPoints, elev_error_cm, elev_mae_gt_cm
+from mapping.map_metrics import Located, MetricPoints, elev_error_cm, elev_mae_gt_cm, truth_cells
 from mapping.observation_fit import fit_elevation, semantic_logits_from_counts
 from mapping.reconstruction import reconstruct
 from mapping.road_map import ABLATIONS, new_road_map, variant_for
@@ -208,7 +208,8 @@ def test_elevation_fit_to_the_lidar_lattice_recovers_the_crossfall(scene):
                       torch.Generator().manual_seed(0))
     rm.observed[:] = 1
     start_cm = elev_mae_gt_cm(rm, scene.gt)
-    first, last = fit_elevation(rm, scene.lidar, 0.5, 5.0, 100, 512, 128, 0.01, 1.0, 1.0, np.random.default_rng(0))
+    first, last = fit_elevation(rm, scene.lidar, Located.of(mesh, scene.lidar[:, :2]), 0.5, 5.0, 100, 512, 128, 0.01,
+                                1.0, 1.0, np.random.default_rng(0))
     rm.refresh_elevation()
     assert last < 0.5 * first
     assert start_cm > 5.0 and elev_mae_gt_cm(rm, scene.gt) < 0.4 * start_cm
@@ -239,7 +240,8 @@ def test_inputs_still_loading_give_the_same_map_as_loaded_ones(scene):
 
 def test_metrics_from_points_located_ahead_of_time_match_the_direct_ones(scene, fast_run):
     road_map = fast_run[0].road_map
-    points = MetricPoints.of(road_map.mesh, scene.lidar, scene.gt)  # x, y only: made before the fit
+    mesh = road_map.mesh  # x, y only: placed before the fit
+    points = MetricPoints(Located.of(mesh, scene.lidar[:, :2]), Located.of(mesh, truth_cells(scene.gt)[2]))
     assert elev_error_cm(road_map, scene.lidar, points.lidar) == pytest.approx(elev_error_cm(road_map, scene.lidar),
                                                                                rel=1e-5)
     direct = elev_mae_gt_cm(road_map, scene.gt)
