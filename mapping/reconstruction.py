@@ -55,7 +55,10 @@ class ReconstructionResult:
 
 @dataclass(frozen=True)
 class FastPathSettings:
-    elevation_lattice_m: float = 0.5  # residual MLP lattice; 0 = at every vertex
+    elevation_lattice_m: float = 1.0  # residual MLP lattice; 0 = at every vertex. The Lidar detail carries what
+    # is finer than the lattice: over seeds 0-2, 1.0 m against 0.5 m: city31 mIoU 89.70 / 89.70 %, PSNR 28.86 /
+    # 28.88 dB, MAE vs truth 1.351 / 1.347 cm; ramp30 89.82 / 89.92 %, 28.30 / 28.24 dB, 2.36 / 2.30 cm; the fit
+    # 5.1 s instead of 7.5 s on city31 (a quarter of the nodes: the minimum of 150 steps now sets its length)
     elevation_epochs: float = 5.0  # passes over the Lidar lattice nodes of the elevation fit (8 before the Lidar
     # detail: with it, 5 epochs give the same maps: city31 89.8 % / 28.90 dB / 0.43 cm, ramp30 89.9 % / 27.99 dB /
     # 0.73 cm / 2.30 cm vs truth, against 8 epochs' 89.8 / 28.97 / 0.43 and 89.9 / 28.03 / 0.73 / 2.29; 3 epochs
