@@ -14,7 +14,7 @@ from mapping.mesh_renderer import sampled_pixels
 from mapping.road_map import NO_LABEL, RoadMap, ViewGeometry, WindowIndex, view_geometry, view_labels, view_rgb
 from mapping.road_mesh import RoadMesh, locate
 from mapping.scene_data import CameraModel, GroundTruth, Keyframe, Trajectory
-from mapping.semantic_classes import NUM_MAP_CLASSES, ROAD_SURFACE_CLASSES
+from mapping.semantic_classes import NUM_MAP_CLASSES, ROAD_SURFACE_CLASSES, SemanticClass
 
 TRAIN_VIEWS_EVALUATED = 12
 HOLDOUT_VIEWS_EVALUATED = 36  # evenly spaced along the drive: evaluation costs the same on long drives
@@ -37,11 +37,16 @@ def confusion(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray, n: int = NU
     return np.bincount(t[keep] * n + p[keep], minlength=n * n).reshape(n, n)
 
 
-def miou_pct(conf: np.ndarray) -> float | None:
+def iou_pct(conf: np.ndarray) -> dict[str, float]:
+    """IoU (%) of each class present in the truth or the prediction of a confusion matrix, by class name."""
     inter = np.diag(conf).astype(np.float64)
     union = conf.sum(0) + conf.sum(1) - inter
-    present = union > 0
-    return float(100.0 * np.mean(inter[present] / union[present])) if present.any() else None
+    return {SemanticClass(c).name.lower(): float(100.0 * inter[c] / union[c]) for c in np.flatnonzero(union > 0)}
+
+
+def miou_pct(conf: np.ndarray) -> float | None:
+    per_class = iou_pct(conf)
+    return float(np.mean(list(per_class.values()))) if per_class else None
 
 
 LOCATE_CHUNK = 1 << 16  # points located at once ahead of time
@@ -160,9 +165,9 @@ def elev_mae_gt_cm(road_map: RoadMap, gt: GroundTruth | None, located: Located |
     return float(100.0 * np.mean(np.abs(z - true[known])))
 
 
-def bev_miou_pct(road_map: RoadMap, gt: GroundTruth | None, located: Located | None = None) -> float | None:
-    """mIoU (%) of the map's semantics against the true semantic grid (bird's-eye view), over the truth cells
-    (truth_cells) inside the reconstructed area with a map class."""
+def bev_confusion(road_map: RoadMap, gt: GroundTruth | None, located: Located | None = None) -> np.ndarray | None:
+    """Confusion (truth rows, map columns) of the map's semantics against the true semantic grid (bird's-eye
+    view), over the truth cells (truth_cells) inside the reconstructed area with a map class."""
     if gt is None or gt.semantic is None or road_map.semantic_logits is None:
         return None
     rows, cols, ids, w = _at_truth_cells(road_map, gt, located)
@@ -172,7 +177,7 @@ def bev_miou_pct(road_map: RoadMap, gt: GroundTruth | None, located: Located | N
         return None
     logits = road_map.semantic_logits.detach().numpy()
     pred = (logits[ids[valid]] * w[valid][..., None]).sum(1).argmax(1)
-    return miou_pct(confusion(pred, true[valid], np.ones(valid.sum(), bool)))
+    return confusion(pred, true[valid], np.ones(valid.sum(), bool))
 
 
 @dataclass(frozen=True)
@@ -219,11 +224,10 @@ class PendingEvaluation:
     """An evaluation started on its pool (start_evaluation) whose PSNRs wait for the map's colours."""
 
     road_map: RoadMap
-    gt: GroundTruth | None
     pool: ThreadPoolExecutor
     elev_error: Future
     elev_mae: Future
-    bev_miou: Future
+    bev_confusion: Future
     held: list[Future]  # of _ViewSeen, held-out views
     trained: list[Future]  # of _ViewSeen, training views
 
@@ -251,21 +255,22 @@ def start_evaluation(
     pool = ThreadPoolExecutor(EVAL_THREADS, thread_name_prefix="evaluate")
     elev_error = pool.submit(elev_error_cm, road_map, lidar_points, lidar_at)
     elev_mae = pool.submit(elev_mae_gt_cm, road_map, gt, truth_at)
-    bev_miou = pool.submit(bev_miou_pct, road_map, gt, truth_at)
+    bev = pool.submit(bev_confusion, road_map, gt, truth_at)
 
     def views(keyframes: list[Keyframe], count: int) -> list[Future]:
         return [pool.submit(_view_seen, road_map, cameras, kf, trajectory, window_before_m, window_after_m, windows,
                             mapped) for kf in _evenly(keyframes, count)]
 
-    return PendingEvaluation(road_map, gt, pool, elev_error, elev_mae, bev_miou,
+    return PendingEvaluation(road_map, pool, elev_error, elev_mae, bev,
                              views(holdout, HOLDOUT_VIEWS_EVALUATED), views(train, TRAIN_VIEWS_EVALUATED))
 
 
 def finish_evaluation(pending: PendingEvaluation) -> dict:
     """The metrics of a started evaluation, its views shaded with the map's colours as they are now.
     `miou_mask_pct` compares rendered semantics with the held-out frames' segmentation masks; `miou_pct` is
-    the bird's-eye mIoU against the true grid when the truth has one, else `miou_mask_pct`."""
-    road_map, gt = pending.road_map, pending.gt
+    the bird's-eye mIoU against the true grid when the truth has one, else `miou_mask_pct`; `iou_pct` holds
+    the per-class IoUs `miou_pct` is the mean of."""
+    road_map = pending.road_map
     with pending.pool as pool:
         def mean_psnr(views: list[Future]) -> float | None:
             shaded = [pool.submit(_view_psnr, road_map, view.result()) for view in views]
@@ -274,12 +279,15 @@ def finish_evaluation(pending: PendingEvaluation) -> dict:
 
         conf = sum((f.result().confusion for f in pending.held), np.zeros((NUM_MAP_CLASSES, NUM_MAP_CLASSES),
                                                                          np.int64))
-        miou_mask = miou_pct(conf) if road_map.semantic_logits is not None else None
+        labelled = road_map.semantic_logits is not None
+        bev = pending.bev_confusion.result()
+        scored = bev if bev is not None else conf
         return {
             "psnr_db": mean_psnr(pending.held),
             "psnr_train_db": mean_psnr(pending.trained),
-            "miou_pct": pending.bev_miou.result() if gt is not None and gt.semantic is not None else miou_mask,
-            "miou_mask_pct": miou_mask,
+            "miou_pct": miou_pct(scored) if labelled else None,
+            "iou_pct": iou_pct(scored) if labelled else None,
+            "miou_mask_pct": miou_pct(conf) if labelled else None,
             "elev_error_cm": pending.elev_error.result(),
             "elev_mae_gt_cm": pending.elev_mae.result(),
         }

@@ -98,7 +98,7 @@ def test_ablation_runs_report_what_they_lack(scene):
     cfg = CONFIG.model_copy(update={"epochs": 1})
     r = reconstruct(scene.keyframes[:24], scene.cameras, scene.trajectory, None, cfg, scene.reference_height_m,
                     None, ablation="no-semantics", progress=False)
-    assert r.metrics["miou_pct"] is None and r.metrics["elev_error_cm"] is None
+    assert r.metrics["miou_pct"] is None and r.metrics["iou_pct"] is None and r.metrics["elev_error_cm"] is None
     assert r.metrics["psnr_db"] is not None
 
 

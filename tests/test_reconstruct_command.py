@@ -23,6 +23,9 @@ def test_reconstruct_a_recorded_drive_against_its_truth(city_drive, tmp_path):
     # a 5 s drive maps worse than the 300 m drives of bench/RESULTS.md; these bounds catch a broken pipeline
     assert metrics["psnr_db"] > 20 and metrics["psnr_train_db"] > 20
     assert 40 < metrics["miou_pct"] <= 100 and 30 < metrics["miou_mask_pct"] <= 100  # bird's-eye vs truth, masks
+    per_class = metrics["iou_pct"]  # the classes the drive has, each scored; their mean is miou_pct
+    assert {"road", "lane_marking", "curb", "background"} <= set(per_class) and "obstacle" not in per_class
+    assert np.mean(list(per_class.values())) == metrics["miou_pct"] and per_class["road"] > 80
     assert metrics["elev_error_cm"] < 3 and metrics["elev_mae_gt_cm"] < 5
     assert metrics["drive_s"] > 4.5 and metrics["rtf"] == metrics["drive_s"] / metrics["wall_s"]
     assert metrics["inputs"]["keyframes"] > 0 and metrics["lidar_supervision"] is True
