@@ -19,6 +19,7 @@ from mapping.road_mesh import used_vertices
 from mapping.semantic_classes import CLASS_COLOURS
 
 _ROWS_PER_CHUNK = 256
+RASTER_THREADS = 2  # numpy and torch release the GIL in the blocks' array work
 
 
 def vertex_labels(road_map: RoadMap) -> np.ndarray:
@@ -39,7 +40,8 @@ def bev_rasters(road_map: RoadMap, cameras: list[str], resolution_m: float) -> d
     elevation = np.full((h, w), np.nan, np.float32)
     labels = np.full((h, w), NO_LABEL, np.uint8)
     rgb = {c: np.zeros((h, w, 3), np.uint8) for c in cameras}
-    for r0 in range(0, h, _ROWS_PER_CHUNK):
+
+    def fill(r0: int) -> None:  # one block of rows: the blocks write disjoint rows
         rows = np.arange(r0, min(h, r0 + _ROWS_PER_CHUNK))
         jj, ii = np.meshgrid(np.arange(w), rows)
         pts = np.stack([lo[0] + jj.ravel() * resolution_m, lo[1] + ii.ravel() * resolution_m], 1)
@@ -53,6 +55,9 @@ def bev_rasters(road_map: RoadMap, cameras: list[str], resolution_m: float) -> d
             labels[flat] = labels_v[ids[np.arange(len(ids)), wt.argmax(1)]]
         for c in cameras:
             rgb[c][flat] = np.clip((colours[c][ids] * wt[..., None]).sum(1) * 255 + 0.5, 0, 255).astype(np.uint8)
+
+    with ThreadPoolExecutor(RASTER_THREADS, thread_name_prefix="export-raster") as pool:
+        list(pool.map(fill, range(0, h, _ROWS_PER_CHUNK)))
     return {"origin_xy": (float(lo[0]), float(lo[1])), "elevation": elevation, "labels": labels, "rgb": rgb}
 
 
