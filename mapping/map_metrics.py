@@ -100,8 +100,9 @@ class Located:
 
     @staticmethod
     def of(mesh: RoadMesh, xy: np.ndarray) -> Located:
-        """In chunks: this runs beside the elevation fit, and numpy's fancy indexing holds the GIL for as long
-        as it runs (whole-array calls slowed the fit by 15 %)."""
+        """In chunks: this runs beside other threads' work (the image decoding, the other set of points), and
+        numpy's fancy indexing holds the GIL for as long as it runs (whole-array calls slowed the fit beside
+        them by 15 %)."""
         ids, w, ok = np.empty((len(xy), 3), np.int32), np.empty((len(xy), 3), np.float32), np.empty(len(xy), bool)
         for lo in range(0, len(xy), LOCATE_CHUNK):
             part = slice(lo, lo + LOCATE_CHUNK)
