@@ -81,14 +81,23 @@ class RasterMap:
                          tuple(meta["origin_xy"]), float(meta["resolution_m"]), frame)
 
     def label_at(self, enu: np.ndarray, frame: LocalFrame) -> np.ndarray:
-        """Class of the cell under each point given in `frame` (NO_LABEL outside the map)."""
+        """Class at each point given in `frame`: the class with the largest bilinear weight among the four cell
+        centres around it (NO_LABEL where one of them is unmapped). The nearest cell alone would place a label
+        up to half a cell off, and the maps' grids are offset differently from the truth's."""
         own = self._into_own_frame(enu, frame)
-        f = np.rint((own[:, :2] - np.asarray(self.origin_xy)) / self.resolution_m).astype(int)
+        f = (own[:, :2] - np.asarray(self.origin_xy)) / self.resolution_m
+        j0, i0 = np.floor(f[:, 0]).astype(int), np.floor(f[:, 1]).astype(int)
         h, w = self.labels.shape
-        inside = (f[:, 1] >= 0) & (f[:, 0] >= 0) & (f[:, 1] < h) & (f[:, 0] < w)
-        out = np.full(len(enu), NO_LABEL, np.uint8)
-        out[inside] = self.labels[f[inside, 1], f[inside, 0]]
-        return out
+        inside = (i0 >= 0) & (j0 >= 0) & (i0 < h - 1) & (j0 < w - 1)
+        i0, j0 = np.where(inside, i0, 0), np.where(inside, j0, 0)
+        fx, fy = f[:, 0] - j0, f[:, 1] - i0
+        votes, row = np.zeros((len(enu), NUM_MAP_CLASSES)), np.arange(len(enu))
+        for di, dj, weight in ((0, 0, (1 - fx) * (1 - fy)), (0, 1, fx * (1 - fy)), (1, 0, (1 - fx) * fy),
+                               (1, 1, fx * fy)):
+            label = self.labels[i0 + di, j0 + dj]
+            inside &= label < NUM_MAP_CLASSES
+            votes[row, np.minimum(label, NUM_MAP_CLASSES - 1)] += weight  # one cell per row: no repeats
+        return np.where(inside, votes.argmax(1), NO_LABEL).astype(np.uint8)
 
     def height_above(self, enu: np.ndarray, frame: LocalFrame) -> np.ndarray:
         """Height of points given in `frame` above the bilinear surface (NaN where a neighbour cell is unmapped)."""
