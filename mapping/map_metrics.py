@@ -136,14 +136,22 @@ def elev_error_cm(road_map: RoadMap, points: np.ndarray | None, located: Located
     perpendicular distance to the triangle under each point). `located`: the points' Located, if made."""
     if points is None or len(points) == 0:
         return None
-    ids, _, ok = located.observed(road_map) if located is not None else observed_triangles(road_map, points[:, :2])
+    ids, w, ok = located.observed(road_map) if located is not None else observed_triangles(road_map, points[:, :2])
     if not ok.any():
         return None
-    ids, p = ids[ok], points[ok]
-    v = np.concatenate([road_map.mesh.xy[ids], road_map.z_now[ids][..., None]], -1)
-    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    return float(100.0 * np.mean(np.abs(np.einsum("ij,ij->i", p - v[:, 0], n))))
+    ids, w, p = ids[ok], w[ok], points[ok]
+    z = road_map.z_now
+    z0, z1, z2 = z[ids[:, 0]], z[ids[:, 1]], z[ids[:, 2]]
+    # a point's x, y lie on its triangle, so its distance to the triangle's plane is its height above the surface
+    # times |n_z| / |n| of the triangle's normal n (as a cross product of its edges: 2x fewer operations than
+    # the point-to-plane product with the normal normalised per point; ramp30's 4.5 M points 2.4 -> 1.2 s)
+    gap = p[:, 2] - (z0 * w[:, 0] + z1 * w[:, 1] + z2 * w[:, 2])
+    xy = road_map.mesh.xy
+    a = xy[ids[:, 0]]
+    e1, e2, dz1, dz2 = xy[ids[:, 1]] - a, xy[ids[:, 2]] - a, z1 - z0, z2 - z0
+    nx, ny = e1[:, 1] * dz2 - dz1 * e2[:, 1], dz1 * e2[:, 0] - e1[:, 0] * dz2
+    nz = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    return float(100.0 * np.mean(np.abs(gap) * np.abs(nz) / np.sqrt(nx * nx + ny * ny + nz * nz)))
 
 
 def _at_truth_cells(road_map: RoadMap, gt: GroundTruth, located: Located | None):

@@ -238,6 +238,21 @@ def test_inputs_still_loading_give_the_same_map_as_loaded_ones(scene):
     assert "keyframes_wait_s" in loading.metrics and "keyframes_wait_s" not in loaded.metrics
 
 
+def test_elev_error_is_the_perpendicular_distance_to_a_sloping_surface(scene):
+    mesh = build_road_mesh(scene.trajectory, 5.0, 0.2, scene.reference_height_m)
+    rm = new_road_map(mesh, variant_for(None), sorted(scene.cameras), 32, 2, 16, 22, 8, 128, 40.0, 0.5,
+                      torch.Generator().manual_seed(0))
+    rm.observed[:] = 1
+    rm.z_now[:] = 0.3 * mesh.xy[:, 0] - 0.4 * mesh.xy[:, 1]  # a plane: 50 % slope
+    rng = np.random.default_rng(0)
+    xy = mesh.xy[rng.choice(mesh.num_vertices, 2000)] + rng.uniform(-0.05, 0.05, (2000, 2))
+    height = rng.choice([-0.02, 0.02], 2000)  # 2 cm above or below, vertically
+    points = np.column_stack([xy, 0.3 * xy[:, 0] - 0.4 * xy[:, 1] + height])
+    expected = 2.0 / np.sqrt(1 + 0.3**2 + 0.4**2)  # cm, perpendicular to the plane
+    assert elev_error_cm(rm, points) == pytest.approx(expected, rel=1e-3)
+    assert elev_error_cm(rm, points, Located.of(mesh, xy)) == pytest.approx(expected, rel=1e-3)
+
+
 def test_metrics_from_points_located_ahead_of_time_match_the_direct_ones(scene, fast_run):
     road_map = fast_run[0].road_map
     mesh = road_map.mesh  # x, y only: placed before the fit
