@@ -39,7 +39,7 @@ from mapping.map_metrics import (
 from mapping.mesh_renderer import pixel_rays, rasterise, ray_triangle_weights, world_rays
 from mapping.observation_fit import fit_colours, fit_elevation, semantic_logits_from_counts
 from mapping.road_map import RoadMap, WindowIndex, new_road_map, variant_for
-from mapping.road_mesh import RoadMesh, build_road_mesh, locate
+from mapping.road_mesh import RoadMesh, build_road_mesh
 from mapping.row_sparse_adam import RowSparseAdam
 from mapping.scene_data import CameraModel, GroundTruth, Keyframe, Trajectory
 from mapping.semantic_classes import NUM_MAP_CLASSES
@@ -96,12 +96,14 @@ def select_keyframes(keyframes: list[Keyframe], trajectory: Trajectory, spacing_
     return kept
 
 
-def lidar_vertex_targets(mesh: RoadMesh, points: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """Mean height of the Lidar ground points nearest to each vertex: (vertex ids, z targets)."""
+def lidar_vertex_targets(mesh: RoadMesh, points: np.ndarray | None,
+                         located: Located | None) -> tuple[np.ndarray, np.ndarray]:
+    """Mean height of the Lidar ground points nearest to each vertex: (vertex ids, z targets). `located`: the
+    points placed on the mesh."""
     if points is None or len(points) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.float32)
-    ids, w, ok = locate(mesh, points[:, :2])
-    nearest = ids[ok, np.argmax(w[ok], 1)]
+    ok = located.inside
+    nearest = located.ids[ok, np.argmax(located.weights[ok], 1)].astype(np.int64)
     count = np.bincount(nearest, minlength=mesh.num_vertices)
     total = np.bincount(nearest, weights=points[ok, 2], minlength=mesh.num_vertices)
     have = np.nonzero(count)[0]
@@ -390,7 +392,7 @@ def reconstruct(
                            config.window_after_m)
         metric_points = MetricPoints(lidar_at, truth_at.result() if truth_at is not None else None)
         if faithful:
-            lidar_ids, lidar_z = lidar_vertex_targets(mesh, supervision)
+            lidar_ids, lidar_z = lidar_vertex_targets(mesh, supervision, lidar_at)
             opt = _Optimisation(road_map, cameras, config, lidar_ids, lidar_z)
             batches = _batches(train, trajectory, config.batch_size)
             with tqdm(total=config.epochs * len(batches), desc="emie-map", disable=not progress, unit="step") as bar:
