@@ -84,16 +84,9 @@ class RasterMap:
         """Class at each point given in `frame`: the class with the largest bilinear weight among the four cell
         centres around it (NO_LABEL where one of them is unmapped). The nearest cell alone would place a label
         up to half a cell off, and the maps' grids are offset differently from the truth's."""
-        own = self._into_own_frame(enu, frame)
-        f = (own[:, :2] - np.asarray(self.origin_xy)) / self.resolution_m
-        j0, i0 = np.floor(f[:, 0]).astype(int), np.floor(f[:, 1]).astype(int)
-        h, w = self.labels.shape
-        inside = (i0 >= 0) & (j0 >= 0) & (i0 < h - 1) & (j0 < w - 1)
-        i0, j0 = np.where(inside, i0, 0), np.where(inside, j0, 0)
-        fx, fy = f[:, 0] - j0, f[:, 1] - i0
+        _, i0, j0, inside, corners = self._cells_around(enu, frame)
         votes, row = np.zeros((len(enu), NUM_MAP_CLASSES)), np.arange(len(enu))
-        for di, dj, weight in ((0, 0, (1 - fx) * (1 - fy)), (0, 1, fx * (1 - fy)), (1, 0, (1 - fx) * fy),
-                               (1, 1, fx * fy)):
+        for di, dj, weight in corners:
             label = self.labels[i0 + di, j0 + dj]
             inside &= label < NUM_MAP_CLASSES
             votes[row, np.minimum(label, NUM_MAP_CLASSES - 1)] += weight  # one cell per row: no repeats
@@ -101,6 +94,14 @@ class RasterMap:
 
     def height_above(self, enu: np.ndarray, frame: LocalFrame) -> np.ndarray:
         """Height of points given in `frame` above the bilinear surface (NaN where a neighbour cell is unmapped)."""
+        own, i0, j0, inside, corners = self._cells_around(enu, frame)
+        z = sum(weight * self.elevation[i0 + di, j0 + dj] for di, dj, weight in corners)
+        return np.where(inside, own[:, 2] - z, np.nan)
+
+    def _cells_around(self, enu: np.ndarray, frame: LocalFrame):
+        """Points given in `frame` in this map's frame (M, 3), the row and column of the cell centre below and
+        left of each (clamped to 0 outside), whether all four centres around it are in the rasters, and the four
+        corners as (row offset, column offset, bilinear weight)."""
         own = self._into_own_frame(enu, frame)
         f = (own[:, :2] - np.asarray(self.origin_xy)) / self.resolution_m
         j0, i0 = np.floor(f[:, 0]).astype(int), np.floor(f[:, 1]).astype(int)
@@ -108,10 +109,8 @@ class RasterMap:
         inside = (i0 >= 0) & (j0 >= 0) & (i0 < h - 1) & (j0 < w - 1)
         i0, j0 = np.where(inside, i0, 0), np.where(inside, j0, 0)
         fx, fy = f[:, 0] - j0, f[:, 1] - i0
-        e = self.elevation
-        z = ((1 - fx) * (1 - fy) * e[i0, j0] + fx * (1 - fy) * e[i0, j0 + 1]
-             + (1 - fx) * fy * e[i0 + 1, j0] + fx * fy * e[i0 + 1, j0 + 1])
-        return np.where(inside, own[:, 2] - z, np.nan)
+        corners = ((0, 0, (1 - fx) * (1 - fy)), (0, 1, fx * (1 - fy)), (1, 0, (1 - fx) * fy), (1, 1, fx * fy))
+        return own, i0, j0, inside, corners
 
     def _into_own_frame(self, enu: np.ndarray, frame: LocalFrame) -> np.ndarray:
         return enu if frame == self.frame else self.frame.geodetic_to_enu(*frame.enu_to_geodetic(enu))
