@@ -200,13 +200,20 @@ def test_lidar_detail_puts_a_curb_step_into_the_smooth_surface():
     assert np.abs(z[road]).max() < 0.03 and np.abs(z[curb] - 0.15).max() < 0.03
 
 
-def test_elevation_fit_to_the_lidar_lattice_recovers_the_crossfall(scene):
-    torch.set_num_threads(1)  # as the fast path runs it (see FastPathSettings.threads)
-    torch.manual_seed(0)
+def _observed_map(scene):
+    """An untrained road map over the scene's 5 m corridor (0.2 m mesh), every vertex marked observed."""
     mesh = build_road_mesh(scene.trajectory, 5.0, 0.2, scene.reference_height_m)
     rm = new_road_map(mesh, variant_for(None), sorted(scene.cameras), 32, 2, 16, 22, 8, 128, 40.0, 0.5,
                       torch.Generator().manual_seed(0))
     rm.observed[:] = 1
+    return rm
+
+
+def test_elevation_fit_to_the_lidar_lattice_recovers_the_crossfall(scene):
+    torch.set_num_threads(1)  # as the fast path runs it (see FastPathSettings.threads)
+    torch.manual_seed(0)
+    rm = _observed_map(scene)
+    mesh = rm.mesh
     start_cm = elev_mae_gt_cm(rm, scene.gt)
     first, last = fit_elevation(rm, scene.lidar, Located.of(mesh, scene.lidar[:, :2]), 0.5, 5.0, 100, 512, 128, 0.01,
                                 1.0, 1.0, np.random.default_rng(0))
@@ -239,10 +246,8 @@ def test_inputs_still_loading_give_the_same_map_as_loaded_ones(scene):
 
 
 def test_elev_error_is_the_perpendicular_distance_to_a_sloping_surface(scene):
-    mesh = build_road_mesh(scene.trajectory, 5.0, 0.2, scene.reference_height_m)
-    rm = new_road_map(mesh, variant_for(None), sorted(scene.cameras), 32, 2, 16, 22, 8, 128, 40.0, 0.5,
-                      torch.Generator().manual_seed(0))
-    rm.observed[:] = 1
+    rm = _observed_map(scene)
+    mesh = rm.mesh
     rm.z_now[:] = 0.3 * mesh.xy[:, 0] - 0.4 * mesh.xy[:, 1]  # a plane: 50 % slope
     rng = np.random.default_rng(0)
     xy = mesh.xy[rng.choice(mesh.num_vertices, 2000)] + rng.uniform(-0.05, 0.05, (2000, 2))
