@@ -192,7 +192,7 @@ def test_read_timeout_and_waiting_for_the_ring(config):
     assert sub.read(5).seq == 0
     t0 = time.monotonic()
     assert sub.read(0.15) is None
-    assert 0.14 <= time.monotonic() - t0 < 0.5
+    assert 0.14 <= time.monotonic() - t0 < 1.0
 
 
 def _latency_probe(config, results) -> None:

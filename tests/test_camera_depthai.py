@@ -135,7 +135,9 @@ def test_raw_frames_through_a_host_only_pipeline(tmp_path):
         assert f.format == "bgr8" and (f.width, f.height) == (W, H)
         image = raw_frame_image(f)
         assert int(np.argmax(image[H // 2, :240, 1].reshape(-1, 30).mean(axis=1))) == i
-        assert 0 <= at - f.sensor_time_ns < 100_000_000  # host monotonic clock, received soon after
+        # On the host's monotonic clock (not the device's or UTC): received after it was stamped, within a
+        # second (a loaded CI machine delayed one frame 113 ms; a clock mix-up would be off by hours).
+        assert 0 <= at - f.sensor_time_ns < 1_000_000_000
     stamps = np.diff([f.sensor_time_ns for f, _ in frames]) / 1e6
     assert np.median(stamps) == pytest.approx(100, abs=10)
 

@@ -86,7 +86,7 @@ def test_sim_camera_process_plays_its_log_onto_the_bus(tmp_path):
     assert [f.seq for f in frames] == list(range(N))
     assert [f.sensor_time_ns - frames[0].sensor_time_ns for f in frames] == [i * PERIOD_NS for i in range(N)]
     assert [m.sensor_time_ns for m in masks] == [f.sensor_time_ns for f in frames]
-    assert all(0 <= f.host_mono_ns - f.sensor_time_ns < 150_000_000 for f in frames)
+    assert all(0 <= f.host_mono_ns - f.sensor_time_ns < 1_000_000_000 for f in frames)  # host clock, after stamping
     levels = [int(cv2.imdecode(np.frombuffer(f.data, np.uint8), cv2.IMREAD_GRAYSCALE).mean()) for f in frames]
     assert all(abs(level - 20 * i) <= 2 for i, level in enumerate(levels))
     assert health and health[-1].process == "camera_front_left" and health[-1].published == 2 * N

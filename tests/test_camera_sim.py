@@ -79,7 +79,8 @@ def test_frames_and_masks_of_one_camera_at_real_rate(drive):
                                             "health/camera_front_left"}
     for i, ((f, at), (m, _)) in enumerate(zip(frames, masks, strict=True)):
         assert f.sensor_time_ns == start + i * PERIOD_NS == m.sensor_time_ns  # on the host monotonic clock
-        assert 0 <= at - f.sensor_time_ns < 150_000_000  # delivered when due, not before
+        # delivered when due, not before; later than two periods it would have been dropped (margin for a loaded CI)
+        assert 0 <= at - f.sensor_time_ns < 300_000_000
         assert f.format == "jpeg" and f.camera == "front_left" and f.seq == 0 and f.host_mono_ns == 0
         assert column(cv2.imdecode(np.frombuffer(f.data, np.uint8), cv2.IMREAD_COLOR)) == i
         assert (cv2.imdecode(np.frombuffer(m.data, np.uint8), cv2.IMREAD_UNCHANGED) == i % 7).all()
