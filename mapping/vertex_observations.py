@@ -7,11 +7,14 @@ cross-entropy summed over a vertex's observations is minimised by the log of its
 read over the vertex's footprint when the mesh's neighbours are given: the label at the vertex (weight 1)
 and half-way to each of its six neighbours (weight 1/2), its hat function sampled on the half-edge lattice,
 as the paper's per-pixel loss spreads a pixel's label over the three vertices of the triangle it sees
-(a boundary then falls between vertices where the labels change, not on the nearest vertex), and, per
-camera, the sum and count of the colours it was seen with (the targets the colour codes and
-the camera decoders are fitted to). Pixels the mask marks as obstacles or unlabelled are not used, so
-cars never reach the map. Every pixel near the vertex counts through the bilinear read; each vertex is
-seen from many keyframes at different sub-pixel positions, which averages out image noise.
+(a boundary then falls between vertices where the labels change, not on the nearest vertex). A view's labels
+count less where its pixel covers more ground along the line of sight than `label_sharp_m` (a camera 1.5 m up
+with f = 1000 px covers 1.7 cm at 5 m, 15 cm at 15 m): far, grazing views smear a lane marking's edge over
+many vertices, near ones place it. Per camera it also accumulates the sum and count of the colours each
+vertex was seen with (the targets the colour codes and the camera decoders are fitted to). Pixels the
+mask marks as obstacles or unlabelled are not used, so cars never reach the map. Every pixel near the
+vertex counts through the bilinear read; each vertex is seen from many keyframes at different sub-pixel
+positions, which averages out image noise.
 """
 
 from __future__ import annotations
@@ -118,11 +121,31 @@ def _label_at(keyframe: Keyframe, uv: np.ndarray) -> np.ndarray:
     return keyframe.semantics.reshape(-1)[pixel]
 
 
-def _label_half_edges(obs: VertexObservations, seen: np.ndarray, uv: np.ndarray, keyframe: Keyframe,
-                      footprint: MeshFootprint) -> None:
-    """Labels half-way along every edge whose two ends the keyframe sees (`seen`, at pixels `uv`), half to
-    each end. Over 10 cm the projection is affine to well under a pixel, so the half-way point projects
-    half-way between the ends."""
+def pixel_ground_length_m(points_world: np.ndarray, camera: CameraModel, T_world_camera: np.ndarray) -> np.ndarray:
+    """(N,) length of ground along the line of sight that one pixel covers at each point: z^2 / (f h) for a
+    point at depth z (along the optical axis) and h below the camera, for level ground (the pixel spans
+    z / f across the ray, which meets the ground at a grazing angle of about h / z); h is floored at 5 cm."""
+    delta = points_world - T_world_camera[:3, 3]
+    depth = delta @ T_world_camera[:3, 2]
+    return depth * depth / (camera.K[1, 1] * np.maximum(-delta[:, 2], 0.05))
+
+
+def label_weights(points_world: np.ndarray, camera: CameraModel, T_world_camera: np.ndarray,
+                  sharp_m: float | None) -> np.ndarray:
+    """(N,) float32 weight of the labels a view reads at each point: 1 where its pixel covers at most
+    `sharp_m` of ground along the line of sight, sharp_m / length beyond (a far, grazing view places a
+    boundary less precisely); all 1 if sharp_m is None."""
+    if sharp_m is None:
+        return np.ones(len(points_world), np.float32)
+    length = pixel_ground_length_m(points_world, camera, T_world_camera)
+    return np.minimum(1.0, sharp_m / length).astype(np.float32)
+
+
+def _label_half_edges(obs: VertexObservations, seen: np.ndarray, uv: np.ndarray, weight: np.ndarray,
+                      keyframe: Keyframe, footprint: MeshFootprint) -> None:
+    """Labels half-way along every edge whose two ends the keyframe sees (`seen`, at pixels `uv`, label
+    weights `weight`), half to each end. Over 10 cm the projection is affine to well under a pixel, so the
+    half-way point projects half-way between the ends."""
     slot = footprint.slot
     slot[seen] = np.arange(len(seen))
     counts = obs.label_counts.reshape(-1)
@@ -136,24 +159,28 @@ def _label_half_edges(obs: VertexObservations, seen: np.ndarray, uv: np.ndarray,
         label = _label_at(keyframe, 0.5 * (uv[both] + uv[k]))
         good = label < NUM_MAP_CLASSES
         label = label[good].astype(np.int64)
-        counts[seen[both[good]] * classes + label] += HALF_EDGE_WEIGHT  # within one direction both ends are
-        counts[j[both[good]] * classes + label] += HALF_EDGE_WEIGHT  # unique
+        w = HALF_EDGE_WEIGHT * weight[both[good]]
+        counts[seen[both[good]] * classes + label] += w  # within one direction both ends are unique
+        counts[j[both[good]] * classes + label] += w
 
 
 def observe_keyframe(obs: VertexObservations, ids: np.ndarray, points_world: np.ndarray, keyframe: Keyframe,
-                     camera: CameraModel, footprint: MeshFootprint | None = None) -> int:
+                     camera: CameraModel, footprint: MeshFootprint | None = None,
+                     label_sharp_m: float | None = None) -> int:
     """Add one keyframe's view of the vertices `ids` (unique; world positions `points_world`), the labels
-    over their footprints if `footprint` is given; returns how many vertices it labelled at their centre."""
+    over their footprints if `footprint` is given, weighted by label_weights(..., label_sharp_m); returns how
+    many vertices it labelled at their centre."""
     uv, ok = project_points(points_world, camera, keyframe.T_world_camera)
     ids, uv = ids[ok], uv[ok]
+    weight = label_weights(points_world[ok], camera, keyframe.T_world_camera, label_sharp_m)
     if footprint is not None:
-        _label_half_edges(obs, ids, uv, keyframe, footprint)
+        _label_half_edges(obs, ids, uv, weight, keyframe, footprint)
     label = _label_at(keyframe, uv)
     good = label < NUM_MAP_CLASSES
-    ids, uv, label = ids[good], uv[good], label[good].astype(np.int64)
+    ids, uv, label, weight = ids[good], uv[good], label[good].astype(np.int64), weight[good]
     if len(ids) == 0:
         return 0
-    obs.label_counts.reshape(-1)[ids * obs.label_counts.shape[1] + label] += 1.0  # ids are unique in a keyframe
+    obs.label_counts.reshape(-1)[ids * obs.label_counts.shape[1] + label] += weight  # ids are unique in a keyframe
     c = obs.camera_names.index(camera.name)
     obs.colour_sum[ids, c] += bilinear(keyframe.image, uv) / 255.0
     obs.colour_count[ids, c] += 1.0

@@ -18,7 +18,13 @@ from mapping.road_mesh import build_road_mesh, locate
 from mapping.row_sparse_adam import RowSparseAdam
 from mapping.scene_data import CameraModel, Keyframe, Trajectory
 from mapping.semantic_classes import SemanticClass
-from mapping.vertex_observations import MeshFootprint, VertexObservations, observe_keyframe
+from mapping.vertex_observations import (
+    MeshFootprint,
+    VertexObservations,
+    observe_keyframe,
+    pixel_ground_length_m,
+    project_points,
+)
 from tests.synthetic_road_scene import make_scene, texture
 
 CONFIG = MapperConfig(mesh_side_m=0.2, corridor_half_width_m=5.0, keyframe_spacing_m=0.0, threads=1,
@@ -179,6 +185,58 @@ def test_labels_read_over_the_vertex_footprint_place_edges_between_vertices():
         truth = stripes(cells[inside, 0])
         miou[footprint is not None] = map_metrics.miou_pct(map_metrics.confusion(pred, truth, np.ones(len(pred), bool)))
     assert miou[True] > miou[False] + 3.0, miou
+
+
+def _looking_down(height_m: float) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    pose[:3, 3] = [0.0, 0.0, height_m]
+    return pose
+
+
+def test_pixel_ground_length_is_what_one_pixel_spans_along_the_line_of_sight():
+    """Checked against the projection itself: two ground points a millimetre apart along the view, how many
+    pixels apart they land, for a forward camera 1.5 m up and points 5 to 30 m ahead."""
+    camera = CameraModel("front", np.array([[800.0, 0, 400], [0, 800.0, 300], [0, 0, 1]]), (0.0,) * 5, 801, 601)
+    pose = np.eye(4)
+    pose[:3, :3] = np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]])  # camera z forward along x, y down
+    pose[:3, 3] = [0.0, 0.0, 1.5]
+    x = np.array([5.0, 10.0, 30.0])
+    ground = np.column_stack([x, np.full(3, 0.5), np.zeros(3)])
+    along = ground[:, :2] / np.linalg.norm(ground[:, :2], axis=1, keepdims=True)
+    step = np.column_stack([along * 0.001, np.zeros(3)])
+    uv0, ok0 = project_points(ground, camera, pose)
+    uv1, ok1 = project_points(ground + step, camera, pose)
+    assert ok0.all() and ok1.all()
+    per_pixel = 0.001 / np.linalg.norm(uv1 - uv0, axis=1)
+    np.testing.assert_allclose(pixel_ground_length_m(ground, camera, pose), per_pixel, rtol=0.02)
+    assert per_pixel[2] > 30 * per_pixel[0]  # why it matters: a far pixel smears a boundary over ~0.5 m
+
+
+def test_labels_from_sharp_views_outweigh_more_numerous_coarse_ones():
+    """One view from 2 m (2 mm pixels) sees lane marking, two from 60 m (6 cm pixels) see road: counted
+    equally the road wins; weighted by what a pixel covers (label_sharp_m 2 cm: the far views count 1/3
+    each) the sharp view does."""
+    mesh = build_road_mesh(Trajectory(np.array([0.0, 10.0]), np.array([[-1.0, 0.0, 1.5], [1.0, 0.0, 1.5]])),
+                           0.5, 0.1, 1.5)
+    camera = CameraModel("down", np.array([[1000.0, 0, 200], [0, 1000.0, 200], [0, 0, 1]]), (0.0,) * 5, 401, 401)
+    points = np.concatenate([mesh.xy, np.zeros((mesh.num_vertices, 1))], 1)
+    ids = np.arange(mesh.num_vertices)
+
+    def view(height_m: float, label: SemanticClass) -> Keyframe:
+        return Keyframe("down", 0.0, _looking_down(height_m), np.zeros((401, 401, 3), np.uint8),
+                        np.full((401, 401), label, np.uint8))
+
+    views = [view(2.0, SemanticClass.LANE_MARKING), view(60.0, SemanticClass.ROAD), view(60.0, SemanticClass.ROAD)]
+    winner = {}
+    for sharp_m in (None, 0.02):
+        obs = VertexObservations.empty(mesh.num_vertices, ["down"])
+        for kf in views:
+            observe_keyframe(obs, ids, points, kf, camera, label_sharp_m=sharp_m)
+        under_all = (np.abs(mesh.xy) < 0.3).all(1)  # the near view spans 0.8 m
+        assert under_all.sum() > 20 and (obs.label_counts[under_all].sum(1) > 0).all()
+        winner[sharp_m] = set(obs.label_counts[under_all].argmax(1).tolist())
+    assert winner == {None: {int(SemanticClass.ROAD)}, 0.02: {int(SemanticClass.LANE_MARKING)}}, winner
 
 
 def test_lidar_detail_puts_a_curb_step_into_the_smooth_surface():
