@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from mapping.road_mesh import build_road_mesh, locate, used_vertices
+from mapping.road_mesh import build_road_mesh, locate, node_xy, used_vertices
 from mapping.scene_data import Trajectory
 
 
@@ -34,6 +34,10 @@ def test_mesh_covers_the_corridor_and_nothing_beyond(curve):
     inside = dense[k] + normal * rng.uniform(-4.7, 4.7, (len(k), 1))
     _, _, ok = locate(mesh, inside)
     assert ok.all()
+    rows, cols = mesh.node_index.shape  # every lattice node within the corridor is a vertex
+    rc = np.stack(np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij"), -1).reshape(-1, 2)
+    d_node = cKDTree(dense).query(node_xy(rc, mesh.origin, mesh.side_m))[0]
+    assert (mesh.node_index.reshape(-1)[d_node < 5.0 - 0.05] >= 0).all()
 
 
 def test_locate_interpolates_points_exactly(curve):
