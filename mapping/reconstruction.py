@@ -83,8 +83,6 @@ class FastPathSettings:
     # gave city31 89.96-90.00 %; 0.005 / 0.0025 m 90.26-90.30 / 90.37-90.42 %: the same weights, only scaled
     # down against the label prior (observation_fit.LABEL_PRIOR, a separate knob, left as tuned).
     colour_encoder_steps: int = 200  # joint encoder/decoder steps on a sample of vertices
-    colour_refine_steps: int = 2  # full-batch steps on every code, decoders fixed (city31: 5 steps
-    # 28.87 dB, 8.1 s; 2 steps 28.89 dB, 4.5 s)
     colour_batch: int = 4096
     lr_encoder: float = 0.01
     threads_observe: int = 2  # Python threads observing keyframes (city31: 5.9 -> 3.2 s)
@@ -317,8 +315,8 @@ def _fit_colours(road_map: RoadMap, obs: VertexObservations, config: MapperConfi
         return 0.0, 0.0
     lr = config.learning_rates
     started = time.perf_counter()
-    losses_first_last = fit_colours(road_map, obs, seen, fast.colour_encoder_steps, fast.colour_refine_steps,
-                                    fast.colour_batch, lr.colour_mlps, fast.lr_encoder, lr.colour_codes, rng)
+    losses_first_last = fit_colours(road_map, obs, seen, fast.colour_encoder_steps, fast.colour_batch,
+                                    lr.colour_mlps, fast.lr_encoder, rng)
     timings["colour_fit_wall_s"] = time.perf_counter() - started
     return losses_first_last
 
