@@ -45,6 +45,8 @@ from mapping.scene_data import Trajectory as PathTrajectory
 from mapping.sensor_time import ClockMap, fit_clock
 from mapping.trajectory import Trajectory
 
+LIDAR_GROUND_THREADS = 2  # city31: the ground of 155 scans, standalone, 5.3 / 5.6 s on one thread, 3.2 / 2.8 s on two
+
 
 def reconstruction_path(trajectory: Trajectory) -> PathTrajectory:
     """The trajectory as the reconstruction takes it (seconds from the drive start, positions)."""
@@ -301,16 +303,20 @@ def _decode_keyframes(chosen: list[_KeyframeMessages]) -> list[Keyframe]:
 
 
 def lidar_ground_from_packets(packets: list[LidarPacket], clock: ClockMap, metadata, config: CarConfig,
-                              trajectory: Trajectory, every_n_scans: int, settings: GroundFilter) -> np.ndarray:
-    """Ground points of every n-th Lidar scan (a scan = the packets of one frame id)."""
+                              trajectory: Trajectory, every_n_scans: int, settings: GroundFilter,
+                              threads: int = LIDAR_GROUND_THREADS) -> np.ndarray:
+    """Ground points of every n-th Lidar scan (a scan = the packets of one frame id), in scan order; the scans
+    are shared out over `threads` threads (numpy releases the GIL in its array work)."""
     per_scan = metadata.packets_per_frame
     T_vl = config.sensors.lidar.extrinsics.matrix()
     road = TrajectoryGround.of(trajectory, config.vehicle.reference_height_m, settings.corridor_half_width_m,
                                settings.ground_cell_m)
     decoding = LidarDecoding.of(metadata)
-    out = []
-    for start in range(0, len(packets), per_scan * every_n_scans):
+
+    def scan_ground(start: int) -> np.ndarray:
         chunk = [bytes(p.data) for p in packets[start:start + per_scan]]
-        world = lidar_world_points(chunk, clock, decoding, T_vl, trajectory, settings)
-        out.append(ground_points(world, road, settings))
+        return ground_points(lidar_world_points(chunk, clock, decoding, T_vl, trajectory, settings), road, settings)
+
+    with ThreadPoolExecutor(threads, thread_name_prefix="lidar-ground") as pool:
+        out = list(pool.map(scan_ground, range(0, len(packets), per_scan * every_n_scans)))
     return np.concatenate(out) if out else np.zeros((0, 3))
