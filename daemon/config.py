@@ -199,6 +199,35 @@ class LiveViewConfig(_Strict):
     port: int = Field(8765, ge=0, le=65535)  # 0: any free port
 
 
+MaskClassName = Literal["road", "lane_marking", "curb", "manhole", "background", "obstacle"]
+
+
+class SegmentationConfig(_Strict):
+    """Where the mapper's semantic masks come from (mapping.segmentation): `log`, the masks recorded beside
+    the frames (the simulator's, or an upstream segmenter's); `onnx`, a semantic-segmentation model run on
+    each keyframe with onnxruntime. The model takes one RGB image (1, 3, H, W) float32, scaled to [0, 1]
+    then normalised by `mean` and `std`, and gives (1, C, H', W') class scores or (1, H', W') class ids;
+    `class_map` names the map class of each model class id (ids it leaves out are unlabelled: not used)."""
+
+    provider: Literal["log", "onnx"] = "log"
+    model: str | None = None  # the .onnx file, relative to the config file
+    class_map: dict[int, MaskClassName] = {}
+    mean: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    std: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    input_size: tuple[int, int] | None = None  # (width, height) the image is resized to; None: the model's
+    # own fixed input size, else the image's
+    threads: int = Field(1, ge=1)  # onnxruntime intra-op threads
+
+    @model_validator(mode="after")
+    def _onnx_needs_a_model(self) -> SegmentationConfig:
+        if self.provider == "onnx" and (not self.model or not self.class_map):
+            raise ValueError("provider onnx needs `model` (an .onnx file) and `class_map` (model class id -> "
+                             "map class name)")
+        if any(v <= 0 for v in self.std):
+            raise ValueError("std must be positive")
+        return self
+
+
 class MapperConfig(_Strict):
     enabled: bool = True
     mesh_side_m: float = Field(0.1, gt=0, le=2)
@@ -219,6 +248,7 @@ class MapperConfig(_Strict):
     seed: int = 0
     threads: int = Field(2, ge=1)
     live_view: LiveViewConfig = LiveViewConfig()
+    segmentation: SegmentationConfig = SegmentationConfig()
 
 
 class StatusConfig(_Strict):

@@ -42,6 +42,7 @@ from mapping.lidar_ground import (
 from mapping.local_frame import LocalFrame
 from mapping.scene_data import CameraModel, Keyframe
 from mapping.scene_data import Trajectory as PathTrajectory
+from mapping.segmentation import OnnxSegmenter
 from mapping.sensor_time import ClockMap, fit_clock
 from mapping.trajectory import Trajectory
 
@@ -203,11 +204,12 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
     """Read the log segments and fuse the trajectory; start extracting the Lidar ground and decoding the
     keyframes in the background."""
     report = ReadReport()
+    segmenter = segmenter_for(config, config_path)  # a bad model fails here, before the log is read
     cams = [c.name for c in config.sensors.cameras]
     frames: dict[str, list[CameraFrame]] = defaultdict(list)
     masks: dict[str, dict[int, SemanticMask]] = defaultdict(dict)
     gnss, imu, wheels, poses, lidar = [], [], [], [], []
-    wanted = {camera_topic(c) for c in cams} | {mask_topic(c) for c in cams}
+    wanted = {camera_topic(c) for c in cams} | ({mask_topic(c) for c in cams} if segmenter is None else set())
     wanted |= {GNSS_FIX, IMU, WHEEL_SPEEDS, POSE, TIME_ANCHOR}
     anchors: list[tuple[int, int]] = []
     if use_lidar and config.sensors.lidar is not None:
@@ -239,7 +241,8 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
     else:
         trajectory = fuse_log_trajectory(gnss, imu, wheels, config, origin, clocks)
     spacing = config.mapper.keyframe_spacing_m if keyframe_spacing_m is None else keyframe_spacing_m
-    chosen, counts = _keyframe_messages(config, frames, masks, clocks, trajectory, spacing)
+    chosen, counts = _keyframe_messages(config, frames, masks if segmenter is None else None, clocks, trajectory,
+                                        spacing)
     # one background thread, the Lidar first: the reconstruction needs it first (its elevation fit), and the
     # decoding then runs beside that single-threaded fit. The pool lets its thread finish after shutdown.
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="load-drive")
@@ -253,7 +256,7 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
     else:
         ground = Future()
         ground.set_result(None)
-    keyframes = pool.submit(_decode_keyframes, chosen)
+    keyframes = pool.submit(_decode_keyframes, chosen, segmenter)
     pool.shutdown(wait=False)
     return LoadingDrive(camera_models(config), keyframes, trajectory, ground, clocks, counts, report)
 
@@ -266,13 +269,14 @@ class _KeyframeMessages:
     timestamp: float  # seconds from the trajectory start
     T_world_camera: np.ndarray
     frame: CameraFrame
-    mask: SemanticMask
+    mask: SemanticMask | None  # None: the segmentation model labels the frame
 
 
 def _keyframe_messages(config: CarConfig, frames: dict[str, list[CameraFrame]],
-                       masks: dict[str, dict[int, SemanticMask]], clocks: dict[str, ClockMap],
+                       masks: dict[str, dict[int, SemanticMask]] | None, clocks: dict[str, ClockMap],
                        trajectory: Trajectory, spacing_m: float) -> tuple[list[_KeyframeMessages], dict[str, int]]:
-    """Per camera, a frame (with its mask) every `spacing_m` of travel; the counts of frames passed over."""
+    """Per camera, a frame (with its mask, unless `masks` is None: a model labels the frames) every
+    `spacing_m` of travel; the counts of frames passed over."""
     chosen, counts = [], {"frames": 0, "frames_without_mask": 0, "frames_outside_trajectory": 0}
     t0 = trajectory.times_ns[0]
     for cam in config.sensors.cameras:
@@ -287,8 +291,8 @@ def _keyframe_messages(config: CarConfig, frames: dict[str, list[CameraFrame]],
             s = float(trajectory.distance_at(np.array([t], np.int64))[0])
             if s - last_s < spacing_m:
                 continue
-            mask = masks.get(cam.name, {}).get(f.sensor_time_ns)
-            if mask is None:
+            mask = masks.get(cam.name, {}).get(f.sensor_time_ns) if masks is not None else None
+            if mask is None and masks is not None:
                 counts["frames_without_mask"] += 1
                 continue
             last_s = s
@@ -297,9 +301,24 @@ def _keyframe_messages(config: CarConfig, frames: dict[str, list[CameraFrame]],
     return chosen, counts
 
 
-def _decode_keyframes(chosen: list[_KeyframeMessages]) -> list[Keyframe]:
-    return [Keyframe(k.camera, k.timestamp, k.T_world_camera, decode_image(k.frame), decode_mask(k.mask))
-            for k in chosen]
+def keyframe_semantics(image: np.ndarray, mask: SemanticMask | None, segmenter: OnnxSegmenter | None) -> np.ndarray:
+    """A keyframe's class ids: the model's labels of its image if a segmenter is given, else its recorded mask."""
+    return segmenter.labels(image) if segmenter is not None else decode_mask(mask)
+
+
+def segmenter_for(config: CarConfig, config_path: str | Path | None) -> OnnxSegmenter | None:
+    """The segmentation model the config names (provider onnx), None for masks from the log."""
+    seg = config.mapper.segmentation
+    return OnnxSegmenter.load(seg, config_path) if seg.provider == "onnx" else None
+
+
+def _decode_keyframes(chosen: list[_KeyframeMessages], segmenter: OnnxSegmenter | None) -> list[Keyframe]:
+    keyframes = []
+    for k in chosen:
+        image = decode_image(k.frame)
+        keyframes.append(Keyframe(k.camera, k.timestamp, k.T_world_camera, image,
+                                  keyframe_semantics(image, k.mask, segmenter)))
+    return keyframes
 
 
 def lidar_ground_from_packets(packets: list[LidarPacket], clock: ClockMap, metadata, config: CarConfig,

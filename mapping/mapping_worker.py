@@ -64,9 +64,10 @@ from mapping.drive_inputs import (
     camera_models,
     camera_pose,
     decode_image,
-    decode_mask,
     fuse_log_trajectory,
+    keyframe_semantics,
     lidar_ground_from_packets,
+    segmenter_for,
 )
 from mapping.keyframe_spool import KeyframeSpool
 from mapping.lidar_ground import GroundFilter
@@ -360,6 +361,7 @@ class MappingWorker:
             d.mkdir(parents=True, exist_ok=True)
         self.cameras = camera_models(config)
         self.cam_names = sorted(self.cameras)
+        self.segmenter = segmenter_for(config, config_path)  # None: the masks on the bus
         self.res = self.mapper.mesh_side_m
         self.tile_cells = max(1, int(round(TILE_M / self.res)))
         self.health = HealthCounters(PROCESS)
@@ -519,15 +521,16 @@ class MappingWorker:
             host = clocks[camera_topic(cam.name)].to_host([f.sensor_time_ns for f in frames])
             last_s = -np.inf
             for f, t in zip(frames, host, strict=True):
-                if not t_lo <= t <= t_hi or f.sensor_time_ns not in masks:
+                if not t_lo <= t <= t_hi or (self.segmenter is None and f.sensor_time_ns not in masks):
                     continue
                 s = float(traj.distance_at(int(t))[0])
                 if s - last_s < spacing:
                     continue
                 last_s = s
+                image = decode_image(f)
                 keyframes.append(Keyframe(cam.name, (int(t) - t_lo) / 1e9,
-                                          camera_pose(traj, int(t), cam.extrinsics.matrix()), decode_image(f),
-                                          decode_mask(masks[f.sensor_time_ns])))
+                                          camera_pose(traj, int(t), cam.extrinsics.matrix()), image,
+                                          keyframe_semantics(image, masks.get(f.sensor_time_ns), self.segmenter)))
         keyframes.sort(key=lambda kf: kf.timestamp)
         ground = None
         packets = by_topic.get(LIDAR_PACKETS, [])
@@ -759,13 +762,14 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s mapper %(levelname)s %(message)s")
     try:
         config = load_config(args.config)
-    except ConfigError as exc:
+        worker = MappingWorker(config, args.config, args.output_dir)
+    except ConfigError as exc:  # the config, or a file it names (the segmentation model): not retried
         print(exc, file=sys.stderr)
         return 2
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    return MappingWorker(config, args.config, args.output_dir).run(stop)
+    return worker.run(stop)
 
 
 if __name__ == "__main__":

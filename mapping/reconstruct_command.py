@@ -122,8 +122,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.epochs is not None:
         config = config.model_copy(update={"mapper": config.mapper.model_copy(update={"epochs": args.epochs})})
     truth = DriveTruth.load(args.gt) if args.gt else None
-    result, _ = run_reconstruction(args.logs, args.out, config, config_path, truth=truth,
-                                   use_lidar=not args.no_lidar, ablation=args.ablation, faithful=args.faithful)
+    try:
+        result, _ = run_reconstruction(args.logs, args.out, config, config_path, truth=truth,
+                                       use_lidar=not args.no_lidar, ablation=args.ablation, faithful=args.faithful)
+    except ConfigError as exc:  # a file the config names (the segmentation model)
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     keys = ("psnr_db", "psnr_train_db", "miou_pct", "iou_pct", "elev_error_cm", "elev_mae_gt_cm", "drive_s", "wall_s",
             "rtf", "rtf_mapping", "peak_rss_mb", "vertices")
     print(json.dumps({k: result.metrics.get(k) for k in keys}))
