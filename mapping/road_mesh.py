@@ -105,7 +105,10 @@ def build_road_mesh(
         rc = np.stack([rr.ravel(), cc.ravel()], 1).astype(np.int32)
         xy = node_xy(rc, origin, side_m)
         block = np.floor((xy - lo) / _BLOCK_M).astype(np.int64)
-        candidate = near_block[block[:, 0], block[:, 1]]
+        # the lattice reaches up to a side and a half past lo and hi, which lie beyond the corridor: nodes
+        # outside the squares are not candidates
+        candidate = (block >= 0).all(1) & (block < near_block.shape).all(1)
+        candidate[candidate] = near_block[block[candidate, 0], block[candidate, 1]]
         rc, xy = rc[candidate], xy[candidate]
         dist, k = tree.query(xy, distance_upper_bound=half_width_m + _RESAMPLE_M)
         inside = dist <= half_width_m

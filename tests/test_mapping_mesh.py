@@ -40,6 +40,17 @@ def test_mesh_covers_the_corridor_and_nothing_beyond(curve):
     assert (mesh.node_index.reshape(-1)[d_node < 5.0 - 0.05] >= 0).all()
 
 
+@pytest.mark.parametrize("length_m", np.linspace(10.0, 11.0, 41))
+def test_the_lattice_past_the_corridor_bounds_is_left_out_whatever_the_drive_length(length_m):
+    """The lattice reaches past the bounding box the corridor test divides into squares (a 10.725 m drive
+    once indexed a square beyond the last)."""
+    track = Trajectory(np.array([0.0, 10.0]), np.array([[0.0, 0.0, 1.5], [length_m, 0.0, 1.5]]))
+    mesh = build_road_mesh(track, 2.0, 0.1, 1.5)
+    x, y = mesh.xy[:, 0], mesh.xy[:, 1]
+    d = np.hypot(np.maximum(0.0, np.maximum(-x, x - length_m)), y)
+    assert d.max() <= 2.0 + 1e-9 and mesh.num_vertices > 0.9 * (length_m + np.pi) * 4.0 / (0.1 * 0.1 * np.sqrt(3) / 2)
+
+
 def test_locate_interpolates_points_exactly(curve):
     _, mesh = curve
     rng = np.random.default_rng(2)
