@@ -291,10 +291,12 @@ def _keyframe_messages(config: CarConfig, frames: dict[str, list[CameraFrame]],
             s = float(trajectory.distance_at(np.array([t], np.int64))[0])
             if s - last_s < spacing_m:
                 continue
-            mask = masks.get(cam.name, {}).get(f.sensor_time_ns) if masks is not None else None
-            if mask is None and masks is not None:
-                counts["frames_without_mask"] += 1
-                continue
+            mask = None
+            if masks is not None:
+                mask = masks.get(cam.name, {}).get(f.sensor_time_ns)
+                if mask is None:
+                    counts["frames_without_mask"] += 1
+                    continue
             last_s = s
             chosen.append(_KeyframeMessages(cam.name, (t - t0) / 1e9, camera_pose(trajectory, t, T_vc), f, mask))
     chosen.sort(key=lambda k: k.timestamp)

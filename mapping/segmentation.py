@@ -72,8 +72,9 @@ class OnnxSegmenter:
             raise ValueError(f"segmentation model output of shape {out.shape}: expected (1, C, H, W) scores or "
                              f"(1, H, W) class ids")
         classes = classes.astype(np.int64)
-        mask = np.where((classes >= 0) & (classes < len(self.lut)), self.lut[np.clip(classes, 0, len(self.lut) - 1)],
-                        UNLABELLED).astype(np.uint8)
+        known = (classes >= 0) & (classes < len(self.lut))
+        mask = np.full(classes.shape, UNLABELLED, np.uint8)
+        mask[known] = self.lut[classes[known]]
         if mask.shape != (h, w):
             mask = cv2.resize(mask, (w, h), interpolation=cv2.INTER_NEAREST)
         return mask

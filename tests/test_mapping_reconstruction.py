@@ -174,6 +174,14 @@ def test_vertex_observations_read_the_labels_and_colours_each_vertex_was_seen_wi
     assert np.corrcoef(grey, albedo[front].mean(1))[0, 1] > 0.8  # shading and gain differ, not the pattern
 
 
+def _looking_down(height_m: float) -> np.ndarray:
+    """T_world_camera of a camera `height_m` above the origin looking straight down."""
+    pose = np.eye(4)
+    pose[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    pose[:3, 3] = [0.0, 0.0, height_m]
+    return pose
+
+
 def test_labels_read_over_the_vertex_footprint_place_edges_between_vertices():
     """A camera looking straight down (1 cm pixels) at 15 cm stripes on a 0.1 m mesh: the class interpolated
     between vertices is right more often when each vertex reads its whole footprint than its centre only
@@ -181,9 +189,7 @@ def test_labels_read_over_the_vertex_footprint_place_edges_between_vertices():
     mesh = build_road_mesh(Trajectory(np.array([0.0, 10.0]), np.array([[-3.0, 0.0, 1.5], [3.0, 0.0, 1.5]])),
                            2.0, 0.1, 1.5)
     camera = CameraModel("down", np.array([[1000.0, 0, 200], [0, 1000.0, 200], [0, 0, 1]]), (0.0,) * 5, 401, 401)
-    pose = np.eye(4)
-    pose[:3, :3] = np.diag([1.0, -1.0, -1.0])
-    pose[:3, 3] = [0.0, 0.0, 10.0]
+    pose = _looking_down(10.0)
 
     def stripes(x: np.ndarray) -> np.ndarray:
         return np.where(np.mod(x, 0.37) < 0.15, SemanticClass.LANE_MARKING, SemanticClass.ROAD).astype(np.uint8)
@@ -205,13 +211,6 @@ def test_labels_read_over_the_vertex_footprint_place_edges_between_vertices():
         truth = stripes(cells[inside, 0])
         miou[footprint is not None] = map_metrics.miou_pct(map_metrics.confusion(pred, truth, np.ones(len(pred), bool)))
     assert miou[True] > miou[False] + 3.0, miou
-
-
-def _looking_down(height_m: float) -> np.ndarray:
-    pose = np.eye(4)
-    pose[:3, :3] = np.diag([1.0, -1.0, -1.0])
-    pose[:3, 3] = [0.0, 0.0, height_m]
-    return pose
 
 
 def test_pixel_ground_length_is_what_one_pixel_spans_along_the_line_of_sight():
