@@ -30,10 +30,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from daemon.bus import open_publisher, open_subscriber, unlink_all  # noqa: E402
-from daemon.config import load_config  # noqa: E402
-from daemon.messages import CameraFrame, LidarPacket  # noqa: E402
-from daemon.topics import LIDAR_PACKETS, camera_topic  # noqa: E402
+from daemon.bus.pubsub import open_publisher, open_subscriber, unlink_all  # noqa: E402
+from daemon.spine.config import load_config  # noqa: E402
+from daemon.spine.messages import CameraFrame, LidarPacket  # noqa: E402
+from daemon.spine.topics import LIDAR_PACKETS, camera_topic  # noqa: E402
 
 SPAWN = multiprocessing.get_context("spawn")
 WIDTH, HEIGHT = 3840, 2160

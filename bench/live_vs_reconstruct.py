@@ -36,15 +36,15 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from daemon.config import load_config  # noqa: E402
-from mapping.local_frame import LocalFrame  # noqa: E402
-from mapping.map_metrics import confusion, miou_pct, psnr_db, truth_cells  # noqa: E402
-from mapping.mesh_renderer import pixel_rays, rasterise, ray_triangle_weights, sampled_pixels, world_rays  # noqa: E402
-from mapping.reconstruct_command import DriveTruth, run_reconstruction  # noqa: E402
-from mapping.reconstruction import select_keyframes  # noqa: E402
-from mapping.road_map import NO_LABEL  # noqa: E402
-from mapping.scene_data import CameraModel, Keyframe  # noqa: E402
-from mapping.semantic_classes import NUM_MAP_CLASSES, ROAD_SURFACE_CLASSES  # noqa: E402
+from daemon.spine.config import load_config  # noqa: E402
+from daemon.spine.local_frame import LocalFrame  # noqa: E402
+from daemon.spine.semantic_classes import NUM_MAP_CLASSES, ROAD_SURFACE_CLASSES  # noqa: E402
+from mapping.fits.reconstruction import select_keyframes  # noqa: E402
+from mapping.method.mesh_renderer import pixel_rays, rasterise, ray_triangle_weights, sampled_pixels, world_rays  # noqa: E402
+from mapping.method.road_map import NO_LABEL  # noqa: E402
+from mapping.method.scene_data import CameraModel, Keyframe  # noqa: E402
+from mapping.offline.reconstruct_command import DriveTruth, run_reconstruction  # noqa: E402
+from mapping.outputs.map_metrics import confusion, miou_pct, psnr_db, truth_cells  # noqa: E402
 
 _spec = importlib.util.spec_from_file_location("mapping_bench", Path(__file__).with_name("mapping.py"))
 mapping_bench = importlib.util.module_from_spec(_spec)  # its drive cache (simulated once, under /tmp/maplab)
@@ -226,7 +226,7 @@ def main() -> int:
         config = load_config(config_path)
 
         started = time.monotonic()
-        subprocess.run([sys.executable, "-m", "daemon.cli", "replay", str(log), "--config", str(config_path),
+        subprocess.run([sys.executable, "-m", "daemon.commands.cli", "replay", str(log), "--config", str(config_path),
                         "--rate", "max", "--output-dir", str(work / "data")], check=True, cwd=ROOT,
                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         live_wall = time.monotonic() - started

@@ -49,14 +49,14 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from daemon import bus  # noqa: E402
-from daemon.config import CarConfig, load_config  # noqa: E402
-from daemon.health import process_memory_mb  # noqa: E402
+from daemon.bus import pubsub  # noqa: E402
 from daemon.log_format import read_log  # noqa: E402
-from daemon.messages import CameraFrame, GnssFix, ImuSample, SemanticMask, WheelSpeeds  # noqa: E402
-from daemon.topics import GNSS_FIX, IMU, WHEEL_SPEEDS, camera_topic, health_topic, mask_topic  # noqa: E402
-from mapping.local_frame import LocalFrame  # noqa: E402
-from mapping.worker_journal import read_journal  # noqa: E402
+from daemon.spine.config import CarConfig, load_config  # noqa: E402
+from daemon.spine.health import process_memory_mb  # noqa: E402
+from daemon.spine.local_frame import LocalFrame  # noqa: E402
+from daemon.spine.messages import CameraFrame, GnssFix, ImuSample, SemanticMask, WheelSpeeds  # noqa: E402
+from daemon.spine.topics import GNSS_FIX, IMU, WHEEL_SPEEDS, camera_topic, health_topic, mask_topic  # noqa: E402
+from mapping.live.worker_journal import read_journal  # noqa: E402
 
 SPEED = 20.0
 RADIUS = 2000.0
@@ -87,7 +87,7 @@ def car_config_data() -> dict:
 
 def simulate_source(folder: Path) -> Path:
     """A short simulated city drive with only the camera the bench replays (in this process: no pool)."""
-    from drivers.sim.drive_log import simulate_drive
+    from sim.drive_log import simulate_drive
 
     log = folder / "city.mcap"
     simulate_drive("city", SOURCE_SECONDS, log, CarConfig.model_validate(car_config_data()), seed=1, workers=1)
@@ -159,15 +159,15 @@ def drive_messages(km: float, pairs: list, t0_ns: int, config: CarConfig):
                                                    format=m.format, data=bytes(m.data))
 
 
-def mapped_m(health: bus.Subscriber) -> float:
+def mapped_m(health: pubsub.Subscriber) -> float:
     latest = health.latest()
     return json.loads(latest.detail)["mapped_until_m"] if latest is not None else 0.0
 
 
-def feed(config: CarConfig, km: float, pairs: list, health: bus.Subscriber, lead_m: float) -> None:
+def feed(config: CarConfig, km: float, pairs: list, health: pubsub.Subscriber, lead_m: float) -> None:
     """Publish the synthetic drive into the bus, in time order, losslessly, at most `lead_m` ahead of the
     worker's mapped distance (from its health messages)."""
-    pubs = {t: bus.open_publisher(config, t) for t in
+    pubs = {t: pubsub.open_publisher(config, t) for t in
             (GNSS_FIX, IMU, WHEEL_SPEEDS, camera_topic(CAMERA), mask_topic(CAMERA))}
     time.sleep(ATTACH_S)  # the worker registers as a lossless reader of the new rings
     t0_ns = time.monotonic_ns()
@@ -187,7 +187,7 @@ def feed(config: CarConfig, km: float, pairs: list, health: bus.Subscriber, lead
 class RssSampler(threading.Thread):
     """Polls a worker's VmHWM until it exits, and samples its RSS with its mapped distance every RSS_PERIOD_S."""
 
-    def __init__(self, pid: int, health: bus.Subscriber):
+    def __init__(self, pid: int, health: pubsub.Subscriber):
         super().__init__(name="rss-sampler", daemon=True)
         self.pid, self.health = pid, health
         self.samples: list[tuple[float, float]] = []  # (mapped m, RSS MB)
@@ -228,13 +228,13 @@ def run_drive(km: float, pairs: Future, lead_m: float, keep: bool) -> dict:
     config = load_config(config_path)
     env = dict(os.environ, PYTHONPATH=str(REPO))
     started = time.monotonic()
-    proc = subprocess.Popen([sys.executable, "-m", "mapping.mapping_worker", "--config", str(config_path)],
+    proc = subprocess.Popen([sys.executable, "-m", "mapping.live.mapping_worker", "--config", str(config_path)],
                             cwd=REPO, env=env, stdout=open(folder / "worker.log", "wb"), stderr=subprocess.STDOUT)
     sampler = None
     try:
-        health = bus.open_subscriber(config, health_topic("mapper"), wait_s=120)
+        health = pubsub.open_subscriber(config, health_topic("mapper"), wait_s=120)
         up_s = time.monotonic() - started
-        sampler = RssSampler(proc.pid, bus.open_subscriber(config, health_topic("mapper")))
+        sampler = RssSampler(proc.pid, pubsub.open_subscriber(config, health_topic("mapper")))
         sampler.start()
         feed(config, km, pairs.result(), health, lead_m)
         fed_s = time.monotonic() - started
@@ -265,7 +265,7 @@ def run_drive(km: float, pairs: Future, lead_m: float, keep: bool) -> dict:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-        bus.unlink_all(config)
+        pubsub.unlink_all(config)
         if not keep:
             shutil.rmtree(folder, ignore_errors=True)
 

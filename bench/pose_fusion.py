@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from mapping.pose_fusion import fuse_trajectory
+from mapping.localization.pose_fusion import fuse_trajectory
 
 TESTS = Path(__file__).resolve().parent.parent / "tests" / "test_pose_fusion.py"
 

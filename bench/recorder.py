@@ -32,12 +32,12 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from daemon import bus  # noqa: E402
-from daemon.config import load_config  # noqa: E402
+from daemon.bus import pubsub  # noqa: E402
 from daemon.log_format import read_log, read_metadata  # noqa: E402
-from daemon.messages import CameraFrame, CanFrame, GnssFix, ImuSample, LidarPacket  # noqa: E402
-from daemon.replay import replay  # noqa: E402
-from daemon.topics import CAN_FRAMES, GNSS_FIX, IMU, LIDAR_PACKETS, camera_topic, health_topic  # noqa: E402
+from daemon.processes.replay import replay  # noqa: E402
+from daemon.spine.config import load_config  # noqa: E402
+from daemon.spine.messages import CameraFrame, CanFrame, GnssFix, ImuSample, LidarPacket  # noqa: E402
+from daemon.spine.topics import CAN_FRAMES, GNSS_FIX, IMU, LIDAR_PACKETS, camera_topic, health_topic  # noqa: E402
 
 CAN_RATE_HZ = 1500.0
 TICK_S = 0.005
@@ -60,7 +60,7 @@ def publish_car(config_path: str, seconds: float, started, result) -> None:
     frames = [rng.randbytes(rng.randrange(100_000, 300_000)) for _ in range(12)]
     packets = [rng.randbytes(24_896) for _ in range(16)]
     rates = streams(config)
-    pubs = {t: bus.open_publisher(config, t) for t in rates}
+    pubs = {t: pubsub.open_publisher(config, t) for t in rates}
     sent = dict.fromkeys(rates, 0)
     cameras = {camera_topic(c.name): c.name for c in config.sensors.cameras}
 
@@ -93,9 +93,9 @@ def publish_car(config_path: str, seconds: float, started, result) -> None:
 
 def record(config_path: Path, out: Path, seconds: float) -> dict:
     config = load_config(config_path)
-    rec = subprocess.Popen([sys.executable, "-m", "daemon.recorder", "--config", str(config_path),
+    rec = subprocess.Popen([sys.executable, "-m", "daemon.processes.recorder", "--config", str(config_path),
                             "--output-dir", str(out)], cwd=ROOT, stderr=subprocess.DEVNULL)
-    health = bus.open_subscriber(config, health_topic("recorder"), wait_s=30)
+    health = pubsub.open_subscriber(config, health_topic("recorder"), wait_s=30)
     assert health.read(timeout_s=30) is not None, "recorder did not start"
     ctx = multiprocessing.get_context("spawn")
     result, started = ctx.Queue(), ctx.Event()
@@ -183,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
         segments = rec.pop("segment_paths")
         figures = {"seconds": seconds, **rec, **read_and_replay(config_path, segments)}
     finally:
-        bus.unlink_all(load_config(config_path))
+        pubsub.unlink_all(load_config(config_path))
         shutil.rmtree(work, ignore_errors=True)
     for k, v in figures.items():
         print(f"{k:>20}: {round(v, 2) if isinstance(v, float) else v}", file=sys.stderr)

@@ -23,11 +23,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mapping.map_metrics import confusion, truth_cells  # noqa: E402
-from mapping.reconstruct_command import DriveTruth  # noqa: E402
-from mapping.road_mesh import build_road_mesh, locate  # noqa: E402
-from mapping.scene_data import Trajectory  # noqa: E402
-from mapping.semantic_classes import NUM_MAP_CLASSES  # noqa: E402
+from daemon.spine.semantic_classes import NUM_MAP_CLASSES  # noqa: E402
+from mapping.method.road_mesh import build_road_mesh, locate  # noqa: E402
+from mapping.method.scene_data import Trajectory  # noqa: E402
+from mapping.offline.reconstruct_command import DriveTruth  # noqa: E402
+from mapping.outputs.map_metrics import confusion, truth_cells  # noqa: E402
 
 _spec = importlib.util.spec_from_file_location("mapping_bench", Path(__file__).with_name("mapping.py"))
 mapping_bench = importlib.util.module_from_spec(_spec)

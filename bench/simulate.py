@@ -18,8 +18,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from daemon.config import load_config  # noqa: E402
-from drivers.sim.drive_log import DEFAULT_CONFIG, simulate_drive  # noqa: E402
+from daemon.spine.config import load_config  # noqa: E402
+from sim.drive_log import DEFAULT_CONFIG, simulate_drive  # noqa: E402
 
 
 def _cpu_s() -> float:

@@ -2,7 +2,7 @@
 
 Writing: `LogWriter` maps camera frames, masks, GNSS fixes and poses to Foxglove's well-known schemas
 (CompressedImage / CompressedVideo / RawImage, LocationFix, PoseInFrame) and every other message to
-its `roadlog.<Name>` schema derived from `daemon.messages`. Each MCAP message record carries
+its `roadlog.<Name>` schema derived from `daemon.spine.messages`. Each MCAP message record carries
 sequence = the message's per-topic seq, log_time = host_mono_ns and publish_time = sensor_time_ns, so
 every field round-trips. Each file starts with a `roadlog` metadata record (software version, resolved
 config, calibration, host, start time) and holds a CameraCalibration channel per camera.
@@ -42,10 +42,10 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.summary import Summary
 from mcap.writer import CompressionType, Writer
 
-from daemon import message_codec
-from daemon.config import CarConfig, config_to_yaml, resolve_path
-from daemon.messages import MESSAGE_TYPE_BY_NAME, CameraFrame, GnssFix, SemanticMask, VehiclePose
-from daemon.topics import calibration_topic, topic_table
+from daemon.spine import message_codec
+from daemon.spine.config import CarConfig, config_to_yaml, resolve_path
+from daemon.spine.messages import MESSAGE_TYPE_BY_NAME, CameraFrame, GnssFix, SemanticMask, VehiclePose
+from daemon.spine.topics import calibration_topic, topic_table
 
 SOFTWARE_VERSION = "roadlog 0.1.0"
 METADATA_NAME = "roadlog"

@@ -4,8 +4,8 @@ from pathlib import Path
 
 import pytest
 
-from daemon.config import load_config
-from drivers.sim.drive_log import simulate_drive
+from daemon.spine.config import load_config
+from sim.drive_log import simulate_drive
 
 REPO = Path(__file__).resolve().parents[1]
 

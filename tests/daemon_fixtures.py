@@ -5,7 +5,7 @@ from pathlib import Path
 
 import yaml
 
-from daemon.config import CarConfig, load_config
+from daemon.spine.config import CarConfig, load_config
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -20,12 +20,12 @@ from pathlib import Path
 import pytest
 import yaml
 
-from daemon.bus import unlink_all
-from daemon.config import load_config
+from daemon.bus.pubsub import unlink_all
+from daemon.commands.log_info import summarise
 from daemon.log_format import read_log
-from daemon.log_info import summarise
-from drivers.can.can_driver import open_can_bus
-from drivers.sim.live_drive import open_gnss_pty, run_live_drive
+from daemon.spine.config import load_config
+from drivers.can.can_bus import open_can_bus
+from sim.live_drive import open_gnss_pty, run_live_drive
 from tests.daemon_fixtures import REPO
 
 DRIVER_TOPICS = ("lidar/packets", "lidar/imu", "can/frames", "wheel_speeds")
@@ -64,7 +64,8 @@ class Daemon:
         self.proc: subprocess.Popen | None = None
 
     def start(self):
-        self.proc = subprocess.Popen([sys.executable, "-m", "daemon.cli", "run", "--config", str(self.config_path)],
+        self.proc = subprocess.Popen([sys.executable, "-m", "daemon.commands.cli", "run",
+                                      "--config", str(self.config_path)],
                                      cwd=REPO, start_new_session=True)
 
     def status(self) -> dict:

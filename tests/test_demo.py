@@ -15,7 +15,8 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.mark.slow
 def test_demo_logs_every_message_and_maps_even_when_run_again(tmp_path):
     for _ in range(2):
-        run = subprocess.run([sys.executable, "-m", "daemon.cli", "demo", "--seconds", "4", "--out", str(tmp_path)],
+        run = subprocess.run([sys.executable, "-m", "daemon.commands.cli", "demo", "--seconds", "4",
+                              "--out", str(tmp_path)],
                              cwd=ROOT, capture_output=True, text=True, timeout=900)
         assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
         rows = re.findall(r"^(\w+)\s+(\d+)\s+(\d+)\s+(\d+)$", run.stdout, re.MULTILINE)

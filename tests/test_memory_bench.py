@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.config import CarConfig
-from daemon.health import process_memory_mb
-from daemon.messages import CameraFrame, GnssFix, ImuSample, SemanticMask, WheelSpeeds
-from daemon.topics import GNSS_FIX, IMU, WHEEL_SPEEDS, camera_topic, mask_topic
-from mapping.drive_inputs import fuse_log_trajectory
-from mapping.local_frame import LocalFrame
-from mapping.sensor_time import ClockMap
+from daemon.spine.config import CarConfig
+from daemon.spine.health import process_memory_mb
+from daemon.spine.local_frame import LocalFrame
+from daemon.spine.messages import CameraFrame, GnssFix, ImuSample, SemanticMask, WheelSpeeds
+from daemon.spine.topics import GNSS_FIX, IMU, WHEEL_SPEEDS, camera_topic, mask_topic
+from mapping.inputs.drive_inputs import fuse_log_trajectory
+from mapping.localization.sensor_time import ClockMap
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from daemon.log_format import read_log
-from mapping import map_tiles
-from mapping.mapping_worker import MappingWorker, Odometry, span_clock
+from mapping.live import map_tiles
+from mapping.live.mapping_worker import MappingWorker, Odometry, span_clock
 from tests.daemon_fixtures import REPO, private_config
 
 SMALL_WINDOWS = {"window_before_m": 10.0, "window_after_m": 10.0, "epochs": 1, "corridor_half_width_m": 6.0,
@@ -95,7 +95,8 @@ def _replay_through_the_daemon(drive: Path, folder: Path) -> Path:
     folder.mkdir()
     _, config_path = private_config(folder, mapper=SMALL_WINDOWS, status={"port": 0})
     data = folder / "data"
-    done = subprocess.run([sys.executable, "-m", "daemon.cli", "replay", str(drive), "--config", str(config_path),
+    done = subprocess.run([sys.executable, "-m", "daemon.commands.cli", "replay", str(drive),
+                           "--config", str(config_path),
                            "--rate", "max", "--output-dir", str(data)], cwd=REPO, capture_output=True, text=True,
                           timeout=1200)
     assert done.returncode == 0, done.stderr[-3000:]

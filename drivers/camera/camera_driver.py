@@ -12,18 +12,17 @@ import signal
 import threading
 from collections.abc import Callable, Generator
 
-from daemon.config import CameraConfig, load_config, resolve_path
-from daemon.health import HealthCounters
-from daemon.messages import CameraFrame, SemanticMask
-from daemon.topics import camera_process, camera_topic, health_topic, mask_topic
+from daemon.spine.config import CameraConfig, load_config, resolve_path
+from daemon.spine.health import HealthCounters
+from daemon.spine.messages import CameraFrame, SemanticMask
+from daemon.spine.topics import camera_process, camera_topic, health_topic, mask_topic
 
 Publish = Callable[[str, object], None]
 FrameSource = Generator[CameraFrame | SemanticMask, None, None]
 
 
-def open_frame_source(config: CameraConfig, stop: threading.Event, health: HealthCounters, *,
-                      start_mono_ns: int | None = None, log_origin_ns: int | None = None) -> FrameSource:
-    """The configured backend's frames; start_mono_ns / log_origin_ns pace the sim backend only."""
+def open_frame_source(config: CameraConfig, stop: threading.Event, health: HealthCounters) -> FrameSource:
+    """The configured device backend's frames (opencv or depthai; the simulator's playback is sim.camera_playback)."""
     if config.backend == "opencv":
         from drivers.camera.opencv_camera import opencv_frames
 
@@ -32,9 +31,7 @@ def open_frame_source(config: CameraConfig, stop: threading.Event, health: Healt
         from drivers.camera.depthai_camera import depthai_frames
 
         return depthai_frames(config, stop, health)
-    from drivers.camera.sim_camera import sim_frames
-
-    return sim_frames(config, stop, health, start_mono_ns=start_mono_ns, log_origin_ns=log_origin_ns)
+    raise ValueError(f"camera {config.name}: backend {config.backend!r} is not a device backend")
 
 
 def _health_loop(publish: Publish, health: HealthCounters, lock: threading.Lock, done: threading.Event,
@@ -74,16 +71,22 @@ def run_camera_driver(config: CameraConfig, frames: FrameSource, publish: Publis
         publish(health_topic(health.process), snapshot)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description="roadlog camera driver: one camera's frames onto the bus")
+OpenSource = Callable[[CameraConfig, threading.Event, HealthCounters, argparse.Namespace], FrameSource]
+
+
+def camera_process_main(argv: list[str] | None, open_source: OpenSource, *, stay_up_at_end: bool = False,
+                        add_arguments: Callable[[argparse.ArgumentParser], None] = lambda _: None,
+                        description: str = "roadlog camera driver: one camera's frames onto the bus") -> int:
+    """One camera process: parse the arguments, open the bus, publish what open_source gives until stopped.
+    stay_up_at_end: keep reporting health once the source ends (a played log), instead of exiting."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--config", required=True, help="car config YAML")
     parser.add_argument("--camera", required=True, help="camera name in sensors.cameras")
     parser.add_argument("--device", help="override the camera's device (V4L2 path, pipeline, serial, .mcap)")
-    parser.add_argument("--start-mono-ns", type=int, help="sim: host monotonic time the log origin maps to")
-    parser.add_argument("--log-origin-ns", type=int, help="sim: log sensor time played at --start-mono-ns")
+    add_arguments(parser)
     args = parser.parse_args(argv)
 
-    from daemon.bus import open_publisher
+    from daemon.bus.pubsub import open_publisher
 
     car = load_config(args.config)
     try:
@@ -101,17 +104,18 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    frames = open_frame_source(config, stop, health, start_mono_ns=args.start_mono_ns,
-                               log_origin_ns=args.log_origin_ns)
+    frames = open_source(config, stop, health, args)
     run_camera_driver(config, frames, lambda t, m: publishers[t].publish(m), stop, health)
-    if config.backend == "sim":
-        # the simulated drive is over; a camera does not exit (the supervisor would replay the drive):
-        # stay up, reporting health, until told to stop
+    if stay_up_at_end:
         while not stop.wait(1.0):
             publishers[health_topic(process)].publish(health.snapshot())
     print(f"camera {config.name} stopped: received={health.received} published={health.published} "
           f"dropped={health.dropped} errors={health.errors}", flush=True)
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return camera_process_main(argv, lambda config, stop, health, _: open_frame_source(config, stop, health))
 
 
 if __name__ == "__main__":

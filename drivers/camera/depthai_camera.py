@@ -24,9 +24,9 @@ from dataclasses import dataclass
 import depthai as dai
 import numpy as np
 
-from daemon.config import CameraConfig
-from daemon.health import HealthCounters
-from daemon.messages import CameraFrame
+from daemon.spine.config import CameraConfig
+from daemon.spine.health import HealthCounters
+from daemon.spine.messages import CameraFrame
 
 BACKOFF_FIRST_S = 0.5
 BACKOFF_MAX_S = 10.0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from daemon.messages import CameraFrame
+from daemon.spine.messages import CameraFrame
 
 
 class FrameEncodingError(ValueError):

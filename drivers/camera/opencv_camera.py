@@ -15,9 +15,9 @@ from pathlib import Path
 
 import cv2
 
-from daemon.config import CameraConfig
-from daemon.health import HealthCounters
-from daemon.messages import CameraFrame
+from daemon.spine.config import CameraConfig
+from daemon.spine.health import HealthCounters
+from daemon.spine.messages import CameraFrame
 from drivers.camera.frame_encoding import FrameEncodingError, encode_image
 
 BACKOFF_FIRST_S = 0.1

@@ -21,10 +21,11 @@ from pathlib import Path
 
 import can
 
-from daemon.config import CanConfig, load_config, resolve_path
-from daemon.health import HealthCounters
-from daemon.messages import CanFrame
-from daemon.topics import CAN_FRAMES, WHEEL_SPEEDS, health_topic
+from daemon.spine.config import CanConfig, load_config, resolve_path
+from daemon.spine.health import HealthCounters
+from daemon.spine.messages import CanFrame
+from daemon.spine.topics import CAN_FRAMES, WHEEL_SPEEDS, health_topic
+from drivers.can.can_bus import open_can_bus
 from drivers.can.wheel_speed_codec import CanDecodeError, WheelSpeedDecoder, load_dbc, wheel_speed_layout
 
 PROCESS = "can"
@@ -49,15 +50,6 @@ class CanDriverStats:
 
     def summary(self) -> str:
         return " ".join(f"{f.name}={getattr(self, f.name)}" for f in dataclasses.fields(self))
-
-
-def open_can_bus(config: CanConfig, **bus_kwargs: object) -> can.BusABC:
-    """A python-can bus for the configured interface and channel (extra keywords go to can.Bus)."""
-    kwargs: dict[str, object] = {"interface": config.interface, "channel": config.channel, **config.options,
-                                 **bus_kwargs}
-    if config.bitrate is not None:
-        kwargs["bitrate"] = config.bitrate
-    return can.Bus(**kwargs)
 
 
 def can_frame(msg: can.Message) -> CanFrame:
@@ -179,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--dbc", help="override sensors.can.dbc_file")
     args = parser.parse_args(argv)
 
-    from daemon.bus import open_publisher
+    from daemon.bus.pubsub import open_publisher
 
     car = load_config(args.config)
     if car.sensors.can is None:

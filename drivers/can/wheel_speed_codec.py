@@ -16,8 +16,8 @@ import can
 import cantools
 from cantools.database import Database, Message
 
-from daemon.config import CanSignals
-from daemon.messages import WheelSpeeds
+from daemon.spine.config import CanSignals
+from daemon.spine.messages import WheelSpeeds
 
 SPEED_TO_MPS = {"m/s": 1.0, "km/h": 1.0 / 3.6}
 YAW_TO_RPS = {"rad/s": 1.0, "deg/s": math.pi / 180.0}

@@ -23,8 +23,8 @@ from dataclasses import dataclass, replace
 import pynmea2
 from pyubx2 import UBXReader
 
-from daemon.health import HealthCounters
-from daemon.messages import GnssFix, ImuSample, Vec3
+from daemon.spine.health import HealthCounters
+from daemon.spine.messages import GnssFix, ImuSample, Vec3
 from drivers.gnss.stream_framer import Frame
 
 NS_PER_S = 1_000_000_000

@@ -17,11 +17,11 @@ from dataclasses import dataclass, replace
 
 import serial
 
-from daemon import topics
-from daemon.bus import open_publisher
-from daemon.config import EXIT_CONFIG_ERROR, GnssConfig, load_config_or_report
-from daemon.health import HealthCounters
-from daemon.messages import GnssFix
+from daemon.bus.pubsub import open_publisher
+from daemon.spine import topics
+from daemon.spine.config import EXIT_CONFIG_ERROR, GnssConfig, load_config_or_report
+from daemon.spine.health import HealthCounters
+from daemon.spine.messages import GnssFix
 from drivers.gnss.gnss_messages import GnssDecoder
 from drivers.gnss.stream_framer import StreamFramer
 

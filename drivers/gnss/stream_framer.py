@@ -19,7 +19,7 @@ from functools import reduce
 from operator import xor
 from typing import Literal
 
-from daemon.health import HealthCounters
+from daemon.spine.health import HealthCounters
 
 NMEA_SYNC = 0x24  # '$'
 UBX_SYNC = b"\xb5\x62"

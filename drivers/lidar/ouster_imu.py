@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import struct
 
-from daemon.messages import ImuSample
+from daemon.spine.messages import ImuSample
 
 LEGACY_IMU = struct.Struct("<QQQ6f")
 LEGACY_IMU_BYTES = LEGACY_IMU.size  # 48

@@ -6,9 +6,12 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from daemon.spine.config import LidarConfig
 
 
 @dataclass
@@ -226,3 +229,10 @@ def metadata_to_json(meta: OusterMetadata) -> str:
         },
     }
     return json.dumps(doc, indent=2)
+
+
+def imu_port(config: LidarConfig, metadata: OusterMetadata) -> int | None:
+    """Where the driver listens for the sensor's IMU packets: the config's port, else the metadata's; None
+    when the config sets 0 (IMU off)."""
+    port = metadata.udp_port_imu if config.imu_port is None else config.imu_port
+    return port or None

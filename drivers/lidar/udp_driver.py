@@ -26,13 +26,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from daemon.config import LidarConfig, load_config, resolve_path
-from daemon.health import HealthCounters
-from daemon.messages import LidarPacket
-from daemon.topics import LIDAR_IMU, LIDAR_PACKETS, health_topic
+from daemon.spine.config import LidarConfig, load_config, resolve_path
+from daemon.spine.health import HealthCounters
+from daemon.spine.messages import LidarPacket
+from daemon.spine.topics import LIDAR_IMU, LIDAR_PACKETS, health_topic
 from drivers.lidar.ouster_decoder import count_missing_packets, decode_packets, newest_packet, packet_sequence
 from drivers.lidar.ouster_imu import decode_imu_packet, imu_profile_supported
-from drivers.lidar.ouster_metadata import OusterMetadata, parse_metadata
+from drivers.lidar.ouster_metadata import OusterMetadata, imu_port, parse_metadata
 from drivers.lidar.ouster_packet_layout import OusterPacketLayout, packet_layout
 
 PROCESS = "lidar"
@@ -233,13 +233,6 @@ def _handle_batch(buf: ReceiveBuffer, n: int, layout: OusterPacketLayout, prod_s
     health.dropped, health.sequence_gaps = loss.missing, loss.gaps
 
 
-def imu_port(config: LidarConfig, metadata: OusterMetadata) -> int | None:
-    """Where the driver listens for the sensor's IMU packets: the config's port, else the metadata's; None
-    when the config sets 0 (IMU off)."""
-    port = metadata.udp_port_imu if config.imu_port is None else config.imu_port
-    return port or None
-
-
 def _open_imu_socket(config: LidarConfig, metadata: OusterMetadata, stats: LidarDriverStats,
                      health: HealthCounters) -> socket.socket | None:
     """The IMU's socket, or None (off, an IMU profile without a decoder, or the port cannot be bound: the
@@ -366,7 +359,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bind", help="override sensors.lidar.bind_address")
     args = parser.parse_args(argv)
 
-    from daemon.bus import open_publisher
+    from daemon.bus.pubsub import open_publisher
 
     car = load_config(args.config)
     if car.sensors.lidar is None:

@@ -5,10 +5,10 @@ import signal
 import sys
 import time
 
-from daemon.bus import open_publisher
-from daemon.config import load_config
-from daemon.health import HealthCounters
-from daemon.topics import health_topic
+from daemon.bus.pubsub import open_publisher
+from daemon.spine.config import load_config
+from daemon.spine.health import HealthCounters
+from daemon.spine.topics import health_topic
 
 
 def main() -> int:

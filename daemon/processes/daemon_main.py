@@ -1,0 +1,70 @@
+"""`roadlog run` (the car's daemon, live drivers) and `roadlog replay` (the same daemon fed by a log player)."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+
+from daemon.bus.pubsub import open_publisher, unlink_all
+from daemon.processes.supervisor import Supervisor
+from daemon.spine.config import EXIT_CONFIG_ERROR, load_config_or_report
+from daemon.spine.process_table import process_table
+from daemon.spine.topics import topic_table
+
+
+def create_rings(config) -> None:
+    """Make every topic's ring afresh before any process starts (rings left by a crashed run are removed
+    first: their messages are in the recovered segments), so consumers can subscribe, and register as
+    lossless readers, before their producers exist."""
+    unlink_all(config)
+    for name in topic_table(config):
+        try:
+            open_publisher(config, name).close()
+        except RuntimeError:  # a live writer from an earlier run still holds it: it exists
+            pass
+
+
+def _serve(supervisor: Supervisor, config) -> int:
+    def stop(signum, _frame):
+        print(f"roadlog: signal {signal.Signals(signum).name}, shutting down", file=sys.stderr, flush=True)
+        supervisor.stop_event.set()
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    create_rings(config)
+    try:
+        return supervisor.run()
+    finally:
+        unlink_all(config)
+
+
+def run_main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="roadlog run", description="Run the daemon on the car's live sensors.")
+    parser.add_argument("--config", required=True, help="car config YAML")
+    parser.add_argument("--output-dir", help="log and map folder (default: recorder.output_dir)")
+    parser.add_argument("--no-record", action="store_true", help="do not record logs")
+    args = parser.parse_args(argv)
+    config = load_config_or_report(args.config)
+    if config is None:
+        return EXIT_CONFIG_ERROR
+    table = process_table(config, args.config, "live", record=not args.no_record, output_dir=args.output_dir)
+    return _serve(Supervisor(config, table), config)
+
+
+def replay_main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="roadlog replay",
+                                     description="Run the daemon with the drivers replaced by a log player.")
+    parser.add_argument("logs", nargs="+", help="MCAP segments to play")
+    parser.add_argument("--config", required=True, help="car config YAML")
+    parser.add_argument("--rate", default="1.0", help="playback speed factor, or 'max' (lossless, as fast as "
+                                                     "the mapper takes it)")
+    parser.add_argument("--output-dir", help="log and map folder (default: recorder.output_dir)")
+    parser.add_argument("--no-record", action="store_true", help="do not record the replayed messages again")
+    args = parser.parse_args(argv)
+    config = load_config_or_report(args.config)
+    if config is None:
+        return EXIT_CONFIG_ERROR
+    table = process_table(config, args.config, "replay", replay_logs=tuple(args.logs), replay_rate=args.rate,
+                          record=not args.no_record, output_dir=args.output_dir)
+    return _serve(Supervisor(config, table, exit_when_done=True), config)

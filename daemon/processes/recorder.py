@@ -1,0 +1,435 @@
+"""The recorder process: every logged topic from the bus into time-named, self-contained MCAP segments.
+
+A segment is written as `roadlog_<UTC start>_<index>.mcap.open` and renamed to `.mcap` once closed; it
+is rotated every `recorder.segment_seconds` or `recorder.segment_bytes`; its complete chunks are fsynced
+once a second. At start-up every `.open` segment that a crash or power cut left behind is recovered into
+a readable `.mcap` (log_format.recover_log). A recorder the supervisor restarted then resumes each topic
+after the last message that its daemon run's segments hold (`daemon_run` in their metadata, the highest
+seq per topic in their closing metadata), so what was published while it was down, or torn off with the
+crash's unfinished chunk, is recorded once, as long as the ring still holds it (older messages count as
+lost).
+The disk policy (daemon/processes/disk_policy.py) deletes the oldest closed segments to keep the configured free
+space; when that is not enough the recorder closes its segment, counts what it cannot write per topic,
+and resumes once space returns. Messages written, lost to bus overtaking and dropped for lack of disk
+go per topic into each segment's closing metadata and, as JSON, into the `detail` of the recorder's
+health. Once a second it publishes a TimeAnchor (host monotonic + UTC), which it logs like any topic.
+
+The recorder is a normal (non-lossless) bus reader: one thread polls every subscriber in turn, so it
+can never slow a driver down; if it falls behind a ring, it loses (and counts) the oldest messages.
+Only when the daemon replays a log as fast as its consumers allow (`--lossless`, given by the process
+table for `replay --rate max`) does it register as a lossless reader: the player then waits for it, as
+for the mapper, and the re-recorded log is complete.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+
+from daemon.bus import pubsub
+from daemon.bus.ring_buffer import process_start_ticks
+from daemon.log_format import COUNTS_METADATA_NAME, METADATA_NAME, LogWriter, read_metadata, recover_log
+from daemon.processes import disk_policy
+from daemon.processes.supervisor import RESTARTS_ENV
+from daemon.spine.config import EXIT_CONFIG_ERROR, CarConfig, data_dir, load_config_or_report
+from daemon.spine.health import HealthCounters
+from daemon.spine.messages import TimeAnchor
+from daemon.spine.topics import TIME_ANCHOR, health_topic, topic_table
+
+PROCESS = "recorder"
+SEGMENT_PREFIX = "roadlog_"
+SEGMENT_SUFFIX = ".mcap"
+OPEN_SUFFIX = ".open"
+RECOVERING_SUFFIX = ".recovering"
+HEALTH_PERIOD_S = 1.0
+SYNC_PERIOD_S = 1.0  # the open segment's complete chunks reach the disk at least this often (power cuts)
+DISK_CHECK_PERIOD_S = 0.5
+DISK_CHECK_BYTES = 16 * 1024 * 1024
+SUBSCRIBE_RETRY_S = 0.5
+IDLE_SLEEP_S = 0.005
+DRAIN_LIMIT_S = 10.0  # at stop: longest time spent writing what is still waiting in the rings
+READ_BURST = 256  # most messages taken from one topic before the next topic gets its turn
+log = logging.getLogger(__name__)
+
+
+def segment_name(utc_ns: int, index: int) -> str:
+    """`roadlog_20261123T101500Z_0003.mcap`: names sort by start time, then by index."""
+    stamp = datetime.fromtimestamp(utc_ns / 1e9, UTC).strftime("%Y%m%dT%H%M%SZ")
+    return f"{SEGMENT_PREFIX}{stamp}_{index:04d}{SEGMENT_SUFFIX}"
+
+
+def _segment_index(name: str) -> int | None:
+    stem = name.split(SEGMENT_SUFFIX)[0]
+    tail = stem.rsplit("_", 1)[-1]
+    return int(tail) if name.startswith(SEGMENT_PREFIX) and tail.isdigit() else None
+
+
+def closed_segments(output_dir: Path) -> list[disk_policy.Segment]:
+    """The closed segments in `output_dir`, oldest first: by index, which a clock set back cannot reorder."""
+    paths = output_dir.glob(f"{SEGMENT_PREFIX}*{SEGMENT_SUFFIX}")
+    out = []
+    for p in sorted(paths, key=lambda p: (_segment_index(p.name) or 0, p.name)):
+        try:
+            out.append(disk_policy.Segment(p, p.stat().st_size))
+        except FileNotFoundError:
+            continue
+    return out
+
+
+def next_segment_index(output_dir: Path) -> int:
+    """One past the highest index of any segment (open, closed or being recovered) in the folder."""
+    indices = [_segment_index(p.name) for p in output_dir.glob(f"{SEGMENT_PREFIX}*")]
+    return 1 + max((i for i in indices if i is not None), default=-1)
+
+
+def recover_unclosed(output_dir: Path, config: CarConfig) -> list[dict]:
+    """Turn every `.mcap.open` left by a crash into a readable `.mcap`; one report per file."""
+    reports = []
+    for src in sorted(output_dir.glob(f"{SEGMENT_PREFIX}*{SEGMENT_SUFFIX}{OPEN_SUFFIX}")):
+        dst = src.with_name(src.name[: -len(OPEN_SUFFIX)])
+        tmp = dst.with_name(dst.name + RECOVERING_SUFFIX)
+        try:
+            fr = recover_log(src, tmp, config)
+            os.replace(tmp, dst)
+            src.unlink()
+        except (OSError, ValueError) as exc:  # keep the original: a later start may manage it
+            log.error("cannot recover %s: %s", src, exc)
+            reports.append({"from": str(src), "to": None, "error": f"{type(exc).__name__}: {exc}"})
+            continue
+        report = {"from": str(src), "to": str(dst), "messages": fr.messages, "bytes_skipped": fr.bytes_skipped,
+                  "error": fr.error}
+        log.warning("recovered unclosed segment %s -> %s: %d messages, %d bytes skipped (%s)",
+                    src.name, dst.name, fr.messages, fr.bytes_skipped, fr.error or "no footer")
+        reports.append(report)
+    return reports
+
+
+@dataclass
+class TopicTally:
+    """Per-topic totals since the recorder started."""
+
+    written: dict[str, int] = field(default_factory=dict)
+    lost_bus: dict[str, int] = field(default_factory=dict)
+    dropped_disk_full: dict[str, int] = field(default_factory=dict)
+
+    def lost(self) -> dict[str, int]:
+        topics = set(self.lost_bus) | set(self.dropped_disk_full)
+        return {t: self.lost_bus.get(t, 0) + self.dropped_disk_full.get(t, 0) for t in sorted(topics)}
+
+
+def daemon_run() -> str:
+    """Which daemon run this process belongs to: its parent (the supervisor) by pid and start time."""
+    parent = os.getppid()
+    return f"{parent}:{process_start_ticks(parent) or 0}"
+
+
+def last_recorded_seqs(output_dir: Path, run: str) -> dict[str, int]:
+    """Per topic, the highest seq in the closed segments (recovered ones included) that recorders of daemon
+    run `run` wrote: the newest segments, back to the first from another run."""
+    out: dict[str, int] = {}
+    for segment in reversed(closed_segments(output_dir)):
+        meta = read_metadata(segment.path)
+        if meta.get(METADATA_NAME, {}).get("daemon_run") != run:
+            break
+        for topic, seq in json.loads(meta.get(COUNTS_METADATA_NAME, {}).get("last_seq_per_topic", "{}")).items():
+            out[topic] = max(out.get(topic, -1), seq)
+    return out
+
+
+def _delta(now: dict[str, int], before: dict[str, int]) -> dict[str, int]:
+    return {t: n - before.get(t, 0) for t, n in sorted(now.items()) if n != before.get(t, 0)}
+
+
+class Recorder:
+    """The recorder's state: the open segment, the disk state and the per-topic tallies."""
+
+    def __init__(self, config: CarConfig, output_dir: Path, config_path: str | Path | None = None):
+        self.config = config
+        self.config_path = config_path
+        self.rc = config.recorder
+        self.output_dir = output_dir
+        self.run = daemon_run()
+        output_dir.mkdir(parents=True, exist_ok=True)
+        self.recovered = recover_unclosed(output_dir, config)
+        self.next_index = next_segment_index(output_dir)
+        self.writer: LogWriter | None = None
+        self.open_path: Path | None = None
+        self.opened_mono = 0.0
+        self._sync_fd: int | None = None
+        self._last_sync = 0.0
+        self.segments_closed = 0
+        self.segments_deleted = 0
+        self.tally = TopicTally()
+        self._at_last_close = TopicTally()
+        self.health = HealthCounters(PROCESS)
+        self.disk_full = False
+        self.disk_free_bytes = 0
+        self._bytes_at_disk_check = 0
+        self._last_disk_check = 0.0
+        self.check_disk(force=True)
+
+    # --- segments ----------------------------------------------------------------------------
+
+    def _open_segment(self) -> None:
+        name = segment_name(time.time_ns(), self.next_index)
+        self.next_index += 1
+        self.open_path = self.output_dir / (name + OPEN_SUFFIX)
+        self.writer = LogWriter(self.open_path, self.config, config_path=self.config_path,
+                                metadata={"daemon_run": self.run})
+        self._sync_fd = os.open(self.open_path, os.O_RDONLY)  # fsync through it: LogWriter keeps its file private
+        self.opened_mono = self._last_sync = time.monotonic()
+        self._bytes_at_disk_check = 0
+        log.info("opened segment %s", self.open_path.name)
+
+    def close_segment(self) -> Path | None:
+        """Close the open segment (counts in its metadata), rename it to `.mcap`; its final path."""
+        writer, path = self.writer, self.open_path
+        if writer is None or path is None:
+            return None
+        self.writer, self.open_path = None, None
+        self._close_sync_fd()
+        lost_bus = _delta(self.tally.lost_bus, self._at_last_close.lost_bus)
+        dropped = _delta(self.tally.dropped_disk_full, self._at_last_close.dropped_disk_full)
+        lost = {t: lost_bus.get(t, 0) + dropped.get(t, 0) for t in sorted(set(lost_bus) | set(dropped))}
+        self._at_last_close = TopicTally(dict(self.tally.written), dict(self.tally.lost_bus),
+                                         dict(self.tally.dropped_disk_full))
+        try:
+            writer.close(extra_metadata={"lost_per_topic": json.dumps(lost),
+                                         "lost_bus_per_topic": json.dumps(lost_bus),
+                                         "dropped_disk_full_per_topic": json.dumps(dropped)})
+            final = path.with_name(path.name[: -len(OPEN_SUFFIX)])
+            os.replace(path, final)
+        except OSError as exc:  # the `.open` file stays; recover_unclosed turns it into a readable file
+            self.health.count_error(f"closing {path.name}: {exc}")
+            log.error("cannot close segment %s: %s", path, exc)
+            return None
+        self.segments_closed += 1
+        log.info("closed segment %s (%d messages)", final.name, sum(writer.counts.values()))
+        return final
+
+    def sync_if_due(self) -> None:
+        """Push the open segment's complete chunks to the disk, so a power cut loses at most a second."""
+        if self.writer is None or time.monotonic() - self._last_sync < SYNC_PERIOD_S:
+            return
+        self._last_sync = time.monotonic()
+        try:
+            self.writer.flush()
+            os.fsync(self._sync_fd)
+        except OSError as exc:
+            self.health.count_error(f"syncing {self.open_path.name}: {exc}")
+
+    def _close_sync_fd(self) -> None:
+        if self._sync_fd is not None:
+            os.close(self._sync_fd)
+            self._sync_fd = None
+
+    def rotate_if_due(self) -> None:
+        """Close a segment open for `segment_seconds` (`write` rotates by size)."""
+        if self.writer is not None and time.monotonic() - self.opened_mono >= self.rc.segment_seconds:
+            self.close_segment()
+            self.check_disk(force=True)
+
+    # --- disk ----------------------------------------------------------------------------------
+
+    def _make_room(self) -> tuple[int, int]:
+        """Delete the oldest closed segments until the required space is free: (free, required) bytes."""
+        usage = disk_policy.disk_usage(self.output_dir)
+        required = disk_policy.required_free_bytes(usage.total_bytes, self.rc.min_free_gib, self.rc.min_free_pct)
+        if usage.free_bytes >= required:
+            return usage.free_bytes, required
+        for seg in disk_policy.segments_to_delete(closed_segments(self.output_dir), usage.free_bytes, required):
+            try:
+                seg.path.unlink()
+            except FileNotFoundError:
+                continue
+            except OSError as exc:
+                self.health.count_error(f"deleting {seg.path.name}: {exc}")
+                continue
+            self.segments_deleted += 1
+            log.warning("disk policy: deleted %s (%d bytes)", seg.path.name, seg.size_bytes)
+        return disk_policy.disk_usage(self.output_dir).free_bytes, required
+
+    def check_disk(self, force: bool = False) -> None:
+        """Apply the disk policy (at most every DISK_CHECK_PERIOD_S or DISK_CHECK_BYTES); stop or resume."""
+        written = self.writer.bytes_written_estimate if self.writer else 0
+        now = time.monotonic()
+        if not force and now - self._last_disk_check < DISK_CHECK_PERIOD_S and \
+                written - self._bytes_at_disk_check < DISK_CHECK_BYTES:
+            return
+        self._last_disk_check, self._bytes_at_disk_check = now, written
+        free, required = self._make_room()
+        if free < required and self.writer is not None:
+            self.close_segment()  # the open segment may be what fills the disk: let the policy weigh it too
+            free, required = self._make_room()
+        self.disk_free_bytes = free
+        full = free < required
+        if full and not self.disk_full:
+            log.error("disk full: %d bytes free, %d required; writing stops until space returns", free, required)
+            self.disk_full = True
+        elif not full and self.disk_full:
+            log.warning("disk space is back (%d bytes free): writing resumes", free)
+            self.disk_full = False
+            self.recovered += recover_unclosed(self.output_dir, self.config)
+
+    # --- messages ------------------------------------------------------------------------------
+
+    def write(self, topic: str, message: object) -> None:
+        """Write one message to the open segment (opening one if needed), or count it as dropped."""
+        if self.disk_full:
+            self.tally.dropped_disk_full[topic] = self.tally.dropped_disk_full.get(topic, 0) + 1
+            return
+        if self.writer is None:
+            self._open_segment()
+        try:
+            self.writer.write(topic, message)
+        except OSError as exc:  # ENOSPC and the like: stop and let the disk check decide when to go on
+            self.health.count_error(f"writing {topic}: {exc}")
+            log.error("write failed on %s: %s", self.open_path, exc)
+            self.tally.dropped_disk_full[topic] = self.tally.dropped_disk_full.get(topic, 0) + 1
+            self.disk_full = True
+            self._abandon_segment()
+            return
+        self.tally.written[topic] = self.tally.written.get(topic, 0) + 1
+        self.health.count_published()
+        if self.writer.bytes_written_estimate >= self.rc.segment_bytes:
+            self.close_segment()
+            self.check_disk(force=True)
+
+    def _abandon_segment(self) -> None:
+        """Drop a segment that could not be written; its `.open` file is recovered when space returns."""
+        self.writer, self.open_path = None, None
+        self._close_sync_fd()
+
+    def set_lost(self, topic: str, lost: int) -> None:
+        """The subscriber's running count of messages the bus overwrote before the recorder read them."""
+        if lost:
+            self.tally.lost_bus[topic] = lost
+
+    def health_message(self):
+        msg = self.health.snapshot()
+        lost = self.tally.lost()
+        msg.dropped = sum(lost.values())
+        msg.state = "error" if self.disk_full else ("degraded" if msg.errors else "ok")
+        msg.detail = json.dumps({
+            "segment": str(self.open_path) if self.open_path else None,
+            "segments_closed": self.segments_closed,
+            "segments_deleted": self.segments_deleted,
+            "disk_free_bytes": self.disk_free_bytes,
+            "disk_full": self.disk_full,
+            "written": dict(sorted(self.tally.written.items())),
+            "lost": lost,
+            "lost_bus": dict(sorted(self.tally.lost_bus.items())),
+            "dropped_disk_full": dict(sorted(self.tally.dropped_disk_full.items())),
+            "recovered": self.recovered,
+            "last_error": self.health.last_error,
+        })
+        return msg
+
+
+def logged_topics(config: CarConfig) -> list[str]:
+    return sorted(name for name, t in topic_table(config).items() if t.logged)
+
+
+def _read_round(rec: Recorder, subscribers: dict[str, pubsub.Subscriber]) -> int:
+    """Write what each subscriber has waiting (at most READ_BURST per topic); the number written."""
+    got = 0
+    for topic, sub in subscribers.items():
+        for _ in range(READ_BURST):
+            msg = sub.read(timeout_s=0, copy=True)
+            if msg is None:
+                break
+            rec.write(topic, msg)
+            got += 1
+        rec.set_lost(topic, sub.lost)
+    return got
+
+
+def run(config: CarConfig, output_dir: Path, stop: threading.Event, config_path: str | Path | None = None,
+        time_anchors: bool = True, lossless: bool = False) -> Recorder:
+    """Record until `stop` is set, then write what is still waiting in the rings and close the segment."""
+    rec = Recorder(config, output_dir, config_path)
+    # in replay mode the log player publishes the recorded anchors instead
+    anchor_pub = pubsub.open_publisher(config, TIME_ANCHOR) if time_anchors else None
+    health_pub = pubsub.open_publisher(config, health_topic(PROCESS))
+    wanted = logged_topics(config)
+    subscribers: dict[str, pubsub.Subscriber] = {}
+    # First start in a daemon run: everything in the rings (the daemon made them empty before starting its
+    # processes). After a restart: from the message after the last one this run's segments hold (recovered
+    # from the crash), so what was published while it was down is recorded as long as the ring still holds
+    # it (what it no longer holds is counted lost). Topics that appear later: from their first message.
+    resume = last_recorded_seqs(output_dir, rec.run) if int(os.environ.get(RESTARTS_ENV, "0")) > 0 else {}
+    if resume:
+        log.info("restarted: resuming after the last recorded seq of %d topics", len(resume))
+    last_subscribe = last_health = 0.0
+    try:
+        while not stop.is_set():
+            now = time.monotonic()
+            if len(subscribers) < len(wanted) and now - last_subscribe >= SUBSCRIBE_RETRY_S:
+                last_subscribe = now
+                for topic in wanted:
+                    if topic not in subscribers:
+                        try:
+                            subscribers[topic] = pubsub.open_subscriber(config, topic, start="oldest",
+                                                                     lossless=lossless, after_seq=resume.get(topic))
+                        except FileNotFoundError:
+                            pass
+            if now - last_health >= HEALTH_PERIOD_S:
+                last_health = now
+                mono, utc = time.monotonic_ns(), time.time_ns()
+                if anchor_pub is not None:
+                    anchor_pub.publish(TimeAnchor(sensor_time_ns=mono, host_mono_ns=mono, utc_ns=utc))
+                health_pub.publish(rec.health_message())
+            got = _read_round(rec, subscribers)
+            rec.rotate_if_due()
+            rec.sync_if_due()
+            rec.check_disk()
+            if not got:
+                stop.wait(IDLE_SLEEP_S)
+        drain_until = time.monotonic() + DRAIN_LIMIT_S
+        while _read_round(rec, subscribers) and time.monotonic() < drain_until:
+            rec.rotate_if_due()
+    finally:
+        rec.close_segment()
+        health_pub.publish(rec.health_message())
+        for sub in subscribers.values():
+            sub.close()
+        if anchor_pub is not None:
+            anchor_pub.close()
+        health_pub.close()
+    return rec
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="roadlog recorder", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--config", required=True, help="car config YAML")
+    parser.add_argument("--output-dir", help="folder for the segments (default: recorder.output_dir)")
+    parser.add_argument("--no-time-anchors", action="store_true",
+                        help="do not publish monotonic/UTC anchors (replay: the player publishes the recorded ones)")
+    parser.add_argument("--lossless", action="store_true",
+                        help="read losslessly: publishers wait for the recorder (replay at max speed only)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s recorder %(levelname)s %(message)s")
+    config = load_config_or_report(args.config)
+    if config is None:
+        return EXIT_CONFIG_ERROR
+    output_dir = data_dir(config, args.config, args.output_dir)
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    rec = run(config, output_dir, stop, args.config, time_anchors=not args.no_time_anchors, lossless=args.lossless)
+    log.info("stopped: %d segments closed, %d messages written, %d lost", rec.segments_closed,
+              sum(rec.tally.written.values()), sum(rec.tally.lost().values()))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

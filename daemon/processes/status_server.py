@@ -1,0 +1,258 @@
+"""The read-only status HTTP endpoint: /livez, /readyz, /status, /metrics and the latest map previews.
+
+Everything it shows comes from the processes' health topics on the bus (the latest DriverHealth of
+each; recorder, mapper, replay and supervisor put their extras as JSON in `detail`) and from the
+preview PNGs the mapping worker writes. No request changes the daemon's state; any other path,
+including path tricks, gets 404. Requests are served by threads, so a busy mapper never blocks it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+import time
+from dataclasses import asdict
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+
+from prometheus_client import CollectorRegistry, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+
+from daemon.spine.config import CarConfig, data_dir, load_config
+from daemon.spine.messages import DriverHealth
+from daemon.spine.topics import topic_table
+
+PREVIEWS = ("rgb", "semantics", "elevation")
+
+
+def preview_dir(data_folder: Path) -> Path:
+    """Where the mapping worker writes its latest previews (and the status server reads them)."""
+    return Path(data_folder) / "map" / "previews"
+
+
+def required_processes(config: CarConfig) -> list[str]:
+    """The drivers whose health decides readiness: every configured sensor."""
+    return sorted({t.source for t in topic_table(config).values()
+                   if t.name.startswith(("camera/", "lidar/", "gnss/", "can/"))})
+
+
+class HealthBoard:
+    """The latest DriverHealth of every process, read from the bus by a background thread."""
+
+    def __init__(self, config: CarConfig):
+        self.config = config
+        self._lock = threading.Lock()
+        self._latest: dict[str, tuple[DriverHealth, float]] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._poll, daemon=True, name="health-board")
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def _poll(self) -> None:
+        from daemon.bus.pubsub import open_subscriber  # the bus is only needed when serving a live daemon
+
+        subscribers = {}
+        while not self._stop.is_set():
+            for name in topic_table(self.config):
+                if not name.startswith("health/"):
+                    continue
+                if name not in subscribers:
+                    try:
+                        subscribers[name] = open_subscriber(self.config, name, start="latest")
+                    except (FileNotFoundError, OSError):
+                        continue
+                msg = subscribers[name].latest(copy=True)
+                if msg is not None:
+                    self.update(msg)
+            self._stop.wait(0.2)
+        for sub in subscribers.values():
+            sub.close()
+
+    def update(self, health: DriverHealth, received_at: float | None = None) -> None:
+        with self._lock:
+            self._latest[health.process] = (health, time.monotonic() if received_at is None else received_at)
+
+    def snapshot(self) -> dict[str, tuple[DriverHealth, float]]:
+        with self._lock:
+            return dict(self._latest)
+
+
+def _detail(health: DriverHealth) -> dict:
+    try:
+        value = json.loads(health.detail) if health.detail.startswith("{") else {}
+    except json.JSONDecodeError:
+        value = {}
+    return value
+
+
+def status_document(config: CarConfig, board: HealthBoard) -> dict:
+    now = time.monotonic()
+    processes = {}
+    for name, (h, seen) in sorted(board.snapshot().items()):
+        entry = asdict(h)
+        entry.pop("detail")
+        entry["health_age_s"] = round(now - seen, 3)
+        entry["detail"] = _detail(h) or h.detail
+        processes[name] = entry
+    supervisor = processes.get("supervisor", {}).get("detail", {})
+    recorder = processes.get("recorder", {}).get("detail", {})
+    mapper = processes.get("mapper", {}).get("detail", {})
+    ready, why = readiness(config, board)
+    return {
+        "ready": ready,
+        "not_ready_because": why,
+        "processes": processes,
+        "supervisor": supervisor if isinstance(supervisor, dict) else {},
+        "recorder": recorder if isinstance(recorder, dict) else {},
+        "mapping": mapper if isinstance(mapper, dict) else {},
+    }
+
+
+def readiness(config: CarConfig, board: HealthBoard, max_health_age_s: float = 3.0) -> tuple[bool, list[str]]:
+    """Ready only when every required driver reports `ok` (delivering at its expected rate) recently."""
+    now = time.monotonic()
+    snapshot = board.snapshot()
+    problems = []
+    for process in required_processes(config):
+        if process not in snapshot:
+            problems.append(f"{process}: no health yet")
+            continue
+        h, seen = snapshot[process]
+        if now - seen > max_health_age_s:
+            problems.append(f"{process}: health is {now - seen:.1f} s old")
+        elif h.state != "ok":
+            problems.append(f"{process}: {h.state} ({h.rate_hz:.1f} Hz)")
+    return not problems, problems
+
+
+class _BoardCollector:
+    def __init__(self, board: HealthBoard):
+        self.board = board
+
+    def collect(self):
+        gauges = {
+            "rate_hz": GaugeMetricFamily("roadlog_rate_hz", "messages per second published", labels=["process"]),
+            "age": GaugeMetricFamily("roadlog_last_message_age_seconds", "age of the last message",
+                                     labels=["process"]),
+            "up": GaugeMetricFamily("roadlog_process_ok", "1 when the process reports ok", labels=["process"]),
+        }
+        counters = {k: CounterMetricFamily(f"roadlog_{k}", f"{k} messages or events", labels=["process"])
+                    for k in ("received", "published", "dropped", "rejected", "errors", "sequence_gaps")}
+        lost = GaugeMetricFamily("roadlog_recorder_lost_messages", "messages the recorder lost", labels=["topic"])
+        written = GaugeMetricFamily("roadlog_recorder_written_messages", "messages written to the log",
+                                    labels=["topic"])
+        restarts = GaugeMetricFamily("roadlog_process_restarts", "restarts by the supervisor", labels=["process"])
+        for name, (h, _) in sorted(self.board.snapshot().items()):
+            gauges["rate_hz"].add_metric([name], h.rate_hz)
+            gauges["age"].add_metric([name], h.last_message_age_s if h.last_message_age_s != float("inf") else -1)
+            gauges["up"].add_metric([name], 1.0 if h.state == "ok" else 0.0)
+            for k, fam in counters.items():
+                fam.add_metric([name], getattr(h, k))
+            detail = _detail(h)
+            if name == "recorder":
+                for topic, n in detail.get("lost", {}).items():
+                    lost.add_metric([topic], n)
+                for topic, n in detail.get("written", {}).items():
+                    written.add_metric([topic], n)
+            if name == "supervisor":
+                for proc, info in detail.get("processes", {}).items():
+                    restarts.add_metric([proc], info.get("restarts", 0))
+        yield from gauges.values()
+        yield from counters.values()
+        yield from (lost, written, restarts)
+
+
+def make_handler(config: CarConfig, board: HealthBoard, registry: CollectorRegistry, data_folder: Path):
+    previews = {f"/preview/{name}.png": name for name in PREVIEWS}
+
+    class Handler(BaseHTTPRequestHandler):
+        server_version = "roadlog-status"
+
+        def log_message(self, fmt, *args):  # keep the journal quiet: one line per request is noise
+            pass
+
+        def _send(self, code: int, body: bytes, content_type: str) -> None:
+            self.send_response(code)
+            self.send_header("Content-Type", content_type)
+            self.send_header("Content-Length", str(len(body)))
+            self.send_header("Cache-Control", "no-store")
+            self.end_headers()
+            if self.command != "HEAD":
+                self.wfile.write(body)
+
+        def _json(self, code: int, doc: object) -> None:
+            self._send(code, json.dumps(doc, indent=1, default=str).encode(), "application/json")
+
+        def do_GET(self):  # noqa: N802 - http.server's naming
+            path = self.path.split("?", 1)[0]
+            if path == "/livez":
+                self._send(200, b"ok\n", "text/plain")
+            elif path == "/readyz":
+                ready, why = readiness(config, board)
+                self._json(200 if ready else 503, {"ready": ready, "not_ready_because": why})
+            elif path == "/status":
+                self._json(200, status_document(config, board))
+            elif path == "/metrics":
+                self._send(200, generate_latest(registry), "text/plain; version=0.0.4; charset=utf-8")
+            elif path in previews:
+                file = preview_dir(data_folder) / f"{previews[path]}.png"
+                try:
+                    body = file.read_bytes()
+                except OSError:
+                    self._send(404, b"no preview yet\n", "text/plain")
+                    return
+                self._send(200, body, "image/png")
+            else:
+                self._send(404, b"not found\n", "text/plain")
+
+        do_HEAD = do_GET  # noqa: N815
+
+        def _read_only(self):
+            self._send(HTTPStatus.METHOD_NOT_ALLOWED, b"read-only\n", "text/plain")
+
+        do_POST = do_PUT = do_DELETE = do_PATCH = _read_only  # noqa: N815
+
+    return Handler
+
+
+def make_server(config: CarConfig, board: HealthBoard, data_folder: Path, port: int | None = None
+                ) -> ThreadingHTTPServer:
+    registry = CollectorRegistry()
+    registry.register(_BoardCollector(board))
+    server = ThreadingHTTPServer((config.status.bind_address, config.status.port if port is None else port),
+                                 make_handler(config, board, registry, data_folder))
+    server.daemon_threads = True
+    return server
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="roadlog-status", description=__doc__)
+    parser.add_argument("--config", required=True)
+    parser.add_argument("--port", type=int, default=None, help="override the config's port")
+    parser.add_argument("--output-dir", help="log and map folder (default: recorder.output_dir)")
+    args = parser.parse_args(argv)
+    config = load_config(args.config)
+    board = HealthBoard(config)
+    board.start()
+    server = make_server(config, board, data_dir(config, args.config, args.output_dir), args.port)
+    signal.signal(signal.SIGTERM, lambda *_: threading.Thread(target=server.shutdown).start())
+    print(f"status endpoint on http://{server.server_address[0]}:{server.server_address[1]}", file=sys.stderr)
+    try:
+        server.serve_forever(poll_interval=0.2)
+    except KeyboardInterrupt:
+        pass
+    board.stop()
+    server.server_close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

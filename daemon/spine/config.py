@@ -1,0 +1,336 @@
+"""The car's configuration: one validated schema (sensors, bus, recorder, mapper, status server).
+
+Conventions used everywhere:
+- Vehicle frame: x forward, y left, z up; origin at the vehicle reference point (the pose-fusion output),
+  which sits `vehicle.reference_height_m` above the ground.
+- Extrinsics give a sensor's pose in the vehicle frame: translation (m) and roll/pitch/yaw (degrees,
+  applied as R = Rz(yaw) @ Ry(pitch) @ Rx(roll)).
+- Camera axes follow OpenCV: x right, y down, z forward (optical axis).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+
+class ConfigError(Exception):
+    """A configuration file that cannot be used; the message names the file, key path and expectation."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Extrinsics(_Strict):
+    translation_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rotation_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def rotation_matrix(self) -> np.ndarray:
+        r, p, y = np.deg2rad(self.rotation_rpy_deg)
+        rx = np.array([[1, 0, 0], [0, np.cos(r), -np.sin(r)], [0, np.sin(r), np.cos(r)]])
+        ry = np.array([[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]])
+        rz = np.array([[np.cos(y), -np.sin(y), 0], [np.sin(y), np.cos(y), 0], [0, 0, 1]])
+        return rz @ ry @ rx
+
+    def matrix(self) -> np.ndarray:
+        """4x4 transform from the sensor frame to the vehicle frame."""
+        t = np.eye(4)
+        t[:3, :3] = self.rotation_matrix()
+        t[:3, 3] = self.translation_m
+        return t
+
+
+class CameraIntrinsics(_Strict):
+    fx: float = Field(gt=0)
+    fy: float = Field(gt=0)
+    cx: float
+    cy: float
+
+    def matrix(self) -> np.ndarray:
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+
+class CameraPhotometry(_Strict):
+    """The simulator's photometric response of a camera (ignored by real backends)."""
+
+    gain: float = Field(1.0, gt=0)
+    gamma: float = Field(1.0, gt=0)
+    white_balance: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    saturation: float = Field(1.0, ge=0)
+    vignetting: float = Field(0.0, ge=0, le=1)
+    noise_sigma: float = Field(1.0, ge=0)
+
+
+class CameraConfig(_Strict):
+    name: str = Field(pattern=r"^[a-z][a-z0-9_]*$")
+    backend: Literal["sim", "opencv", "depthai"]
+    device: str = ""  # V4L2 path, GStreamer pipeline, or OAK serial number
+    model: Literal["pinhole"] = "pinhole"
+    width: int = Field(gt=0, le=8192)
+    height: int = Field(gt=0, le=8192)
+    rate_hz: float = Field(gt=0, le=120)
+    intrinsics: CameraIntrinsics
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)  # k1 k2 p1 p2 k3
+    extrinsics: Extrinsics
+    encoding: Literal["jpeg", "h264", "h265", "raw"] = "jpeg"
+    jpeg_quality: int = Field(90, ge=1, le=100)
+    photometry: CameraPhotometry = CameraPhotometry()
+
+    @model_validator(mode="after")
+    def _principal_point_inside(self) -> CameraConfig:
+        if not (0 <= self.intrinsics.cx <= self.width and 0 <= self.intrinsics.cy <= self.height):
+            raise ValueError("intrinsics cx/cy must lie inside the image (0..width, 0..height)")
+        return self
+
+
+class LidarConfig(_Strict):
+    model: Literal["ouster-os-128", "ouster-os-32", "hesai-pandar128", "velodyne-vls128"]
+    bind_address: str = "0.0.0.0"
+    port: int = Field(7502, ge=1, le=65535)
+    imu_port: int | None = Field(None, ge=0, le=65535)  # None: the metadata's udp_port_imu; 0: IMU off
+    metadata_file: str
+    columns_per_frame: Literal[512, 1024, 2048] = 1024
+    rate_hz: Literal[10, 20] = 10
+    receive_buffer_bytes: int = Field(64 * 1024 * 1024, ge=1 << 16)
+    extrinsics: Extrinsics
+
+
+class GnssConfig(_Strict):
+    port: str
+    baud: int = Field(115200, gt=0)
+    protocol: Literal["nmea", "ubx", "nmea+ubx"] = "nmea+ubx"
+    rate_hz: float = Field(10.0, gt=0)
+    imu_rate_hz: float = Field(100.0, gt=0)
+    antenna_lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # antenna in the vehicle frame
+    imu_extrinsics: Extrinsics = Extrinsics()
+
+
+class CanSignals(_Strict):
+    """Signal names as MESSAGE.SIGNAL in the DBC."""
+
+    wheel_speed_fl: str
+    wheel_speed_fr: str
+    wheel_speed_rl: str
+    wheel_speed_rr: str
+    yaw_rate: str | None = None
+    speed_unit: Literal["m/s", "km/h", "rad/s"] = "km/h"  # rad/s: wheel angular rate, times wheel_radius_m
+    wheel_radius_m: float = Field(0.33, gt=0)
+    yaw_rate_unit: Literal["rad/s", "deg/s"] = "deg/s"
+
+    @field_validator("wheel_speed_fl", "wheel_speed_fr", "wheel_speed_rl", "wheel_speed_rr", "yaw_rate")
+    @classmethod
+    def _dotted(cls, v: str | None) -> str | None:
+        if v is not None and (v.count(".") != 1 or not all(v.split("."))):
+            raise ValueError("must be MESSAGE.SIGNAL")
+        return v
+
+
+class CanConfig(_Strict):
+    interface: str = "socketcan"  # any python-can interface: socketcan, virtual, udp_multicast, slcan, ...
+    channel: str = "can0"
+    bitrate: int | None = Field(500000, gt=0)
+    dbc_file: str
+    signals: CanSignals
+    options: dict[str, str | int | float | bool] = {}  # extra python-can bus arguments (e.g. udp_multicast port)
+
+
+class SensorsConfig(_Strict):
+    cameras: list[CameraConfig] = Field(min_length=1)
+    lidar: LidarConfig | None = None
+    gnss: GnssConfig | None = None
+    can: CanConfig | None = None
+
+    @field_validator("cameras")
+    @classmethod
+    def _unique_names(cls, cams: list[CameraConfig]) -> list[CameraConfig]:
+        names = [c.name for c in cams]
+        if len(set(names)) != len(names):
+            raise ValueError(f"camera names must be unique, got {names}")
+        return cams
+
+
+class VehicleConfig(_Strict):
+    name: str = "car"
+    reference_height_m: float = Field(0.0, ge=0, le=5)  # reference point height above the ground
+    wheel_base_m: float = Field(2.8, gt=0)
+    track_width_m: float = Field(1.6, gt=0)
+    rear_axle_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # rear axle centre in the vehicle frame
+
+
+class BusConfig(_Strict):
+    shm_prefix: str = Field("roadlog", pattern=r"^[A-Za-z0-9_]+$")
+    ring_bytes: dict[str, int] = {}  # per-topic overrides of the topic table's ring size
+
+
+class RecorderConfig(_Strict):
+    output_dir: str = "logs"
+    segment_seconds: float = Field(60.0, gt=0)
+    segment_bytes: int = Field(2 * 1024**3, gt=0)
+    min_free_gib: float = Field(5.0, ge=0)
+    min_free_pct: float = Field(5.0, ge=0, le=100)
+    compression: Literal["zstd", "lz4", "none"] = "lz4"
+
+
+class LearningRates(_Strict):
+    elevation_mlp: float = Field(0.01, gt=0)
+    colour_mlps: float = Field(0.005, gt=0)
+    semantics: float = Field(0.1, gt=0)
+    colour_codes: float = Field(0.005, gt=0)
+
+
+class LossWeights(_Strict):
+    rgb: float = Field(1.0, ge=0)
+    semantics: float = Field(1.0, ge=0)
+    elevation: float = Field(1.0, ge=0)
+    smoothness: float = Field(1.0, ge=0)
+
+
+class LiveViewConfig(_Strict):
+    """The mapper's optional Foxglove WebSocket live view of the growing map (mapping.live.live_view)."""
+
+    enabled: bool = False
+    bind_address: str = "127.0.0.1"
+    port: int = Field(8765, ge=0, le=65535)  # 0: any free port
+
+
+MaskClassName = Literal["road", "lane_marking", "curb", "manhole", "background", "obstacle"]
+
+
+class SegmentationConfig(_Strict):
+    """Where the mapper's semantic masks come from (mapping.inputs.segmentation): `log`, the masks recorded beside
+    the frames (the simulator's, or an upstream segmenter's); `onnx`, a semantic-segmentation model run on
+    each keyframe with onnxruntime. The model takes one RGB image (1, 3, H, W) float32, scaled to [0, 1]
+    then normalised by `mean` and `std`, and gives (1, C, H', W') class scores or (1, H', W') class ids;
+    `class_map` names the map class of each model class id (ids it leaves out are unlabelled: not used)."""
+
+    provider: Literal["log", "onnx"] = "log"
+    model: str | None = None  # the .onnx file, relative to the config file
+    class_map: dict[int, MaskClassName] = {}
+    mean: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    std: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    input_size: tuple[int, int] | None = None  # (width, height) the image is resized to; None: the model's
+    # own fixed input size, else the image's
+    threads: int = Field(1, ge=1)  # onnxruntime intra-op threads
+
+    @model_validator(mode="after")
+    def _onnx_needs_a_model(self) -> SegmentationConfig:
+        if self.provider == "onnx" and (not self.model or not self.class_map):
+            raise ValueError("provider onnx needs `model` (an .onnx file) and `class_map` (model class id -> "
+                             "map class name)")
+        if any(v <= 0 for v in self.std):
+            raise ValueError("std must be positive")
+        return self
+
+
+class MapperConfig(_Strict):
+    enabled: bool = True
+    mesh_side_m: float = Field(0.1, gt=0, le=2)
+    corridor_half_width_m: float = Field(15.0, gt=0)
+    window_before_m: float = Field(80.0, gt=0)
+    window_after_m: float = Field(80.0, gt=0)
+    colour_code_dim: int = Field(32, gt=0)
+    positional_encoding_dim: int = Field(22, gt=1)
+    elevation_mlp_layers: int = Field(8, ge=1)
+    elevation_mlp_width: int = Field(128, ge=1)
+    colour_mlp_layers: int = Field(2, ge=1)
+    colour_mlp_width: int = Field(16, ge=1)
+    learning_rates: LearningRates = LearningRates()
+    loss_weights: LossWeights = LossWeights()
+    epochs: int = Field(5, ge=1)
+    batch_size: int = Field(8, ge=1)
+    keyframe_spacing_m: float = Field(1.0, ge=0)
+    seed: int = 0
+    threads: int = Field(2, ge=1)
+    live_view: LiveViewConfig = LiveViewConfig()
+    segmentation: SegmentationConfig = SegmentationConfig()
+
+
+class StatusConfig(_Strict):
+    bind_address: str = "127.0.0.1"
+    port: int = Field(8088, ge=0, le=65535)
+
+
+class CarConfig(_Strict):
+    vehicle: VehicleConfig = VehicleConfig()
+    sensors: SensorsConfig
+    bus: BusConfig = BusConfig()
+    recorder: RecorderConfig = RecorderConfig()
+    mapper: MapperConfig = MapperConfig()
+    status: StatusConfig = StatusConfig()
+
+    def camera(self, name: str) -> CameraConfig:
+        for cam in self.sensors.cameras:
+            if cam.name == name:
+                return cam
+        raise KeyError(f"no camera named {name!r}")
+
+
+def _describe(error: dict) -> str:
+    path = ".".join(str(p) for p in error["loc"]) or "(top level)"
+    msg = error["msg"]
+    if error["type"] == "extra_forbidden":
+        msg = "unknown key (not part of the schema)"
+    elif error["type"] == "missing":
+        msg = "required key is missing"
+    got = "" if error["type"] == "missing" else f" (got {error.get('input')!r:.80})"
+    return f"{path}: {msg}{got}"
+
+
+def parse_config(data: object, source: str = "<config>") -> CarConfig:
+    """Validate an already-parsed config mapping; raise ConfigError naming the source and key path."""
+    try:
+        return CarConfig.model_validate(data)
+    except ValidationError as exc:
+        lines = [_describe(e) for e in exc.errors()]
+        raise ConfigError(f"{source}: invalid configuration:\n  " + "\n  ".join(lines)) from None
+
+
+def resolve_path(config_file: str | Path, value: str) -> Path:
+    """A path from the config, relative paths taken from the config file's folder."""
+    p = Path(value).expanduser()
+    return p if p.is_absolute() else (Path(config_file).resolve().parent / p)
+
+
+def data_dir(config: CarConfig, config_file: str | Path, override: str | Path | None = None) -> Path:
+    """The folder for log segments and maps: the override, else recorder.output_dir (relative to the config)."""
+    return Path(override) if override else resolve_path(config_file, config.recorder.output_dir)
+
+
+def load_config(path: str | Path) -> CarConfig:
+    """Read and validate a YAML car config; any problem raises ConfigError with one clear message."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read config file: {exc.strerror}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: (top level): expected a mapping of sections, got {type(data).__name__}")
+    return parse_config(data, str(path))
+
+
+EXIT_CONFIG_ERROR = 2  # a process's exit status for "this config cannot work": the supervisor does not retry
+
+
+def load_config_or_report(path: str | Path) -> CarConfig | None:
+    """For a process's main(): the config, or None once the reason it cannot be used is on stderr
+    (the caller then exits with EXIT_CONFIG_ERROR)."""
+    try:
+        return load_config(path)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return None
+
+
+def config_to_yaml(config: CarConfig) -> str:
+    """The resolved config as YAML (saved beside every output and in every log segment)."""
+    return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)

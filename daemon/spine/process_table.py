@@ -1,0 +1,73 @@
+"""The process table: which processes the daemon runs, in which mode, with what arguments.
+
+Adding a sensor means editing this table and the topic table (daemon/spine/topics.py), nothing else.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from daemon.spine.config import CarConfig
+from daemon.spine.topics import camera_process
+
+Mode = Literal["live", "replay"]
+MAPPER_NICE = 10  # the mapper's CPU priority below the drivers' and the recorder's
+
+
+@dataclass(frozen=True)
+class ProcessSpec:
+    name: str  # also the name it publishes health under
+    module: str  # run as `python -m module *args`
+    args: tuple[str, ...] = ()
+    required: bool = False  # a driver that readiness waits for
+    heartbeat_s: float = 10.0  # restart when its health is older than this (0: not watched)
+    restart_on_success: bool = True  # False: a clean exit means "done" (replay at the end of its logs)
+    stop_timeout_s: float = 10.0  # how long it may take to exit after SIGTERM
+    start_after: tuple[str, ...] = ()  # processes that must be up (have published health) before it starts
+    nice: int = 0  # CPU priority below the others' by this much (`nice` increment)
+
+
+def process_table(
+    config: CarConfig,
+    config_path: str,
+    mode: Mode,
+    *,
+    replay_logs: tuple[str, ...] = (),
+    replay_rate: str = "1.0",
+    record: bool = True,
+    output_dir: str | None = None,
+    map_stop_timeout_s: float = 600.0,
+) -> list[ProcessSpec]:
+    """The processes of one daemon run. Live: one per driver; replay: the log player instead."""
+    cfg = ("--config", config_path)
+    out = ("--output-dir", output_dir) if output_dir else ()
+    table: list[ProcessSpec] = []
+    if mode == "live":
+        s = config.sensors
+        for cam in s.cameras:
+            module = "sim.camera_playback" if cam.backend == "sim" else "drivers.camera.camera_driver"
+            table.append(ProcessSpec(camera_process(cam.name), module, cfg + ("--camera", cam.name), required=True))
+        if s.lidar is not None:
+            table.append(ProcessSpec("lidar", "drivers.lidar.udp_driver", cfg, required=True))
+        if s.gnss is not None:
+            table.append(ProcessSpec("gnss", "drivers.gnss.serial_driver", cfg, required=True))
+        if s.can is not None:
+            table.append(ProcessSpec("can", "drivers.can.can_driver", cfg, required=True))
+    else:
+        # the player starts once the recorder and the mapper listen: nothing is played before they subscribe
+        consumers = ("recorder",) * record + ("mapper",) * config.mapper.enabled
+        table.append(ProcessSpec("replay", "daemon.processes.replay", cfg + ("--rate", replay_rate) + replay_logs,
+                                 restart_on_success=False, heartbeat_s=30.0, start_after=consumers))
+    if record:
+        anchors = ("--no-time-anchors",) if mode == "replay" else ()  # the player replays the recorded ones
+        # replaying as fast as the consumers allow: the player waits for the recorder too, or it would overrun it
+        lossless = ("--lossless",) if mode == "replay" and replay_rate == "max" else ()
+        table.append(ProcessSpec("recorder", "daemon.processes.recorder", cfg + out + anchors + lossless,
+                                 heartbeat_s=15.0, stop_timeout_s=30.0))
+    if config.mapper.enabled:
+        # the log comes first: on a busy machine the drivers and the recorder get the CPU before the mapper
+        table.append(ProcessSpec("mapper", "mapping.live.mapping_worker", cfg + out, heartbeat_s=120.0,
+                                 stop_timeout_s=map_stop_timeout_s, restart_on_success=False, nice=MAPPER_NICE))
+    table.append(ProcessSpec("status", "daemon.processes.status_server", cfg + out, heartbeat_s=0.0))
+    return table

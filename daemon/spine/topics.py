@@ -1,0 +1,104 @@
+"""The topic table: the only place a topic is declared (name, message type, rate, ring size, logged).
+
+Per-camera and per-process topics are declared once here as templates and expanded from the car's
+config by `topic_table`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from daemon.spine.config import CarConfig
+from daemon.spine.messages import (
+    CameraFrame,
+    CanFrame,
+    DriverHealth,
+    GnssFix,
+    ImuSample,
+    LidarPacket,
+    SemanticMask,
+    TimeAnchor,
+    VehiclePose,
+    WheelSpeeds,
+)
+
+MB = 1024 * 1024
+
+
+@dataclass(frozen=True)
+class Topic:
+    name: str
+    message_type: type
+    rate_hz: float
+    ring_bytes: int
+    logged: bool = True
+    source: str = ""  # the process that writes it (a driver name, "pose_fusion", ...)
+
+
+def camera_topic(camera: str) -> str:
+    return f"camera/{camera}"
+
+
+def mask_topic(camera: str) -> str:
+    return f"mask/{camera}"
+
+
+def calibration_topic(camera: str) -> str:
+    """Log-only channel (foxglove.CameraCalibration) written once at the start of every log file."""
+    return f"calibration/{camera}"
+
+
+def camera_process(camera: str) -> str:
+    return f"camera_{camera}"
+
+
+def health_topic(process: str) -> str:
+    return f"health/{process}"
+
+
+LIDAR_PACKETS = "lidar/packets"
+LIDAR_IMU = "lidar/imu"  # the Lidar's own IMU (Ouster: UDP udp_port_imu)
+GNSS_FIX = "gnss/fix"
+IMU = "imu"
+CAN_FRAMES = "can/frames"
+WHEEL_SPEEDS = "wheel_speeds"
+POSE = "pose"
+TIME_ANCHOR = "time_anchor"
+
+# Processes that publish a health topic besides one camera driver per camera ("camera_<name>").
+HEALTH_PROCESSES = ("lidar", "gnss", "can", "recorder", "mapper", "replay", "pose_fusion", "supervisor", "status")
+
+
+def topic_table(config: CarConfig) -> dict[str, Topic]:
+    """Every topic of this car, keyed by name."""
+    sensors = config.sensors
+    topics: list[Topic] = []
+    for cam in sensors.cameras:
+        raw_bytes = cam.width * cam.height * 3
+        ring = max(64 * MB, 4 * raw_bytes + MB)
+        process = camera_process(cam.name)
+        topics.append(Topic(camera_topic(cam.name), CameraFrame, cam.rate_hz, ring, True, process))
+        topics.append(Topic(mask_topic(cam.name), SemanticMask, cam.rate_hz, max(16 * MB, 2 * raw_bytes), True,
+                            process))
+        topics.append(Topic(health_topic(process), DriverHealth, 1.0, 1 * MB, True, process))
+    if sensors.lidar is not None:
+        packets_per_s = sensors.lidar.columns_per_frame / 16 * sensors.lidar.rate_hz
+        topics.append(Topic(LIDAR_PACKETS, LidarPacket, packets_per_s, 128 * MB, True, "lidar"))
+        topics.append(Topic(LIDAR_IMU, ImuSample, 100.0, 4 * MB, True, "lidar"))
+    if sensors.gnss is not None:
+        topics.append(Topic(GNSS_FIX, GnssFix, sensors.gnss.rate_hz, 4 * MB, True, "gnss"))
+        topics.append(Topic(IMU, ImuSample, sensors.gnss.imu_rate_hz, 8 * MB, True, "gnss"))
+    if sensors.can is not None:
+        topics.append(Topic(CAN_FRAMES, CanFrame, 2000.0, 16 * MB, True, "can"))
+        topics.append(Topic(WHEEL_SPEEDS, WheelSpeeds, 50.0, 4 * MB, True, "can"))
+    topics.append(Topic(POSE, VehiclePose, 100.0, 8 * MB, True, "pose_fusion"))
+    topics.append(Topic(TIME_ANCHOR, TimeAnchor, 1.0, 1 * MB, True, "recorder"))
+    for process in HEALTH_PROCESSES:
+        topics.append(Topic(health_topic(process), DriverHealth, 1.0, 1 * MB, True, process))
+    table = {t.name: t for t in topics}
+    for name, size in config.bus.ring_bytes.items():
+        if name not in table:
+            raise KeyError(f"bus.ring_bytes names unknown topic {name!r}")
+        t = table[name]
+        table[name] = Topic(t.name, t.message_type, t.rate_hz, size, t.logged, t.source)
+    return table

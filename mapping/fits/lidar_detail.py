@@ -1,0 +1,49 @@
+"""The surface's Lidar detail: what the smooth elevation cannot hold, taken from the Lidar ground points.
+
+The elevation MLP (a 22-d encoding at the window's 160 m scale, fitted on a 0.5 m lattice) is smooth at the
+metre scale: it rounds a 15 cm curb step over about a metre and leaves centimetre bumps out. A label or a
+colour read through a surface that is 2 cm too high lands 13 cm short at 10 m from a camera 1.5 m up, so
+curbs come out twice as wide and lane markings lose their edges. This step (beyond the paper's model, which
+has no per-vertex elevation) adds to every vertex a detail height so that the mesh's piecewise-linear
+surface passes through the Lidar ground points under it, by least squares over the points' barycentric
+weights, solved by a few Jacobi passes; a vertex with few points keeps the smooth surface (a prior of
+`prior` points at zero detail), and there is no smoothness term: it would round the curb again.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from mapping.outputs.map_metrics import Located
+
+THREADS = 2  # each pass's sums are split over the points: numpy's gathers and bincount run partly without
+# the GIL (city31's 3.4 M points: 0.51 -> 0.41 s a pass on a quiet machine, 1.15 -> 0.44 s on a busy one)
+
+
+def fit_lidar_detail(z: np.ndarray, located: Located, heights: np.ndarray, passes: int, prior: float) -> np.ndarray:
+    """Add the detail to the vertex elevations `z` (N,) in place, for the Lidar ground points placed by
+    `located` with heights `heights` (M,); returns the detail (N,)."""
+    n = len(z)
+    inside = np.flatnonzero(located.inside)
+    parts = [(located.ids[part], located.weights[part], heights[part].astype(np.float32))
+             for part in np.array_split(inside, THREADS)]
+
+    def support(part) -> np.ndarray:
+        ids, w, _ = part
+        return np.bincount(ids.ravel(), w.ravel(), minlength=n)
+
+    def pull(part) -> np.ndarray:
+        ids, w, target = part
+        residual = target - (z[ids] * w).sum(1)
+        return np.bincount(ids.ravel(), (w * residual[:, None]).ravel(), minlength=n)
+
+    detail = np.zeros(n, np.float32)
+    with ThreadPoolExecutor(THREADS, thread_name_prefix="lidar-detail") as pool:
+        total = (sum(pool.map(support, parts)) + prior).astype(np.float32)
+        for _ in range(passes):
+            step = ((sum(pool.map(pull, parts)) - prior * detail) / total).astype(np.float32)
+            detail += step
+            z += step
+    return detail

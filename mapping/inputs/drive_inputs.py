@@ -1,0 +1,343 @@
+"""From drive logs to the reconstruction's inputs: clock alignment, pose fusion, keyframes, Lidar ground.
+
+Every sensor has its own clock: each topic's stamps are put on the host monotonic clock
+(mapping.localization.sensor_time). The trajectory comes from the log's `pose` topic when it has one, else
+from fusing its GNSS, IMU and wheel speeds (mapping.localization.pose_fusion). Camera frames become keyframes
+every `keyframe_spacing_m` of travel (per camera); their poses are interpolated at the frame time.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from daemon.log_format import ReadReport, read_log
+from daemon.spine.config import CarConfig, resolve_path
+from daemon.spine.local_frame import LocalFrame
+from daemon.spine.messages import (
+    CameraFrame,
+    GnssFix,
+    ImuSample,
+    LidarPacket,
+    SemanticMask,
+    TimeAnchor,
+    VehiclePose,
+    WheelSpeeds,
+)
+from daemon.spine.topics import GNSS_FIX, IMU, LIDAR_PACKETS, POSE, TIME_ANCHOR, WHEEL_SPEEDS, camera_topic, mask_topic
+from drivers.lidar.ouster_metadata import parse_metadata
+from mapping.inputs.lidar_ground import (
+    GroundFilter,
+    LidarDecoding,
+    TrajectoryGround,
+    ground_points,
+    lidar_world_points,
+)
+from mapping.inputs.segmentation import OnnxSegmenter
+from mapping.localization import pose_fusion
+from mapping.localization.sensor_time import ClockMap, fit_clock
+from mapping.localization.trajectory import Trajectory
+from mapping.method.scene_data import CameraModel, Keyframe
+from mapping.method.scene_data import Trajectory as PathTrajectory
+
+LIDAR_GROUND_THREADS = 2  # city31: the ground of 155 scans, standalone, 5.3 / 5.6 s on one thread, 3.2 / 2.8 s on two
+
+
+def reconstruction_path(trajectory: Trajectory) -> PathTrajectory:
+    """The trajectory as the reconstruction takes it (seconds from the drive start, positions)."""
+    t0 = trajectory.times_ns[0]
+    return PathTrajectory((trajectory.times_ns - t0) / 1e9, trajectory.positions)
+
+
+@dataclass
+class DriveInputs:
+    cameras: dict[str, CameraModel]
+    keyframes: list[Keyframe]
+    trajectory: Trajectory  # 6-DoF vehicle reference frame in ENU, host monotonic ns
+    lidar_ground_points: np.ndarray | None
+    clocks: dict[str, ClockMap]  # per topic: its sensor stamps -> host monotonic
+    counts: dict[str, int] = field(default_factory=dict)
+    report: ReadReport | None = None
+
+    @property
+    def path(self) -> PathTrajectory:
+        return reconstruction_path(self.trajectory)
+
+    @property
+    def drive_s(self) -> float:
+        return float(self.trajectory.times_ns[-1] - self.trajectory.times_ns[0]) / 1e9
+
+
+@dataclass
+class LoadingDrive:
+    """A drive whose trajectory is ready while its Lidar ground is extracted, then its keyframe images decoded,
+    in a background thread (numpy and OpenCV release the GIL): the reconstruction builds its mesh meanwhile
+    and waits for each input where it first needs it."""
+
+    cameras: dict[str, CameraModel]
+    keyframes: Future[list[Keyframe]]
+    trajectory: Trajectory
+    lidar_ground_points: Future[np.ndarray | None]
+    clocks: dict[str, ClockMap]
+    counts: dict[str, int]
+    report: ReadReport
+
+    @property
+    def path(self) -> PathTrajectory:
+        return reconstruction_path(self.trajectory)
+
+    def result(self) -> DriveInputs:
+        """The finished inputs (waits for the background work; its errors are raised here)."""
+        keyframes, ground = self.keyframes.result(), self.lidar_ground_points.result()
+        counts = dict(self.counts, keyframes=len(keyframes))
+        if ground is not None:
+            counts["lidar_ground_points"] = len(ground)
+        return DriveInputs(self.cameras, keyframes, self.trajectory, ground, self.clocks, counts, self.report)
+
+
+def camera_models(config: CarConfig) -> dict[str, CameraModel]:
+    return {c.name: CameraModel(c.name, c.intrinsics.matrix(), tuple(c.distortion), c.width, c.height)
+            for c in config.sensors.cameras}
+
+
+def decode_image(frame: CameraFrame) -> np.ndarray:
+    """RGB uint8 pixels of a camera frame (JPEG/PNG or raw)."""
+    if frame.format in ("rgb8", "bgr8", "mono8"):
+        channels = 1 if frame.format == "mono8" else 3
+        img = np.frombuffer(bytes(frame.data), np.uint8).reshape(frame.height, frame.width, channels)
+        if frame.format == "bgr8":
+            img = img[..., ::-1]
+        return np.repeat(img, 3, axis=2) if channels == 1 else np.ascontiguousarray(img)
+    img = cv2.imdecode(np.frombuffer(bytes(frame.data), np.uint8), cv2.IMREAD_COLOR)
+    if img is None:
+        raise ValueError(f"cannot decode {frame.format} frame {frame.seq} of {frame.camera}")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def decode_mask(mask: SemanticMask) -> np.ndarray:
+    img = cv2.imdecode(np.frombuffer(bytes(mask.data), np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"cannot decode mask {mask.seq} of {mask.camera}")
+    return img
+
+
+def _by_sensor_time(messages: list) -> list:
+    """Messages sorted by their sensor time, repeated stamps dropped (arrival order may differ)."""
+    out, last = [], None
+    for m in sorted(messages, key=lambda m: m.sensor_time_ns):
+        if m.sensor_time_ns != last:
+            out.append(m)
+            last = m.sensor_time_ns
+    return out
+
+
+def fuse_log_trajectory(gnss: list[GnssFix], imu: list[ImuSample], wheels: list[WheelSpeeds], config: CarConfig,
+                        origin: LocalFrame | None, clocks: dict[str, ClockMap]) -> Trajectory:
+    """The vehicle trajectory from the log's GNSS, IMU and wheel speeds (host clock)."""
+    if not gnss or not imu or not wheels:
+        raise ValueError(f"pose fusion needs GNSS, IMU and wheel speeds (got {len(gnss)} fixes, {len(imu)} IMU "
+                         f"samples, {len(wheels)} wheel speeds) or a `pose` topic in the log")
+    g = config.sensors.gnss
+    gnss, imu, wheels = _by_sensor_time(gnss), _by_sensor_time(imu), _by_sensor_time(wheels)
+    fixes = pose_fusion.GnssFixes(
+        times_ns=clocks[GNSS_FIX].to_host([m.sensor_time_ns for m in gnss]),
+        lat_deg=np.array([m.latitude_deg for m in gnss]),
+        lon_deg=np.array([m.longitude_deg for m in gnss]),
+        alt_m=np.array([m.altitude_m for m in gnss]),
+        position_cov_enu=np.array([np.reshape(m.position_covariance, (3, 3)) for m in gnss]),
+    )
+    samples = pose_fusion.ImuSamples(
+        times_ns=clocks[IMU].to_host([m.sensor_time_ns for m in imu]),
+        accel=np.array([m.accel_mps2 for m in imu]),
+        gyro=np.array([m.gyro_rps for m in imu]),
+    )
+    yaw = np.array([m.yaw_rate_rps for m in wheels])
+    speeds = pose_fusion.WheelSpeeds(
+        times_ns=clocks[WHEEL_SPEEDS].to_host([m.sensor_time_ns for m in wheels]),
+        speeds=np.array([[m.front_left_mps, m.front_right_mps, m.rear_left_mps, m.rear_right_mps] for m in wheels]),
+        yaw_rate=None if np.all(np.isnan(yaw)) else yaw,
+    )
+    mounting = pose_fusion.VehicleMounting(
+        gnss_lever_arm=np.array(g.antenna_lever_arm_m, float),
+        imu_lever_arm=np.array(g.imu_extrinsics.translation_m, float),
+        rear_axle_lever_arm=np.array(config.vehicle.rear_axle_m, float),
+        imu_to_vehicle=g.imu_extrinsics.rotation_matrix(),
+    )
+    return pose_fusion.fuse_trajectory(fixes, samples, speeds, mounting, origin=origin).trajectory
+
+
+def _pose_trajectory(poses: list[VehiclePose], clock: ClockMap, origin: LocalFrame | None) -> Trajectory:
+    o = origin or LocalFrame(0.0, 0.0, 0.0)
+    return Trajectory(
+        times_ns=clock.to_host([p.sensor_time_ns for p in poses]),
+        positions=np.array([p.position_m for p in poses], float),
+        quaternions=np.array([p.orientation_xyzw for p in poses], float),
+        origin_lat_deg=o.lat_deg, origin_lon_deg=o.lon_deg, origin_alt_m=o.alt_m,
+    )
+
+
+def camera_pose(trajectory: Trajectory, t_ns: int, T_vehicle_camera: np.ndarray) -> np.ndarray:
+    """4x4 T_world_camera at one time."""
+    pos, quat = trajectory.interpolate(np.array([t_ns], np.int64))
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(quat[0]).as_matrix()
+    T[:3, 3] = pos[0]
+    return T @ T_vehicle_camera
+
+
+def load_drive(paths: list[str | Path], config: CarConfig, config_path: str | Path | None = None,
+               **options) -> DriveInputs:
+    """Everything the reconstruction needs from the given log segments (options: start_loading_drive's)."""
+    return start_loading_drive(paths, config, config_path, **options).result()
+
+
+def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path: str | Path | None = None, *,
+                        origin: LocalFrame | None = None, use_lidar: bool = True,
+                        keyframe_spacing_m: float | None = None, lidar_every_n_scans: int = 2,
+                        ground_filter: GroundFilter | None = None) -> LoadingDrive:
+    """Read the log segments and fuse the trajectory; start extracting the Lidar ground and decoding the
+    keyframes in the background."""
+    report = ReadReport()
+    segmenter = segmenter_for(config, config_path)  # a bad model fails here, before the log is read
+    cams = [c.name for c in config.sensors.cameras]
+    frames: dict[str, list[CameraFrame]] = defaultdict(list)
+    masks: dict[str, dict[int, SemanticMask]] = defaultdict(dict)
+    gnss, imu, wheels, poses, lidar = [], [], [], [], []
+    wanted = {camera_topic(c) for c in cams} | ({mask_topic(c) for c in cams} if segmenter is None else set())
+    wanted |= {GNSS_FIX, IMU, WHEEL_SPEEDS, POSE, TIME_ANCHOR}
+    anchors: list[tuple[int, int]] = []
+    if use_lidar and config.sensors.lidar is not None:
+        wanted.add(LIDAR_PACKETS)
+    host_sensor: dict[str, list[tuple[int, int]]] = defaultdict(list)
+    for rec in read_log(paths, topics=wanted, report=report):
+        m = rec.message
+        if isinstance(m, TimeAnchor):
+            anchors.append((m.host_mono_ns, m.utc_ns))
+            continue
+        host_sensor[rec.topic].append((m.host_mono_ns, m.sensor_time_ns))
+        if isinstance(m, CameraFrame):
+            frames[m.camera].append(m)
+        elif isinstance(m, SemanticMask):
+            masks[m.camera][m.sensor_time_ns] = m
+        elif isinstance(m, GnssFix):
+            gnss.append(m)
+        elif isinstance(m, ImuSample):
+            imu.append(m)
+        elif isinstance(m, WheelSpeeds):
+            wheels.append(m)
+        elif isinstance(m, VehiclePose):
+            poses.append(m)
+        elif isinstance(m, LidarPacket):
+            lidar.append(m)
+    clocks = {t: fit_clock([s for _, s in v], [h for h, _ in v], anchors) for t, v in host_sensor.items()}
+    if poses:
+        trajectory = _pose_trajectory(poses, clocks[POSE], origin)
+    else:
+        trajectory = fuse_log_trajectory(gnss, imu, wheels, config, origin, clocks)
+    spacing = config.mapper.keyframe_spacing_m if keyframe_spacing_m is None else keyframe_spacing_m
+    chosen, counts = _keyframe_messages(config, frames, masks if segmenter is None else None, clocks, trajectory,
+                                        spacing)
+    # one background thread, the Lidar first: the reconstruction needs it first (its elevation fit), and the
+    # decoding then runs beside that single-threaded fit. The pool lets its thread finish after shutdown.
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="load-drive")
+    if lidar and config.sensors.lidar is not None:
+        meta_path = resolve_path(config_path or ".", config.sensors.lidar.metadata_file)
+        metadata = parse_metadata(meta_path)  # a bad metadata file fails here, before the background work
+        ground = pool.submit(lidar_ground_from_packets, lidar, clocks[LIDAR_PACKETS], metadata, config, trajectory,
+                             lidar_every_n_scans, ground_filter or GroundFilter(
+                                 corridor_half_width_m=config.mapper.corridor_half_width_m))
+        counts["lidar_packets"] = len(lidar)
+    else:
+        ground = Future()
+        ground.set_result(None)
+    keyframes = pool.submit(_decode_keyframes, chosen, segmenter)
+    pool.shutdown(wait=False)
+    return LoadingDrive(camera_models(config), keyframes, trajectory, ground, clocks, counts, report)
+
+
+@dataclass(frozen=True)
+class _KeyframeMessages:
+    """A camera frame chosen as keyframe, its mask and pose, not decoded yet."""
+
+    camera: str
+    timestamp: float  # seconds from the trajectory start
+    T_world_camera: np.ndarray
+    frame: CameraFrame
+    mask: SemanticMask | None  # None: the segmentation model labels the frame
+
+
+def _keyframe_messages(config: CarConfig, frames: dict[str, list[CameraFrame]],
+                       masks: dict[str, dict[int, SemanticMask]] | None, clocks: dict[str, ClockMap],
+                       trajectory: Trajectory, spacing_m: float) -> tuple[list[_KeyframeMessages], dict[str, int]]:
+    """Per camera, a frame (with its mask, unless `masks` is None: a model labels the frames) every
+    `spacing_m` of travel; the counts of frames passed over."""
+    chosen, counts = [], {"frames": 0, "frames_without_mask": 0, "frames_outside_trajectory": 0}
+    t0 = trajectory.times_ns[0]
+    for cam in config.sensors.cameras:
+        T_vc = cam.extrinsics.matrix()
+        last_s = -np.inf
+        for f in frames.get(cam.name, []):
+            counts["frames"] += 1
+            t = int(clocks[camera_topic(cam.name)].to_host([f.sensor_time_ns])[0])
+            if not trajectory.times_ns[0] <= t <= trajectory.times_ns[-1]:
+                counts["frames_outside_trajectory"] += 1
+                continue
+            s = float(trajectory.distance_at(np.array([t], np.int64))[0])
+            if s - last_s < spacing_m:
+                continue
+            mask = None
+            if masks is not None:
+                mask = masks.get(cam.name, {}).get(f.sensor_time_ns)
+                if mask is None:
+                    counts["frames_without_mask"] += 1
+                    continue
+            last_s = s
+            chosen.append(_KeyframeMessages(cam.name, (t - t0) / 1e9, camera_pose(trajectory, t, T_vc), f, mask))
+    chosen.sort(key=lambda k: k.timestamp)
+    return chosen, counts
+
+
+def keyframe_semantics(image: np.ndarray, mask: SemanticMask | None, segmenter: OnnxSegmenter | None) -> np.ndarray:
+    """A keyframe's class ids: the model's labels of its image if a segmenter is given, else its recorded mask."""
+    return segmenter.labels(image) if segmenter is not None else decode_mask(mask)
+
+
+def segmenter_for(config: CarConfig, config_path: str | Path | None) -> OnnxSegmenter | None:
+    """The segmentation model the config names (provider onnx), None for masks from the log."""
+    seg = config.mapper.segmentation
+    return OnnxSegmenter.load(seg, config_path) if seg.provider == "onnx" else None
+
+
+def _decode_keyframes(chosen: list[_KeyframeMessages], segmenter: OnnxSegmenter | None) -> list[Keyframe]:
+    keyframes = []
+    for k in chosen:
+        image = decode_image(k.frame)
+        keyframes.append(Keyframe(k.camera, k.timestamp, k.T_world_camera, image,
+                                  keyframe_semantics(image, k.mask, segmenter)))
+    return keyframes
+
+
+def lidar_ground_from_packets(packets: list[LidarPacket], clock: ClockMap, metadata, config: CarConfig,
+                              trajectory: Trajectory, every_n_scans: int, settings: GroundFilter,
+                              threads: int = LIDAR_GROUND_THREADS) -> np.ndarray:
+    """Ground points of every n-th Lidar scan (a scan = the packets of one frame id), in scan order; the scans
+    are shared out over `threads` threads (numpy releases the GIL in its array work)."""
+    per_scan = metadata.packets_per_frame
+    T_vl = config.sensors.lidar.extrinsics.matrix()
+    road = TrajectoryGround.of(trajectory, config.vehicle.reference_height_m, settings.corridor_half_width_m,
+                               settings.ground_cell_m)
+    decoding = LidarDecoding.of(metadata)
+
+    def scan_ground(start: int) -> np.ndarray:
+        chunk = [bytes(p.data) for p in packets[start:start + per_scan]]
+        return ground_points(lidar_world_points(chunk, clock, decoding, T_vl, trajectory, settings), road, settings)
+
+    with ThreadPoolExecutor(threads, thread_name_prefix="lidar-ground") as pool:
+        out = list(pool.map(scan_ground, range(0, len(packets), per_scan * every_n_scans)))
+    return np.concatenate(out) if out else np.zeros((0, 3))

@@ -1,0 +1,67 @@
+"""In-memory inputs of the road-surface reconstruction: cameras, keyframes, trajectory, ground truth.
+
+Frames: world is metric with z up; camera axes follow OpenCV (x right, y down, z forward).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """A pinhole camera with OpenCV radial-tangential distortion (k1 k2 p1 p2 k3)."""
+
+    name: str
+    K: np.ndarray  # 3x3 intrinsic matrix
+    distortion: tuple[float, float, float, float, float]
+    width: int
+    height: int
+
+    @property
+    def distorted(self) -> bool:
+        return any(d != 0.0 for d in self.distortion)
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    """One camera image with its pose and segmentation."""
+
+    camera: str  # CameraModel.name
+    timestamp: float  # seconds, same clock as Trajectory.times
+    T_world_camera: np.ndarray  # 4x4, camera (OpenCV axes) to world
+    image: np.ndarray  # HxWx3 uint8 RGB
+    semantics: np.ndarray  # HxW uint8 ids of daemon.spine.semantic_classes.SemanticClass
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """The vehicle reference point over time (world frame)."""
+
+    times: np.ndarray  # (N,) seconds, increasing
+    positions: np.ndarray  # (N, 3) metres
+
+    def along_track(self) -> np.ndarray:
+        """Distance travelled (m) at each trajectory sample, horizontal."""
+        step = np.linalg.norm(np.diff(self.positions[:, :2], axis=0), axis=1)
+        return np.concatenate([[0.0], np.cumsum(step)])
+
+    def along_track_at(self, t: np.ndarray | float) -> np.ndarray:
+        return np.interp(t, self.times, self.along_track())
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.times[-1] - self.times[0])
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """True rasters of a simulated drive: elevation (NaN = unknown) and, where known, semantic class ids on the
+    same grid; cell (i, j) is centred at (x0 + j*res, y0 + i*res)."""
+
+    elevation_m: np.ndarray  # (H, W) float
+    origin_xy: tuple[float, float]  # centre of cell (0, 0)
+    resolution_m: float
+    semantic: np.ndarray | None = None  # (H, W) uint8 class ids (>= NUM_MAP_CLASSES: no map class)

@@ -1,0 +1,138 @@
+"""`roadlog reconstruct LOG... --out DIR`: EMIE-MAP on recorded drive logs, with the paper's metrics.
+
+The car's config comes from the logs' own metadata unless --config names one. With --gt (a simulated
+drive's PATH.gt.npz) the map is also measured against the truth: `elev_mae_gt_cm` against the true
+elevation grid and `miou_pct` against the true semantic grid (bird's-eye view, cells the map observed);
+without it `miou_pct` compares rendered semantics with the segmentation masks of held-out frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from daemon.log_format import read_metadata
+from daemon.spine.config import CarConfig, ConfigError, config_to_yaml, load_config, parse_config
+from daemon.spine.health import process_memory_mb
+from daemon.spine.local_frame import LocalFrame
+from mapping.fits.reconstruction import ReconstructionResult, reconstruct
+from mapping.inputs.drive_inputs import DriveInputs, start_loading_drive
+from mapping.method.road_map import ABLATIONS, variant_for
+from mapping.method.scene_data import GroundTruth
+
+
+@dataclass(frozen=True)
+class DriveTruth:
+    """A simulated drive's ground truth (sim/drive_log writes it beside the log)."""
+
+    origin: LocalFrame
+    elevation: GroundTruth  # the true elevation and semantic grids
+    lidar_points: np.ndarray  # (N, 3) true road-surface points hit by the Lidar
+
+    @property
+    def semantic(self) -> np.ndarray:
+        return self.elevation.semantic
+
+    @staticmethod
+    def load(path: str | Path) -> DriveTruth:
+        gt = np.load(path)
+        res = float(gt["grid_resolution_m"])
+        origin_xy = tuple(float(v) + res / 2 for v in gt["grid_origin_xy"])  # the file gives cell corners
+        return DriveTruth(LocalFrame(*(float(v) for v in gt["enu_origin_lat_lon_alt"])),
+                          GroundTruth(gt["elevation"].astype(np.float32), origin_xy, res, gt["semantic"]),
+                          gt["lidar_points_enu"])
+
+
+def config_from_logs(paths: list[str]) -> tuple[CarConfig, Path]:
+    """The car config recorded in the first log, and a file holding its Lidar metadata (if recorded)."""
+    meta = read_metadata(paths[0]).get("roadlog", {})
+    if "config" not in meta:
+        raise ConfigError(f"{paths[0]}: no recorded config in the log metadata; pass --config")
+    import yaml
+
+    config = parse_config(yaml.safe_load(meta["config"]), f"{paths[0]} (recorded config)")
+    folder = Path(tempfile.mkdtemp(prefix="roadlog-reconstruct-"))
+    if config.sensors.lidar is not None and "lidar_metadata" not in meta:
+        raise ConfigError(f"{paths[0]}: the recorded config has a Lidar but the log holds no Lidar metadata "
+                          f"({meta.get('lidar_metadata_error', 'not recorded')}); pass --config")
+    if config.sensors.lidar is not None:
+        (folder / Path(config.sensors.lidar.metadata_file).name).write_text(meta["lidar_metadata"])
+        config = config.model_copy(update={"sensors": config.sensors.model_copy(update={
+            "lidar": config.sensors.lidar.model_copy(update={"metadata_file": Path(
+                config.sensors.lidar.metadata_file).name})})})
+    return config, folder / "car.yaml"
+
+
+def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_path: Path, *,
+                       truth: DriveTruth | None = None, use_lidar: bool = True, ablation: str | None = None,
+                       faithful: bool = False, progress: bool = True) -> tuple[ReconstructionResult, DriveInputs]:
+    started = time.perf_counter()
+    loading = start_loading_drive(logs, config, config_path, origin=truth.origin if truth else None,
+                                  use_lidar=use_lidar)
+    result = reconstruct(loading.keyframes, loading.cameras, loading.path, loading.lidar_ground_points,
+                         config.mapper, config.vehicle.reference_height_m, out_dir=out, ablation=ablation,
+                         gt=truth.elevation if truth else None, faithful=faithful, progress=progress)
+    drive = loading.result()
+    lidar = drive.lidar_ground_points
+    metrics = result.metrics
+    if truth is not None:
+        if lidar is None:  # Elev-error still needs Lidar ground points: the true ones
+            from mapping.outputs.map_metrics import elev_error_cm
+
+            metrics["elev_error_cm"] = elev_error_cm(result.road_map, truth.lidar_points)
+    wall = time.perf_counter() - started
+    mapping_wall = wall - (metrics.get("evaluate_wall_s") or 0.0)  # the metrics are computed after the map
+    metrics.update(drive_s=drive.drive_s, wall_s=wall, rtf=drive.drive_s / wall if wall > 0 else None,
+                   rtf_mapping=drive.drive_s / mapping_wall if mapping_wall > 0 else None,
+                   peak_rss_mb=process_memory_mb()["VmHWM"],
+                   vertices=result.road_map.mesh.num_vertices, inputs=drive.counts, logs=[str(p) for p in logs],
+                   lidar_supervision=lidar is not None and variant_for(ablation).lidar_supervision)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
+    (out / "config.yaml").write_text(config_to_yaml(config))
+    return result, drive
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="roadlog reconstruct", description=__doc__.split("\n\n")[0])
+    parser.add_argument("logs", nargs="+", help="MCAP drive log segments")
+    parser.add_argument("--out", required=True, type=Path, help="output folder")
+    parser.add_argument("--config", help="car config (default: the one recorded in the logs)")
+    parser.add_argument("--gt", help="ground truth PATH.gt.npz of a simulated drive")
+    parser.add_argument("--no-lidar", action="store_true", help="no Lidar elevation supervision")
+    parser.add_argument("--ablation", choices=sorted(ABLATIONS), help="switch off one part of EMIE-MAP")
+    parser.add_argument("--faithful", action="store_true", help="the paper's full computation (slow)")
+    parser.add_argument("--epochs", type=int, help="optimisation epochs (default: the config's mapper.epochs)")
+    args = parser.parse_args(argv)
+    try:
+        if args.config:
+            config, config_path = load_config(args.config), Path(args.config)
+        else:
+            config, config_path = config_from_logs(args.logs)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if args.epochs is not None:
+        config = config.model_copy(update={"mapper": config.mapper.model_copy(update={"epochs": args.epochs})})
+    truth = DriveTruth.load(args.gt) if args.gt else None
+    try:
+        result, _ = run_reconstruction(args.logs, args.out, config, config_path, truth=truth,
+                                       use_lidar=not args.no_lidar, ablation=args.ablation, faithful=args.faithful)
+    except ConfigError as exc:  # a file the config names (the segmentation model)
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    keys = ("psnr_db", "psnr_train_db", "miou_pct", "iou_pct", "elev_error_cm", "elev_mae_gt_cm", "drive_s", "wall_s",
+            "rtf", "rtf_mapping", "peak_rss_mb", "vertices")
+    print(json.dumps({k: result.metrics.get(k) for k in keys}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

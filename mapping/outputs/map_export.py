@@ -1,0 +1,129 @@
+"""Writing a reconstructed road map to disk: BEV rasters (RGB per camera, semantics, elevation as PNG and
+raw .npy with their origin and resolution), the mesh with vertex colours and labels (PLY, GLB) and a
+state_dict checkpoint."""
+
+from __future__ import annotations
+
+import json
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import trimesh
+
+from daemon.spine.semantic_classes import CLASS_COLOURS
+from mapping.method.road_map import NO_LABEL, RoadMap
+from mapping.method.road_mesh import used_vertices
+from mapping.outputs.map_metrics import observed_triangles
+
+_ROWS_PER_CHUNK = 256
+RASTER_THREADS = 2  # numpy and torch release the GIL in the blocks' array work
+
+
+def vertex_labels(road_map: RoadMap) -> np.ndarray:
+    if road_map.semantic_logits is None:
+        return np.full(road_map.mesh.num_vertices, NO_LABEL, np.uint8)
+    return road_map.semantic_logits.argmax(1).numpy().astype(np.uint8)
+
+
+def bev_rasters(road_map: RoadMap, cameras: list[str], resolution_m: float) -> dict:
+    """Rasters over the observed area; cell (i, j) is centred at (x0 + j*res, y0 + i*res)."""
+    seen = road_map.observed > 0
+    xy = road_map.mesh.xy[seen] if seen.any() else road_map.mesh.xy
+    lo, hi = np.floor(xy.min(0) / resolution_m) * resolution_m, xy.max(0)
+    w, h = (np.ceil((hi - lo) / resolution_m).astype(int) + 1).tolist()
+    colours = {c: road_map.vertex_colours(c) for c in cameras}
+    labels_v = vertex_labels(road_map)
+    logits = road_map.semantic_logits
+    elevation = np.full((h, w), np.nan, np.float32)
+    labels = np.full((h, w), NO_LABEL, np.uint8)
+    rgb = {c: np.zeros((h, w, 3), np.uint8) for c in cameras}
+
+    def fill(r0: int) -> None:  # one block of rows: the blocks write disjoint rows
+        rows = np.arange(r0, min(h, r0 + _ROWS_PER_CHUNK))
+        jj, ii = np.meshgrid(np.arange(w), rows)
+        pts = np.stack([lo[0] + jj.ravel() * resolution_m, lo[1] + ii.ravel() * resolution_m], 1)
+        ids, wt, ok = observed_triangles(road_map, pts)
+        ids, wt = ids[ok], wt[ok]
+        flat = (ii.ravel()[ok], jj.ravel()[ok])
+        elevation[flat] = (road_map.z_now[ids] * wt).sum(1)
+        if logits is not None:
+            labels[flat] = (logits[ids] * torch.from_numpy(wt).float()[..., None]).sum(1).argmax(1).numpy()
+        else:
+            labels[flat] = labels_v[ids[np.arange(len(ids)), wt.argmax(1)]]
+        for c in cameras:
+            rgb[c][flat] = np.clip((colours[c][ids] * wt[..., None]).sum(1) * 255 + 0.5, 0, 255).astype(np.uint8)
+
+    with ThreadPoolExecutor(RASTER_THREADS, thread_name_prefix="export-raster") as pool:
+        list(pool.map(fill, range(0, h, _ROWS_PER_CHUNK)))
+    return {"origin_xy": (float(lo[0]), float(lo[1])), "elevation": elevation, "labels": labels, "rgb": rgb}
+
+
+def elevation_image(elevation: np.ndarray) -> np.ndarray:
+    valid = np.isfinite(elevation)
+    out = np.zeros(elevation.shape + (3,), np.uint8)
+    if valid.any():
+        lo, hi = np.percentile(elevation[valid], [1, 99])
+        scaled = np.clip((elevation - lo) / max(hi - lo, 1e-6), 0, 1)
+        coloured = cv2.applyColorMap((np.nan_to_num(scaled) * 255).astype(np.uint8), cv2.COLORMAP_VIRIDIS)
+        out[valid] = coloured[valid]
+    return out
+
+
+def export_map(road_map: RoadMap, out_dir: Path, cameras: list[str]) -> dict[str, Path]:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with ThreadPoolExecutor(1, thread_name_prefix="export-mesh") as pool:  # the mesh beside the rasters
+        mesh_files = pool.submit(_export_mesh, road_map, out_dir, cameras[0])
+        return _export_rasters(road_map, out_dir, cameras) | mesh_files.result()
+
+
+def _export_rasters(road_map: RoadMap, out_dir: Path, cameras: list[str]) -> dict[str, Path]:
+    """The bird's-eye rasters: RGB per camera, semantics and elevation as PNGs, the grids as .npy, bev.json."""
+    res = road_map.mesh.side_m
+    bev = bev_rasters(road_map, cameras, res)
+    files: dict[str, Path] = {}
+
+    def save_png(name: str, rgb: np.ndarray) -> None:
+        path = out_dir / name
+        cv2.imwrite(str(path), cv2.cvtColor(np.flipud(rgb), cv2.COLOR_RGB2BGR))  # north up
+        files[name] = path
+
+    for c in cameras:
+        save_png(f"bev_rgb_{c}.png", bev["rgb"][c])
+    save_png("bev_semantics.png", CLASS_COLOURS[np.minimum(bev["labels"], len(CLASS_COLOURS) - 1)]
+             * (bev["labels"] != NO_LABEL)[..., None].astype(np.uint8))
+    save_png("bev_elevation.png", elevation_image(bev["elevation"]))
+    for name, array in (("bev_elevation.npy", bev["elevation"]), ("bev_semantics.npy", bev["labels"])):
+        np.save(out_dir / name, array)
+        files[name] = out_dir / name
+    meta = {
+        "origin_xy": bev["origin_xy"],
+        "resolution_m": res,
+        "shape": list(bev["elevation"].shape),
+        "cell": "cell (i, j) of the .npy rasters is centred at (x0 + j*res, y0 + i*res); PNGs are flipped north-up",
+        "semantics_no_label": NO_LABEL,
+        "cameras": cameras,
+    }
+    (out_dir / "bev.json").write_text(json.dumps(meta, indent=2))
+    files["bev.json"] = out_dir / "bev.json"
+
+    return files
+
+
+def _export_mesh(road_map: RoadMap, out_dir: Path, camera: str) -> dict[str, Path]:
+    """The observed part of the mesh with `camera`'s vertex colours and the labels (PLY, GLB), the checkpoint."""
+    faces = road_map.mesh.faces[(road_map.observed[road_map.mesh.faces] > 0).all(1)]
+    used, local = used_vertices(faces, road_map.mesh.num_vertices)
+    vertices = np.concatenate([road_map.mesh.xy[used], road_map.z_now[used, None]], 1)
+    colours = np.clip(road_map.vertex_colours(camera, used) * 255 + 0.5, 0, 255).astype(np.uint8)
+    mesh = trimesh.Trimesh(vertices, local.reshape(-1, 3), vertex_colors=colours, process=False)
+    mesh.vertex_attributes["label"] = vertex_labels(road_map)[used]
+    files = {}
+    for name in ("mesh.ply", "mesh.glb"):
+        mesh.export(out_dir / name)
+        files[name] = out_dir / name
+    torch.save(road_map.state_dict(), out_dir / "checkpoint.pt")
+    files["checkpoint.pt"] = out_dir / "checkpoint.pt"
+    return files

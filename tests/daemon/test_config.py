@@ -1,0 +1,79 @@
+"""The car config: shipped configs load; bad configs fail with one message naming file, key and expectation."""
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from daemon.commands.check_config import main as check_config_main
+from daemon.spine.config import ConfigError, load_config
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
+
+@pytest.mark.parametrize("name", ["car.yaml", "sim.yaml"])
+def test_shipped_configs_load(name):
+    config = load_config(CONFIGS / name)
+    assert [c.name for c in config.sensors.cameras] == ["front_wide", "front_left", "front_right"]
+    assert config.mapper.learning_rates.elevation_mlp == 0.01
+
+
+def test_car_config_matches_the_paper_car():
+    config = load_config(CONFIGS / "car.yaml")
+    sizes = [(c.width, c.height) for c in config.sensors.cameras]
+    assert sizes == [(3840, 2160), (1920, 1080), (1920, 1080)]
+    assert config.sensors.lidar.model == "ouster-os-128"
+    assert config.status.bind_address == "127.0.0.1"
+
+
+def _write_bad(tmp_path, mutate) -> Path:
+    data = yaml.safe_load((CONFIGS / "sim.yaml").read_text())
+    mutate(data)
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.mark.parametrize(
+    "mutate, key_path, expectation",
+    [
+        (lambda d: d["sensors"]["cameras"][0].update(width=-5), "sensors.cameras.0.width", "greater than 0"),
+        (lambda d: d["sensors"]["cameras"][1].pop("intrinsics"), "sensors.cameras.1.intrinsics", "missing"),
+        (lambda d: d["sensors"]["lidar"].update(port=70000), "sensors.lidar.port", "less than or equal"),
+        (lambda d: d["mapper"].update(epochs="many"), "mapper.epochs", "valid integer"),
+        (lambda d: d["recorder"].update(segment_secnds=5), "recorder.segment_secnds", "unknown key"),
+        (lambda d: d["sensors"]["can"]["signals"].update(wheel_speed_fl="NOSIGNAL"),
+         "sensors.can.signals.wheel_speed_fl", "MESSAGE.SIGNAL"),
+        (lambda d: d["sensors"]["cameras"][2].update(name="front_left"), "sensors.cameras", "unique"),
+        (lambda d: d["sensors"]["cameras"][0].update(backend="firewire"), "sensors.cameras.0.backend", "sim"),
+        (lambda d: d["status"].update(bind_address=None), "status.bind_address", "valid string"),
+    ],
+)
+def test_bad_config_names_file_key_and_expectation(tmp_path, mutate, key_path, expectation):
+    path = _write_bad(tmp_path, mutate)
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    message = str(err.value)
+    assert str(path) in message
+    assert key_path in message
+    assert expectation in message
+
+
+def test_not_yaml_and_missing_file(tmp_path):
+    bad = tmp_path / "broken.yaml"
+    bad.write_text("sensors: [unclosed\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(bad)
+    with pytest.raises(ConfigError, match="cannot read config file"):
+        load_config(tmp_path / "missing.yaml")
+    scalar = tmp_path / "scalar.yaml"
+    scalar.write_text("42\n")
+    with pytest.raises(ConfigError, match="expected a mapping"):
+        load_config(scalar)
+
+
+def test_check_config_command_exit_codes(tmp_path, capsys):
+    assert check_config_main([str(CONFIGS / "sim.yaml"), "--quiet"]) == 0
+    bad = _write_bad(tmp_path, lambda d: d["mapper"].update(batch_size=0))
+    assert check_config_main([str(bad)]) == 2
+    assert "mapper.batch_size" in capsys.readouterr().err

@@ -1,0 +1,121 @@
+"""The status endpoint over real HTTP: liveness, readiness, JSON status, Prometheus metrics, previews, 404s."""
+
+import json
+import threading
+import time
+import urllib.error
+import urllib.request
+
+import numpy as np
+import pytest
+
+from daemon.bus.pubsub import open_publisher, unlink_all
+from daemon.processes.status_server import HealthBoard, make_server, preview_dir, required_processes
+from daemon.spine.health import HealthCounters
+from daemon.spine.topics import health_topic
+from tests.daemon_fixtures import private_config
+
+
+@pytest.fixture
+def served(tmp_path):
+    cfg, _ = private_config(tmp_path, recorder={"output_dir": str(tmp_path / "logs")})
+    board = HealthBoard(cfg)
+    server = make_server(cfg, board, tmp_path / "logs", port=0)
+    thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+    thread.start()
+    base = f"http://127.0.0.1:{server.server_address[1]}"
+    yield cfg, board, base, tmp_path / "logs"
+    board.stop()
+    server.shutdown()
+    server.server_close()
+    unlink_all(cfg)
+
+
+def _get(url):
+    try:
+        with urllib.request.urlopen(url, timeout=5) as r:
+            return r.status, r.headers.get("Content-Type"), r.read()
+    except urllib.error.HTTPError as e:
+        return e.code, e.headers.get("Content-Type"), e.read()
+
+
+def _healthy(process, rate=10.0, detail=""):
+    h = HealthCounters(process, expected_rate_hz=rate)
+    now = time.monotonic_ns()
+    for i in range(int(rate * 2)):
+        h.count_published(1, now - int(i * 1e9 / rate))
+    snap = h.snapshot(now)
+    snap.detail = detail
+    return snap
+
+
+def test_livez_and_readiness_follow_the_drivers(served):
+    cfg, board, base, _ = served
+    assert _get(base + "/livez")[0] == 200
+    code, _, body = _get(base + "/readyz")
+    assert code == 503 and "no health yet" in body.decode()
+    for process in required_processes(cfg):
+        board.update(_healthy(process))
+    assert _get(base + "/readyz")[0] == 200
+    slow = _healthy("lidar", rate=640.0)
+    slow.rate_hz, slow.state = 100.0, "degraded"
+    board.update(slow)
+    code, _, body = _get(base + "/readyz")
+    assert code == 503 and "lidar: degraded" in body.decode()
+
+
+def test_status_json_and_metrics(served):
+    cfg, board, base, _ = served
+    for process in required_processes(cfg):
+        board.update(_healthy(process))
+    board.update(_healthy("recorder", detail=json.dumps(
+        {"segment": "x.mcap.open", "disk_free_bytes": 123, "written": {"imu": 500}, "lost": {"imu": 2}})))
+    board.update(_healthy("supervisor", detail=json.dumps(
+        {"processes": {"lidar": {"state": "running", "restarts": 2}}})))
+    code, ctype, body = _get(base + "/status")
+    doc = json.loads(body)
+    assert code == 200 and ctype == "application/json"
+    assert doc["recorder"]["lost"] == {"imu": 2} and doc["recorder"]["disk_free_bytes"] == 123
+    assert doc["processes"]["lidar"]["rate_hz"] == pytest.approx(10.0, abs=1)
+    assert doc["supervisor"]["processes"]["lidar"]["restarts"] == 2
+    code, ctype, body = _get(base + "/metrics")
+    text = body.decode()
+    assert code == 200 and ctype.startswith("text/plain")
+    assert 'roadlog_recorder_lost_messages{topic="imu"} 2.0' in text
+    assert 'roadlog_process_restarts{process="lidar"} 2.0' in text
+    assert 'roadlog_published_total{process="gnss"}' in text
+
+
+def test_previews_and_404s(served):
+    cfg, _, base, data = served
+    assert _get(base + "/preview/rgb.png")[0] == 404  # nothing mapped yet
+    import cv2
+
+    preview_dir(data).mkdir(parents=True)
+    ok, png = cv2.imencode(".png", np.full((8, 8, 3), 200, np.uint8))
+    (preview_dir(data) / "rgb.png").write_bytes(png.tobytes())
+    code, ctype, body = _get(base + "/preview/rgb.png")
+    assert code == 200 and ctype == "image/png" and body == png.tobytes()
+    for path in ["/nope", "/preview/../../car.yaml", "/preview/%2e%2e/rgb.png", "/status/",
+                 "/preview/rgb.png/../rgb.png", "/preview/", "/metrics/x"]:
+        assert _get(base + path)[0] == 404, path
+    req = urllib.request.Request(base + "/status", method="POST", data=b"x")
+    with pytest.raises(urllib.error.HTTPError) as err:
+        urllib.request.urlopen(req, timeout=5)
+    assert err.value.code == 405
+
+
+def test_board_reads_health_from_the_bus(served):
+    cfg, board, base, _ = served
+    board.start()
+    pub = open_publisher(cfg, health_topic("gnss"))
+    deadline = time.monotonic() + 10
+    doc = {}
+    while time.monotonic() < deadline:
+        pub.publish(_healthy("gnss"))
+        doc = json.loads(_get(base + "/status")[2])
+        if "gnss" in doc["processes"]:
+            break
+        time.sleep(0.1)
+    pub.close()
+    assert doc["processes"]["gnss"]["state"] == "ok"

@@ -1,0 +1,151 @@
+"""From a simulated drive log to the reconstruction's inputs: trajectory, keyframes and Lidar ground; the ground
+filter's trajectory height raster on a synthetic bend."""
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from daemon.log_format import LogWriter
+from daemon.spine.config import ConfigError, load_config
+from mapping.inputs.drive_inputs import load_drive
+from mapping.inputs.lidar_ground import TILE_CELLS, GroundFilter, TrajectoryGround, ground_points
+from mapping.localization.trajectory import Trajectory
+from mapping.offline.reconstruct_command import DriveTruth, config_from_logs
+from tests.daemon_fixtures import REPO
+
+CONFIG = REPO / "configs" / "sim.yaml"
+
+
+@pytest.fixture(scope="module")
+def drive(city_drive):
+    out = city_drive
+    config = load_config(CONFIG)
+    truth = DriveTruth.load(out.with_name("city.gt.npz"))
+    return load_drive([out], config, CONFIG, origin=truth.origin), truth, out
+
+
+def test_clocks_are_recognised(drive):
+    inputs, _, _ = drive
+    kinds = {t: c.kind for t, c in inputs.clocks.items()}
+    assert kinds["camera/front_wide"] == "host"
+    assert kinds["gnss/fix"] == "utc" and kinds["lidar/packets"] == "utc"
+    assert kinds["imu"] == "free"
+
+
+def test_fused_trajectory_matches_the_truth(drive):
+    inputs, _, out = drive
+    gt = np.load(out.with_name("city.gt.npz"))
+    t = gt["trajectory_host_mono_ns"]
+    ok = (t >= inputs.trajectory.times_ns[0]) & (t <= inputs.trajectory.times_ns[-1])
+    pos, quat = inputs.trajectory.interpolate(t[ok])
+    err = pos - gt["trajectory_position_enu"][ok]
+    assert np.sqrt((err[:, :2] ** 2).sum(1).mean()) < 0.05
+    assert np.sqrt((err[:, 2] ** 2).mean()) < 0.03
+    rot_err = Rotation.from_quat(quat).inv() * Rotation.from_quat(gt["trajectory_quaternion_xyzw"][ok])
+    assert np.degrees(rot_err.magnitude()).mean() < 0.5
+
+
+def test_keyframes_and_lidar_ground(drive):
+    inputs, truth, _ = drive
+    assert inputs.counts["keyframes"] >= 3 * 20  # every ~1 m, three cameras
+    assert {k.camera for k in inputs.keyframes} == {"front_wide", "front_left", "front_right"}
+    k = inputs.keyframes[0]
+    assert k.image.shape[2] == 3 and k.semantics.shape == k.image.shape[:2]
+    g = inputs.lidar_ground_points
+    assert len(g) > 10_000
+    e = truth.elevation
+    j = np.round((g[:, 0] - e.origin_xy[0]) / e.resolution_m).astype(int)
+    i = np.round((g[:, 1] - e.origin_xy[1]) / e.resolution_m).astype(int)
+    inside = (i >= 0) & (i < e.elevation_m.shape[0]) & (j >= 0) & (j < e.elevation_m.shape[1])
+    dz = g[inside, 2] - e.elevation_m[i[inside], j[inside]]
+    dz = dz[np.isfinite(dz)]
+    assert np.mean(np.abs(dz)) < 0.03  # on the road surface (cars filtered out), within the range noise
+    assert np.percentile(np.abs(dz), 99) < 0.15
+
+
+def _bend_trajectory() -> Trajectory:
+    """20 s along a 60 m-radius bend, climbing at 4 %, sampled at 100 Hz."""
+    t = np.arange(0.0, 20.0, 0.01)
+    angle = 10.0 * t / 60.0
+    positions = np.column_stack([60.0 * np.sin(angle), 60.0 * (1 - np.cos(angle)), 0.4 * t + 1.5])
+    quats = Rotation.from_euler("z", angle[:, None]).as_quat()
+    return Trajectory(np.round(t * 1e9).astype(np.int64), positions, quats, 48.1, 11.5, 500.0)
+
+
+def test_trajectory_ground_raster_holds_the_nearest_trajectory_height():
+    traj = _bend_trajectory()
+    road = TrajectoryGround.of(traj, 1.5, corridor_half_width_m=15.0, cell_m=0.25)
+    ground = traj.positions - [0.0, 0.0, 1.5]
+    rng = np.random.default_rng(0)
+    xy = ground[rng.integers(0, len(ground), 20_000), :2] + rng.uniform(-25, 25, (20_000, 2))
+    centres = (np.floor(xy / 0.25) + 0.5) * 0.25
+    dist, idx = cKDTree(ground[:, :2]).query(centres)
+    heights = road.height_at(xy)
+    inside = dist < 15.0
+    assert inside.sum() > 5_000 and (~inside).sum() > 5_000
+    np.testing.assert_allclose(heights[inside], ground[idx[inside], 2], atol=1e-5)
+    assert np.isnan(heights[~inside]).all()
+    assert road.heights.shape[1:] == (TILE_CELLS, TILE_CELLS)
+    assert (~np.isnan(road.heights)).any((1, 2)).all()  # only tiles holding part of the corridor are stored
+
+
+def test_ground_filter_keeps_the_road_and_drops_a_car_on_it():
+    traj = _bend_trajectory()
+    road = TrajectoryGround.of(traj, 1.5, corridor_half_width_m=15.0)
+    ground = traj.positions - [0.0, 0.0, 1.5]
+    rng = np.random.default_rng(1)
+    at = ground[rng.integers(0, len(ground), 30_000)]
+    surface = at + np.column_stack([rng.uniform(-10, 10, (30_000, 2)), np.zeros(30_000)])
+    surface[:, 2] = at[:, 2] + rng.normal(0.0, 0.01, 30_000)  # the road is level across, as the trajectory
+    car_centre = ground[1500]
+    car = car_centre + np.column_stack([rng.uniform(-2, 2, (3_000, 2)), rng.uniform(0.15, 1.5, 3_000)])
+    beside = car_centre + np.column_stack([rng.uniform(-2, 2, (2_000, 2)), np.zeros(2_000)])  # road by the car
+    far = at[:3_000] + np.column_stack([rng.uniform(-40, 40, (3_000, 2)), np.zeros(3_000)])
+    far = far[cKDTree(ground[:, :2]).query(far[:, :2])[0] > 15.5]  # outside the corridor
+    kept = ground_points(np.concatenate([surface, beside, car, far]), road, GroundFilter())
+    assert len(kept) > 0.5 * len(surface)
+    assert cKDTree(car).query(kept)[0].min() > 1e-6  # nothing of the car's body
+    assert cKDTree(far).query(kept)[0].min() > 1e-6  # none of the points beyond the corridor
+    dist = cKDTree(ground[:, :2]).query(kept[:, :2])[0]
+    assert dist.max() < 15.0 + 0.25
+
+
+def test_ground_filter_keeps_a_curb_top_in_cells_that_straddle_the_curb():
+    """A straight road with a 15 cm curb 3 m to its left, at an angle to the 0.5 m grid, so that many grid
+    cells hold gutter and curb top: the curb top and the sidewalk behind it are kept (the Lidar detail needs
+    them), as is the road."""
+    t = np.arange(0.0, 10.0, 0.01)
+    heading = np.radians(17.0)
+    direction, left = np.array([np.cos(heading), np.sin(heading)]), np.array([-np.sin(heading), np.cos(heading)])
+    positions = np.column_stack([np.outer(t * 5.0, direction), np.full(len(t), 1.5)])
+    quats = Rotation.from_euler("z", np.full((len(t), 1), heading)).as_quat()
+    traj = Trajectory(np.round(t * 1e9).astype(np.int64), positions, quats, 48.1, 11.5, 500.0)
+    road = TrajectoryGround.of(traj, 1.5, corridor_half_width_m=15.0)
+    rng = np.random.default_rng(2)
+    along, across = rng.uniform(0, 50, 60_000), rng.uniform(-3, 6, 60_000)
+    z = np.where(across > 3.0, 0.15, 0.0) + rng.normal(0.0, 0.005, len(along))
+    points = np.column_stack([np.outer(along, direction) + np.outer(across, left), z])
+    kept = ground_points(points, road, GroundFilter())
+    side = kept[:, :2] @ left
+
+    def density(lo: float, hi: float) -> float:  # kept points per metre of the band lo < across < hi
+        return float(((side > lo) & (side < hi)).sum()) / (hi - lo)
+
+    curb_edge, curb_far, road_band = density(3.0, 3.5), density(4.0, 6.0), density(-3.0, 2.5)
+    # a 0.5 m cell holding gutter too no longer drops the curb top (0.46 before; what is still dropped lies
+    # within ~15 cm of the curb, in the flat-patch cells that hold the face)
+    assert curb_edge > 0.75 * curb_far
+    assert road_band > 0.9 * curb_far
+    assert np.abs(kept[side > 3.0, 2] - 0.15).max() < 0.05 and np.abs(kept[side < 3.0, 2]).max() < 0.05
+
+
+def test_recorded_config_brings_its_lidar_metadata_or_asks_for_a_config(drive, tmp_path):
+    _, _, log = drive
+    config, config_path = config_from_logs([str(log)])
+    assert (config_path.parent / config.sensors.lidar.metadata_file).read_text().startswith("{")
+    bare = tmp_path / "no-lidar-metadata.mcap"
+    with LogWriter(bare, load_config(CONFIG)):  # no config path: the Lidar's metadata file is not recorded
+        pass
+    with pytest.raises(ConfigError, match="no Lidar metadata.*pass --config"):
+        config_from_logs([str(bare)])
