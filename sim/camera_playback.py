@@ -19,7 +19,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-from daemon.log_format import read_log
+from daemon.log_format.reader import read_log
 from daemon.spine.config import CameraConfig
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import CameraFrame, SemanticMask

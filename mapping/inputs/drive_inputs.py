@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from daemon.log_format import ReadReport, read_log
+from daemon.log_format.reader import ReadReport, read_log
 from daemon.spine.config import CarConfig, resolve_path
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.messages import (
