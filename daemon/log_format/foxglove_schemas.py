@@ -11,9 +11,8 @@ from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from google.protobuf import descriptor_pb2
 from google.protobuf.descriptor import FileDescriptor
 
-from daemon.spine.messages import CameraFrame, GnssFix, SemanticMask, VehiclePose
+from daemon.spine.messages import RAW_FORMAT_CHANNELS, CameraFrame, GnssFix, SemanticMask, VehiclePose
 
-_RAW_FORMATS = {"rgb8": 3, "bgr8": 3, "mono8": 1}
 _VIDEO_FORMATS = {"h264", "h265"}
 
 
@@ -43,7 +42,7 @@ def _get_time(stamp) -> int:
 
 
 def _frame_schema(msg: CameraFrame) -> type:
-    if msg.format in _RAW_FORMATS:
+    if msg.format in RAW_FORMAT_CHANNELS:
         return RawImage
     return CompressedVideo if msg.format in _VIDEO_FORMATS else CompressedImage
 
@@ -54,7 +53,7 @@ def _camera_to_proto(msg: CameraFrame):
     _set_time(proto.timestamp, msg.sensor_time_ns)
     if cls is RawImage:
         proto.width, proto.height, proto.encoding = msg.width, msg.height, msg.format
-        proto.step = msg.width * _RAW_FORMATS[msg.format]
+        proto.step = msg.width * RAW_FORMAT_CHANNELS[msg.format]
     else:
         proto.format = msg.format
     return proto
