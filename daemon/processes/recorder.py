@@ -36,7 +36,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from daemon.bus import pubsub
-from daemon.bus.ring_buffer import process_start_ticks
+from daemon.bus.ring_layout import process_start_ticks
 from daemon.log_format.metadata_records import COUNTS_METADATA_NAME, METADATA_NAME
 from daemon.log_format.reader import read_metadata
 from daemon.log_format.recovery import recover_log
