@@ -50,7 +50,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from daemon.bus import pubsub  # noqa: E402
-from daemon.log_format import read_log  # noqa: E402
+from daemon.log_format.reader import read_log  # noqa: E402
 from daemon.spine.config import CarConfig, load_config  # noqa: E402
 from daemon.spine.health import process_memory_mb  # noqa: E402
 from daemon.spine.local_frame import LocalFrame  # noqa: E402

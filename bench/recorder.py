@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from daemon.bus import pubsub  # noqa: E402
-from daemon.log_format import read_log, read_metadata  # noqa: E402
+from daemon.log_format.reader import read_log, read_metadata  # noqa: E402
 from daemon.processes.replay import replay  # noqa: E402
 from daemon.spine.config import load_config  # noqa: E402
 from daemon.spine.messages import CameraFrame, CanFrame, GnssFix, ImuSample, LidarPacket  # noqa: E402

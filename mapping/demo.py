@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from daemon.commands.log_info import summarise
-from daemon.log_format import read_metadata
+from daemon.log_format.reader import read_metadata
 
 REPO = Path(__file__).resolve().parents[1]
 SIM_CONFIG = REPO / "configs" / "sim.yaml"

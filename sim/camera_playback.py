@@ -19,19 +19,17 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-from daemon.log_format import read_log
+from daemon.log_format.reader import read_log
 from daemon.spine.config import CameraConfig
 from daemon.spine.health import HealthCounters
-from daemon.spine.messages import CameraFrame, SemanticMask
+from daemon.spine.messages import RAW_FORMAT_CHANNELS, CameraFrame, SemanticMask
 from daemon.spine.topics import camera_topic, mask_topic
 from drivers.camera.camera_driver import camera_process_main
 from drivers.camera.frame_encoding import FrameEncodingError, encode_image, raw_frame_image
 
-RAW_FORMATS = ("rgb8", "bgr8", "mono8")
-
 
 def _as_delivered(message: CameraFrame | SemanticMask, config: CameraConfig, sensor_time_ns: int):
-    if isinstance(message, CameraFrame) and message.format in RAW_FORMATS and config.encoding == "jpeg":
+    if isinstance(message, CameraFrame) and message.format in RAW_FORMAT_CHANNELS and config.encoding == "jpeg":
         return encode_image(raw_frame_image(message), config.name, "jpeg", config.jpeg_quality, sensor_time_ns)
     return dataclasses.replace(message, seq=0, host_mono_ns=0, sensor_time_ns=sensor_time_ns, camera=config.name)
 

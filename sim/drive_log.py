@@ -32,7 +32,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from daemon.log_format import LogWriter
+from daemon.log_format.writer import LogWriter
 from daemon.spine.config import CarConfig, load_config, resolve_path
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.messages import CameraFrame, CanFrame, ImuSample, LidarPacket, SemanticMask, TimeAnchor

@@ -25,7 +25,7 @@ from pathlib import Path
 import can
 import numpy as np
 
-from daemon.log_format import read_log, read_metadata
+from daemon.log_format.reader import read_log, read_metadata
 from daemon.spine.config import CarConfig, load_config, resolve_path
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.messages import CanFrame, GnssFix, ImuSample, LidarPacket

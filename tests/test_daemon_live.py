@@ -22,7 +22,7 @@ import yaml
 
 from daemon.bus.pubsub import unlink_all
 from daemon.commands.log_info import summarise
-from daemon.log_format import read_log
+from daemon.log_format.reader import read_log
 from daemon.spine.config import load_config
 from drivers.can.can_bus import open_can_bus
 from sim.live_drive import open_gnss_pty, run_live_drive

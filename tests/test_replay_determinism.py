@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.log_format import read_log
+from daemon.log_format.reader import read_log
 from mapping.live import map_tiles
 from mapping.live.mapping_worker import MappingWorker, Odometry, span_clock
 from tests.daemon_fixtures import REPO, private_config

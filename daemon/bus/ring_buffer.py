@@ -1,18 +1,6 @@
 """A shared-memory ring of variable-size records: one writer, many readers, across processes.
 
-A ring is one file in /dev/shm, mapped by every process (no multiprocessing.shared_memory, whose
-resource tracker unlinks segments when an attaching process exits). Layout:
-
-    page 0  header words (u64): magic, layout, capacity, writer pid/start time, retired flag,
-            the commit counter, two commit descriptors (head, next_seq, last_pos) and the
-            writer's reserve and tail positions
-    page 1  reader slots (64 bytes each: pid, process start time, read position, flags)
-    page 2+ the data area, `capacity` bytes
-
-Positions are absolute byte counts (never wrap); a position's offset in the data area is
-`pos % capacity`. A record is [seq, total, meta_len, bulk_len] (32 bytes), the meta bytes, then
-the bulk bytes at the next 64-byte boundary; records are 64-byte aligned and never straddle the
-end of the data area: the writer fills the remainder with a pad record (seq = PAD_SEQ) instead.
+The ring file, its header words and record layout are in daemon.bus.ring_layout.
 
 Writer protocol for one record at [start, end), where start = head or the end of a pad:
   1. advance `tail` past every record that the new bytes will overwrite (those before end - capacity)
@@ -32,173 +20,60 @@ reader slot (lossless readers publish how far they have read there; the writer w
 Memory ordering: this relies on x86-64 TSO (stores become visible in program order, loads are not
 reordered with other loads) and on aligned 8-byte loads and stores being atomic; every header
 access below is a single aligned u64 load or store through a memoryview cast to "Q". Other
-architectures would need explicit barriers.
+architectures would need explicit barriers, so a ring is opened only on x86-64 (ring_layout.require_x86_64).
 """
 
 from __future__ import annotations
 
-import ctypes
 import fcntl
-import mmap
 import os
-import platform
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
-MAGIC = 0x314752494C52524F  # "ORRLIRG1" little-endian, "roadlog ring v1"
-LAYOUT = 1
-PAGE = 4096
-HEADER_BYTES = 2 * PAGE
-DATA_OFFSET = HEADER_BYTES
-ALIGN = 64
-RECORD_HEADER_BYTES = 32
-PAD_SEQ = 2**64 - 1
-NO_RECORD = 2**64 - 1
-MAX_READER_SLOTS = PAGE // 64
-
-# Header word indices (u64). Writer-owned hot words sit on their own cache lines.
-_W_MAGIC, _W_LAYOUT, _W_CAPACITY, _W_WRITER_PID, _W_WRITER_START, _W_RETIRED = 0, 1, 2, 3, 4, 5
-_W_COMMIT = 8
-_W_DESC = (16, 24)  # each: head, next_seq, last_pos
-_W_RESERVE = 32
-_W_TAIL = 40
-_W_SLOTS = PAGE // 8  # slot i at _W_SLOTS + 8 * i: pid, start time, read position, flags
-_SLOT_LOSSLESS = 1
+from daemon.bus.futex import futex_wait, futex_wake
+from daemon.bus.ring_layout import (
+    ALIGN,
+    MAX_READER_SLOTS,
+    NO_RECORD,
+    PAD_SEQ,
+    PAGE,
+    RECORD_HEADER_BYTES,
+    SLOT_LOSSLESS,
+    W_COMMIT,
+    W_DESC,
+    W_RESERVE,
+    W_RETIRED,
+    W_SLOTS,
+    W_TAIL,
+    W_WRITER_PID,
+    W_WRITER_START,
+    RingMapping,
+    align_up,
+    create_ring_file,
+    max_bulk_bytes,
+    process_alive,
+    process_start_ticks,
+)
 
 _READ_SPIN_S = 50e-6  # a waiting reader re-checks this long before sleeping: saves a futex round trip
 _READ_POLL_SLICE_S = 0.05  # longest single futex wait: bounds how late a reader notices a retired ring
 _WRITER_WAIT_MAX_SLEEP_S = 0.0005  # lossless writer's poll for slow readers
-_FUTEX_WAIT, _FUTEX_WAKE = 0, 1  # not FUTEX_PRIVATE: the word is shared between processes
-_SYS_FUTEX = {"x86_64": 202, "aarch64": 98}[platform.machine()]
-_libc = ctypes.CDLL(None, use_errno=True)
-_libc.syscall.restype = ctypes.c_long
-
-
-class _Timespec(ctypes.Structure):
-    _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
-
-
-def _futex_wait(address: int, expected: int, timeout_s: float) -> None:
-    """Sleep while the u32 at `address` equals `expected`, at most `timeout_s` (spurious wakes allowed)."""
-    ts = _Timespec(int(timeout_s), int((timeout_s % 1.0) * 1e9))
-    _libc.syscall(ctypes.c_long(_SYS_FUTEX), ctypes.c_void_p(address), ctypes.c_int(_FUTEX_WAIT),
-                  ctypes.c_uint32(expected & 0xFFFFFFFF), ctypes.byref(ts), None, ctypes.c_int(0))
-
-
-def _futex_wake_args(address: int) -> tuple:
-    """syscall arguments that wake every waiter on `address` (built once: ctypes objects are slow to make)."""
-    return (ctypes.c_long(_SYS_FUTEX), ctypes.c_void_p(address), ctypes.c_int(_FUTEX_WAKE),
-            ctypes.c_int(2**31 - 1))
-
-
-def _futex_wake(wake_args: tuple) -> None:
-    _libc.syscall(*wake_args)
-
-
-def _align(n: int) -> int:
-    return (n + ALIGN - 1) & ~(ALIGN - 1)
-
-
-def record_bytes(meta_len: int, bulk_len: int) -> int:
-    """Bytes a record with this meta and bulk takes in the data area (header and alignment included)."""
-    return _align(_align(RECORD_HEADER_BYTES + meta_len) + bulk_len)
-
-
-def max_bulk_bytes(capacity: int, meta_len: int) -> int:
-    """The largest bulk payload that fits a ring of `capacity` bytes next to `meta_len` meta bytes."""
-    return (capacity & ~(ALIGN - 1)) - _align(RECORD_HEADER_BYTES + meta_len)
-
-
-def process_start_ticks(pid: int) -> int | None:
-    """The process's start time (clock ticks since boot), or None when it is gone or a zombie."""
-    try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            fields = f.read().rsplit(b")", 1)[1].split()
-    except (FileNotFoundError, ProcessLookupError, IndexError):
-        return None
-    if fields[0] in (b"Z", b"X"):
-        return None
-    return int(fields[19])
-
-
-def _alive(pid: int, start_ticks: int) -> bool:
-    return pid != 0 and process_start_ticks(pid) == start_ticks
-
-
-class _Mapping:
-    """The open file, its header mapping (read-write) and its data mapping."""
-
-    def __init__(self, path: str, *, writable_data: bool):
-        self.path = path
-        self.fd = os.open(path, os.O_RDWR)
-        try:
-            self.header = mmap.mmap(self.fd, HEADER_BYTES, mmap.MAP_SHARED)
-            self.q = memoryview(self.header).cast("Q")
-            if self.q[_W_MAGIC] != MAGIC or self.q[_W_LAYOUT] != LAYOUT:
-                raise ValueError(f"{path} is not a roadlog ring (layout {LAYOUT})")
-            self.capacity = self.q[_W_CAPACITY]
-            prot = mmap.PROT_READ | (mmap.PROT_WRITE if writable_data else 0)
-            self.data = mmap.mmap(self.fd, self.capacity, mmap.MAP_SHARED | mmap.MAP_POPULATE, prot,
-                                  offset=DATA_OFFSET)
-        except BaseException:
-            os.close(self.fd)
-            raise
-        self.dq = memoryview(self.data).cast("Q")
-        self.db = memoryview(self.data)
-        self.commit_address = ctypes.addressof(ctypes.c_char.from_buffer(self.header)) + 8 * _W_COMMIT
-        self.wake_args = _futex_wake_args(self.commit_address)
-
-    def snapshot(self) -> tuple[int, int, int, int]:
-        """(commit, head, next_seq, last_pos) of one consistent commit."""
-        q = self.q
-        while True:
-            c = q[_W_COMMIT]
-            d = _W_DESC[c & 1]
-            head, next_seq, last_pos = q[d], q[d + 1], q[d + 2]
-            if q[_W_COMMIT] == c:
-                return c, head, next_seq, last_pos
-
-    def close(self) -> None:
-        """Drop this process's mapping; zero-copy views still in use keep the data mapping alive."""
-        if self.fd >= 0:
-            os.close(self.fd)
-            self.fd = -1
-
-
-def _create_file(path: str, capacity: int, next_seq: int) -> None:
-    """Create an initialized ring file at `path` atomically (FileExistsError if one is there)."""
-    tmp = f"{path}.creating.{os.getpid()}"
-    fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o660)
-    try:
-        os.ftruncate(fd, DATA_OFFSET + capacity)
-        with mmap.mmap(fd, HEADER_BYTES, mmap.MAP_SHARED) as header:
-            q = memoryview(header).cast("Q")
-            q[_W_CAPACITY] = capacity
-            q[_W_DESC[0] + 1] = next_seq
-            q[_W_DESC[0] + 2] = NO_RECORD
-            q[_W_LAYOUT] = LAYOUT
-            q[_W_MAGIC] = MAGIC
-            q.release()
-        os.link(tmp, path)
-    finally:
-        os.close(fd)
-        os.unlink(tmp)
 
 
 def retire(path: str) -> None:
     """Mark a ring as replaced and remove its file; readers waiting on it reopen the path."""
     try:
-        m = _Mapping(path, writable_data=False)
+        m = RingMapping(path, writable_data=False)
     except (FileNotFoundError, ValueError):
         try:
             os.unlink(path)
         except FileNotFoundError:
             pass
         return
-    m.q[_W_RETIRED] = 1
-    _futex_wake(m.wake_args)
+    m.q[W_RETIRED] = 1
+    futex_wake(m.wake_args)
     try:
         os.unlink(path)
     except FileNotFoundError:
@@ -219,37 +94,37 @@ class RingWriter:
         self.capacity = m.capacity
         self._ring = np.frombuffer(m.data, dtype=np.uint8)
         self._commit, self.head, self.next_seq, self.last_pos = m.snapshot()
-        self.reserve, self.tail = m.q[_W_RESERVE], m.q[_W_TAIL]
+        self.reserve, self.tail = m.q[W_RESERVE], m.q[W_TAIL]
         if self.reserve > self.head:
             self._recover()
 
-    def _open(self, path: str, capacity: int) -> _Mapping:
+    def _open(self, path: str, capacity: int) -> RingMapping:
         carried_seq = 0
         while True:
             try:
-                m = _Mapping(path, writable_data=True)
+                m = RingMapping(path, writable_data=True)
             except FileNotFoundError:
                 try:
-                    _create_file(path, capacity, carried_seq)
+                    create_ring_file(path, capacity, carried_seq)
                 except FileExistsError:
                     pass
                 continue
             fcntl.flock(m.fd, fcntl.LOCK_EX)
             try:
                 q = m.q
-                pid, start = q[_W_WRITER_PID], q[_W_WRITER_START]
-                if q[_W_RETIRED]:
+                pid, start = q[W_WRITER_PID], q[W_WRITER_START]
+                if q[W_RETIRED]:
                     m.close()
                     continue
-                if _alive(pid, start):
+                if process_alive(pid, start):
                     raise RuntimeError(f"{self.label}: the ring already has a live writer (pid {pid})")
                 if m.capacity != capacity:
                     carried_seq = m.snapshot()[2]
                     retire(path)
                     m.close()
                     continue
-                q[_W_WRITER_START] = process_start_ticks(os.getpid()) or 0
-                q[_W_WRITER_PID] = os.getpid()
+                q[W_WRITER_START] = process_start_ticks(os.getpid()) or 0
+                q[W_WRITER_PID] = os.getpid()
                 return m
             finally:
                 if m.fd >= 0:
@@ -260,7 +135,7 @@ class RingWriter:
         start = self.head
         if self.tail > start:  # every record before head had already been given up
             self.tail = self.reserve
-            self._m.q[_W_TAIL] = self.tail
+            self._m.q[W_TAIL] = self.tail
         off = start % self.capacity
         self._m.dq[off >> 3] = PAD_SEQ
         self._m.dq[(off >> 3) + 1] = self.reserve - start
@@ -269,11 +144,11 @@ class RingWriter:
     def _commit_record(self, head: int, next_seq: int, last_pos: int) -> None:
         q = self._m.q
         c = self._commit + 1
-        d = _W_DESC[c & 1]
+        d = W_DESC[c & 1]
         q[d], q[d + 1], q[d + 2] = head, next_seq, last_pos
-        q[_W_COMMIT] = c
+        q[W_COMMIT] = c
         self._commit, self.head, self.next_seq, self.last_pos = c, head, next_seq, last_pos
-        _futex_wake(self._m.wake_args)
+        futex_wake(self._m.wake_args)
 
     def _record_total(self, pos: int) -> int:
         return self._m.dq[((pos % self.capacity) >> 3) + 1]
@@ -281,9 +156,9 @@ class RingWriter:
     def _lossless_readers_behind(self, limit: int) -> list[int]:
         """Header word indices of the reader slots whose lossless reader has not read up to `limit`."""
         q = self._m.q
-        pids = q[_W_SLOTS:_W_SLOTS + 8 * MAX_READER_SLOTS:8].tolist()
-        return [w for w in (_W_SLOTS + 8 * i for i, pid in enumerate(pids) if pid)
-                if q[w + 3] & _SLOT_LOSSLESS and q[w + 2] < limit]
+        pids = q[W_SLOTS:W_SLOTS + 8 * MAX_READER_SLOTS:8].tolist()
+        return [w for w in (W_SLOTS + 8 * i for i, pid in enumerate(pids) if pid)
+                if q[w + 3] & SLOT_LOSSLESS and q[w + 2] < limit]
 
     def _wait_for_lossless_readers(self, limit: int, timeout_s: float | None) -> None:
         """Block until no live lossless reader still has unread records before position `limit`."""
@@ -294,7 +169,7 @@ class RingWriter:
         sleep_s = 0.00002
         while True:
             behind = self._lossless_readers_behind(limit)
-            if not behind or all(not _alive(q[w], q[w + 1]) for w in behind):
+            if not behind or all(not process_alive(q[w], q[w + 1]) for w in behind):
                 return
             if deadline is not None and time.monotonic() >= deadline:
                 furthest = min(q[w + 2] for w in behind)
@@ -313,8 +188,8 @@ class RingWriter:
         bulk_array = bulk if isinstance(bulk, np.ndarray) else None
         bulk_len = bulk_array.nbytes if bulk_array is not None else memoryview(bulk).nbytes
         meta_len = len(meta)
-        bulk_off = _align(RECORD_HEADER_BYTES + meta_len)
-        total = _align(bulk_off + bulk_len)
+        bulk_off = align_up(RECORD_HEADER_BYTES + meta_len)
+        total = align_up(bulk_off + bulk_len)
         cap = self.capacity
         if total > cap:
             raise ValueError(f"{self.label}: a {bulk_len} B payload (+{meta_len} B meta) can never fit "
@@ -335,9 +210,9 @@ class RingWriter:
             t = start
         if t != self.tail:
             self.tail = t
-            q[_W_TAIL] = t
+            q[W_TAIL] = t
         self.reserve = end
-        q[_W_RESERVE] = end
+        q[W_RESERVE] = end
         if pad:
             dq[off >> 3] = PAD_SEQ
             dq[(off >> 3) + 1] = pad
@@ -362,8 +237,8 @@ class RingWriter:
         m = self._m
         if m.fd < 0:
             return
-        if m.q[_W_WRITER_PID] == os.getpid():
-            m.q[_W_WRITER_PID] = 0
+        if m.q[W_WRITER_PID] == os.getpid():
+            m.q[W_WRITER_PID] = 0
         self._ring = None
         m.close()
 
@@ -380,12 +255,12 @@ class Record:
     meta: bytes
     bulk: memoryview | bytes
     pos: int
-    _mapping: _Mapping
+    _mapping: RingMapping
 
     def still_valid(self) -> bool:
         """Whether the record's bytes are still intact (call after using a zero-copy `bulk`)."""
         m = self._mapping
-        return m.q[_W_RESERVE] <= self.pos + m.capacity
+        return m.q[W_RESERVE] <= self.pos + m.capacity
 
 
 class RingReader:
@@ -411,11 +286,11 @@ class RingReader:
         self.received = 0
         self.skipped = 0
         self.expected: int | None = None  # seq of the next message this reader should see
-        self._attach(_Mapping(path, writable_data=False), start)
+        self._attach(RingMapping(path, writable_data=False), start)
         if after_seq is not None and after_seq < self._m.snapshot()[2]:
             self.expected = after_seq + 1  # read() passes over what comes before
 
-    def _attach(self, m: _Mapping, start: str) -> None:
+    def _attach(self, m: RingMapping, start: str) -> None:
         self._m = m
         self.capacity = m.capacity
         _, head, next_seq, last_pos = m.snapshot()
@@ -436,11 +311,11 @@ class RingReader:
         cap = m.capacity
         while True:
             _, head, next_seq, _ = m.snapshot()
-            pos = m.q[_W_TAIL]
+            pos = m.q[W_TAIL]
             while pos < head:
                 i = (pos % cap) >> 3
                 seq, total = m.dq[i], m.dq[i + 1]
-                if m.q[_W_RESERVE] > pos + cap:
+                if m.q[W_RESERVE] > pos + cap:
                     break
                 if seq != PAD_SEQ:
                     return pos, seq
@@ -455,10 +330,10 @@ class RingReader:
         fcntl.flock(m.fd, fcntl.LOCK_EX)
         try:
             for i in range(MAX_READER_SLOTS):
-                w = _W_SLOTS + 8 * i
-                if q[w] == 0 or not _alive(q[w], q[w + 1]):
+                w = W_SLOTS + 8 * i
+                if q[w] == 0 or not process_alive(q[w], q[w + 1]):
                     q[w] = 0
-                    q[w + 1], q[w + 2], q[w + 3] = my_start, self.pos, _SLOT_LOSSLESS
+                    q[w + 1], q[w + 2], q[w + 3] = my_start, self.pos, SLOT_LOSSLESS
                     q[w] = me
                     self._slot = w
                     return
@@ -475,7 +350,7 @@ class RingReader:
         """Follow a retired ring to its replacement; False when none appeared before the deadline."""
         while True:
             try:
-                m = _Mapping(self.path, writable_data=False)
+                m = RingMapping(self.path, writable_data=False)
             except (FileNotFoundError, ValueError):
                 if deadline is not None and time.monotonic() >= deadline:
                     return False
@@ -498,7 +373,7 @@ class RingReader:
             commit, head, _, _ = m.snapshot()
             pos = self.pos
             if pos >= head:
-                if q[_W_RETIRED]:
+                if q[W_RETIRED]:
                     if self._reopen(deadline):
                         continue
                     return None
@@ -509,11 +384,11 @@ class RingReader:
                 if not spin_until:
                     spin_until = now + _READ_SPIN_S
                 if now >= spin_until:
-                    _futex_wait(m.commit_address, commit, min(remaining, _READ_POLL_SLICE_S))
+                    futex_wait(m.commit_address, commit, min(remaining, _READ_POLL_SLICE_S))
                 continue
             loaded = self._load(m, pos, copy)
             if loaded is None:  # overtaken: the writer has overwritten this record
-                self.pos = q[_W_TAIL]
+                self.pos = q[W_TAIL]
                 continue
             seq, total, meta, bulk = loaded
             if seq == PAD_SEQ or seq < self.expected:  # padding, or taken before a resume (after_seq)
@@ -527,24 +402,24 @@ class RingReader:
             return Record(seq, meta, bulk, pos, m)
 
     @staticmethod
-    def _load(m: _Mapping, pos: int, copy: bool) -> tuple[int, int, bytes, memoryview | bytes] | None:
+    def _load(m: RingMapping, pos: int, copy: bool) -> tuple[int, int, bytes, memoryview | bytes] | None:
         """(seq, total, meta, bulk) of the record at `pos`; None if it was overwritten while being read."""
         cap = m.capacity
         off = pos % cap
         i = off >> 3
         dq, q = m.dq, m.q
         seq, total, meta_len, bulk_len = dq[i], dq[i + 1], dq[i + 2], dq[i + 3]
-        if q[_W_RESERVE] > pos + cap:
+        if q[W_RESERVE] > pos + cap:
             return None
         if seq == PAD_SEQ:
             return seq, total, b"", b""
         meta_off = off + RECORD_HEADER_BYTES
         meta = bytes(m.db[meta_off:meta_off + meta_len])
-        bulk_off = off + _align(RECORD_HEADER_BYTES + meta_len)
+        bulk_off = off + align_up(RECORD_HEADER_BYTES + meta_len)
         bulk = m.db[bulk_off:bulk_off + bulk_len]
         if copy:
             bulk = bytes(bulk)
-        if q[_W_RESERVE] > pos + cap:
+        if q[W_RESERVE] > pos + cap:
             return None
         return seq, total, meta, bulk
 
@@ -577,3 +452,4 @@ class RingReader:
 
     def __del__(self) -> None:  # a dropped lossless reader must not hold the writer back
         self._release_slot()
+

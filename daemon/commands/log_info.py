@@ -6,7 +6,7 @@ import argparse
 import json
 from collections import Counter
 
-from daemon.log_format import ReadReport, read_log
+from daemon.log_format.reader import ReadReport, read_log
 
 
 def summarise(paths: list[str]) -> dict:

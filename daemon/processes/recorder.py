@@ -3,7 +3,7 @@
 A segment is written as `roadlog_<UTC start>_<index>.mcap.open` and renamed to `.mcap` once closed; it
 is rotated every `recorder.segment_seconds` or `recorder.segment_bytes`; its complete chunks are fsynced
 once a second. At start-up every `.open` segment that a crash or power cut left behind is recovered into
-a readable `.mcap` (log_format.recover_log). A recorder the supervisor restarted then resumes each topic
+a readable `.mcap` (log_format.recovery.recover_log). A recorder the supervisor restarted then resumes each topic
 after the last message that its daemon run's segments hold (`daemon_run` in their metadata, the highest
 seq per topic in their closing metadata), so what was published while it was down, or torn off with the
 crash's unfinished chunk, is recorded once, as long as the ring still holds it (older messages count as
@@ -36,8 +36,11 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from daemon.bus import pubsub
-from daemon.bus.ring_buffer import process_start_ticks
-from daemon.log_format import COUNTS_METADATA_NAME, METADATA_NAME, LogWriter, read_metadata, recover_log
+from daemon.bus.ring_layout import process_start_ticks
+from daemon.log_format.metadata_records import COUNTS_METADATA_NAME, METADATA_NAME
+from daemon.log_format.reader import read_metadata
+from daemon.log_format.recovery import recover_log
+from daemon.log_format.writer import LogWriter
 from daemon.processes import disk_policy
 from daemon.processes.supervisor import RESTARTS_ENV
 from daemon.spine.config import EXIT_CONFIG_ERROR, CarConfig, data_dir, load_config_or_report

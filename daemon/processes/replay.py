@@ -32,7 +32,7 @@ from pathlib import Path
 from mcap.reader import make_reader
 
 from daemon.bus import pubsub
-from daemon.log_format import LogRecord, ReadReport, read_log
+from daemon.log_format.reader import LogRecord, ReadReport, read_log
 from daemon.spine.config import EXIT_CONFIG_ERROR, CarConfig, load_config_or_report
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import HOST_CLOCK_WITHIN_NS

@@ -17,6 +17,10 @@ HOST_CLOCK_WITHIN_NS = 1_000_000_000
 
 Vec3 = tuple[float, float, float]
 
+# The raw pixel formats a CameraFrame may carry, with their channels per pixel (8 bits each); every other
+# format is an encoded bitstream (jpeg, png, h264, h265).
+RAW_FORMAT_CHANNELS = {"rgb8": 3, "bgr8": 3, "mono8": 1}
+
 
 @dataclass(slots=True)
 class CameraFrame:

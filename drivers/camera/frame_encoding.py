@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from daemon.spine.messages import CameraFrame
+from daemon.spine.messages import RAW_FORMAT_CHANNELS, CameraFrame
 
 
 class FrameEncodingError(ValueError):
@@ -33,7 +33,7 @@ def encode_image(image: np.ndarray, camera: str, encoding: str, jpeg_quality: in
 
 def raw_frame_image(frame: CameraFrame) -> np.ndarray:
     """The pixels of a raw (rgb8, bgr8, mono8) frame as a BGR or mono image."""
-    channels = {"rgb8": 3, "bgr8": 3, "mono8": 1}.get(frame.format)
+    channels = RAW_FORMAT_CHANNELS.get(frame.format)
     if channels is None:
         raise FrameEncodingError(f"{frame.format!r} is not a raw format")
     expected = frame.width * frame.height * channels

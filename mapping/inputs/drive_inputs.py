@@ -17,10 +17,11 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from daemon.log_format import ReadReport, read_log
+from daemon.log_format.reader import ReadReport, read_log
 from daemon.spine.config import CarConfig, resolve_path
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.messages import (
+    RAW_FORMAT_CHANNELS,
     CameraFrame,
     GnssFix,
     ImuSample,
@@ -108,8 +109,8 @@ def camera_models(config: CarConfig) -> dict[str, CameraModel]:
 
 def decode_image(frame: CameraFrame) -> np.ndarray:
     """RGB uint8 pixels of a camera frame (JPEG/PNG or raw)."""
-    if frame.format in ("rgb8", "bgr8", "mono8"):
-        channels = 1 if frame.format == "mono8" else 3
+    if frame.format in RAW_FORMAT_CHANNELS:
+        channels = RAW_FORMAT_CHANNELS[frame.format]
         img = np.frombuffer(bytes(frame.data), np.uint8).reshape(frame.height, frame.width, channels)
         if frame.format == "bgr8":
             img = img[..., ::-1]

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from daemon.log_format import read_metadata
+from daemon.log_format.reader import read_metadata
 from daemon.spine.config import CarConfig, ConfigError, config_to_yaml, load_config, parse_config
 from daemon.spine.health import process_memory_mb
 from daemon.spine.local_frame import LocalFrame

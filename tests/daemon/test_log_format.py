@@ -8,7 +8,9 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from daemon.log_format import LogWriter, ReadReport, read_log, read_metadata, recover_log
+from daemon.log_format.reader import ReadReport, read_log, read_metadata
+from daemon.log_format.recovery import recover_log
+from daemon.log_format.writer import LogWriter
 from daemon.spine.config import load_config
 from daemon.spine.messages import (
     MESSAGE_TYPES,

@@ -20,7 +20,7 @@ import pytest
 import yaml
 
 from daemon.bus import pubsub
-from daemon.log_format import read_log, read_metadata
+from daemon.log_format.reader import read_log, read_metadata
 from daemon.processes import disk_policy
 from daemon.processes.disk_policy import Segment, required_free_bytes, segments_to_delete
 from daemon.processes.recorder import OPEN_SUFFIX, closed_segments, segment_name

@@ -23,7 +23,7 @@ import pytest
 import yaml
 
 from daemon.bus import pubsub
-from daemon.log_format import LogWriter
+from daemon.log_format.writer import LogWriter
 from daemon.processes.replay import replay, replayed_topics
 from daemon.spine.config import load_config
 from daemon.spine.messages import CameraFrame, CanFrame, DriverHealth, ImuSample, LidarPacket, TimeAnchor, VehiclePose

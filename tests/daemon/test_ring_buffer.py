@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import multiprocessing
 import os
+import platform
 import random
 import signal
 import time
@@ -13,14 +14,9 @@ import uuid
 import numpy as np
 import pytest
 
-from daemon.bus.ring_buffer import (
-    PAGE,
-    RingReader,
-    RingWriter,
-    max_bulk_bytes,
-    record_bytes,
-    retire,
-)
+from daemon.bus.ring_buffer import RingReader, RingWriter, retire
+from daemon.bus.ring_layout import PAGE, UnsupportedPlatformError, max_bulk_bytes, record_bytes
+from daemon.spine.config import ConfigError
 
 SPAWN = multiprocessing.get_context("spawn")
 
@@ -191,6 +187,21 @@ def test_second_live_writer_is_refused(path):
         RingWriter(path, 16 * PAGE)
     writer.close()
     RingWriter(path, 16 * PAGE)
+
+
+@pytest.mark.parametrize("machine", ["aarch64", "armv7l", "riscv64", ""])
+def test_the_ring_refuses_to_start_on_anything_but_x86_64(path, monkeypatch, machine):
+    writer = RingWriter(path, 16 * PAGE)  # a ring that exists: attaching to it is refused as well
+    writer.write(meta_for(0), pattern(0, 100))
+    monkeypatch.setattr(platform, "machine", lambda: machine)
+    for open_ring in (lambda: RingWriter(path, 16 * PAGE), lambda: RingReader(path, start="oldest"),
+                      lambda: RingWriter(path + ".new", 16 * PAGE)):
+        with pytest.raises(UnsupportedPlatformError, match=f"only on x86-64.*this machine is {machine or 'unknown'!r}"):
+            open_ring()
+    assert issubclass(UnsupportedPlatformError, ConfigError)  # processes exit EXIT_CONFIG_ERROR, not retried
+    assert not os.path.exists(path + ".new")
+    monkeypatch.undo()
+    assert RingReader(path, start="oldest").read(0).seq == 0
 
 
 class _Died(Exception):

@@ -15,7 +15,7 @@ import numpy as np
 import yaml
 
 from daemon.bus import pubsub
-from daemon.log_format import LogWriter
+from daemon.log_format.writer import LogWriter
 from daemon.spine.config import load_config
 from daemon.spine.messages import CameraFrame, SemanticMask
 from daemon.spine.topics import camera_topic, health_topic, mask_topic

@@ -6,7 +6,7 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from daemon.log_format import LogWriter
+from daemon.log_format.writer import LogWriter
 from daemon.spine.config import ConfigError, load_config
 from mapping.inputs.drive_inputs import load_drive
 from mapping.inputs.lidar_ground import TILE_CELLS, GroundFilter, TrajectoryGround, ground_points

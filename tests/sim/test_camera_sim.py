@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from daemon.log_format import LogWriter
+from daemon.log_format.writer import LogWriter
 from daemon.spine.config import load_config
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import CameraFrame, SemanticMask

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from daemon.log_format import read_log, read_metadata
+from daemon.log_format.reader import read_log, read_metadata
 from daemon.spine.config import load_config
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.messages import GnssFix

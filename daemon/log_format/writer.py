@@ -1,0 +1,149 @@
+"""Writing: `LogWriter` maps camera frames, masks, GNSS fixes and poses to Foxglove's well-known schemas and every
+other message to its `roadlog.<Name>` schema derived from `daemon.spine.messages`. Each MCAP message record carries
+sequence = the message's per-topic seq, log_time = host_mono_ns and publish_time = sensor_time_ns, so every field
+round-trips. Each file starts with a `roadlog` metadata record and holds a CameraCalibration channel per camera."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from mcap.writer import CompressionType, Writer
+
+from daemon.log_format.foxglove_schemas import file_descriptor_set, to_well_known
+from daemon.log_format.metadata_records import COUNTS_METADATA_NAME, METADATA_NAME, SOFTWARE_VERSION
+from daemon.spine import message_codec
+from daemon.spine.config import CarConfig, config_to_yaml, resolve_path
+from daemon.spine.topics import calibration_topic, topic_table
+
+
+def calibration_json(config: CarConfig) -> str:
+    """Intrinsics, distortion and extrinsics of every sensor, as JSON."""
+    s = config.sensors
+    cal = {"cameras": {c.name: {"width": c.width, "height": c.height, "model": c.model,
+                                "intrinsics": c.intrinsics.model_dump(), "distortion": list(c.distortion),
+                                "extrinsics": c.extrinsics.model_dump(mode="json")} for c in s.cameras}}
+    if s.lidar is not None:
+        cal["lidar"] = {"model": s.lidar.model, "extrinsics": s.lidar.extrinsics.model_dump(mode="json")}
+    if s.gnss is not None:
+        cal["gnss"] = {"antenna_lever_arm_m": list(s.gnss.antenna_lever_arm_m),
+                       "imu_extrinsics": s.gnss.imu_extrinsics.model_dump(mode="json")}
+    return json.dumps(cal)
+
+
+_COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+
+
+class LogWriter:
+    """Writes messages of the car's topics into one self-contained MCAP file."""
+
+    def __init__(self, path: str | Path, config: CarConfig, metadata: dict[str, str] | None = None,
+                 compression: str | None = None, chunk_size: int = 4 * 1024 * 1024,
+                 config_path: str | Path | None = None):
+        self.path = Path(path)
+        self.config = config
+        self._topics = topic_table(config)
+        self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        self._writer = Writer(self._file, chunk_size=chunk_size,
+                              compression=_COMPRESSION[compression or config.recorder.compression])
+        self._writer.start(profile="", library=SOFTWARE_VERSION)
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self.counts: dict[str, int] = {}
+        self.last_seq: dict[str, int] = {}  # per topic, the highest message seq written
+        self.bytes_written_estimate = 0
+        self._closed = False
+        meta = {
+            "software_version": SOFTWARE_VERSION,
+            "config": config_to_yaml(config),
+            "calibration": calibration_json(config),
+            "host": socket.gethostname(),
+            "start_time_utc_ns": str(time.time_ns()),
+            "start_mono_ns": str(time.monotonic_ns()),
+        }
+        if config.sensors.lidar is not None and config_path is not None:
+            try:  # the Lidar's own calibration file, so the segment decodes on its own
+                meta["lidar_metadata"] = resolve_path(config_path, config.sensors.lidar.metadata_file).read_text()
+            except OSError as exc:
+                meta["lidar_metadata_error"] = str(exc)
+        meta.update(metadata or {})
+        self._writer.add_metadata(METADATA_NAME, meta)
+        self._write_calibrations()
+
+    def _schema_id(self, name: str, data: bytes) -> int:  # data is only built for a new channel
+        if name not in self._schemas:
+            self._schemas[name] = self._writer.register_schema(name=name, encoding="protobuf", data=data)
+        return self._schemas[name]
+
+    def _channel_id(self, topic: str, schema_name: str, schema_bytes: Callable[[], bytes], type_name: str) -> int:
+        cid = self._channels.get(topic)
+        if cid is None:
+            sid = self._schema_id(schema_name, schema_bytes())
+            cid = self._writer.register_channel(topic=topic, message_encoding="protobuf", schema_id=sid,
+                                                metadata={"roadlog.type": type_name})
+            self._channels[topic] = cid
+        return cid
+
+    def _write_calibrations(self) -> None:
+        for cam in self.config.sensors.cameras:
+            proto = CameraCalibration(frame_id=cam.name, width=cam.width, height=cam.height,
+                                      distortion_model="plumb_bob", D=list(cam.distortion),
+                                      K=list(cam.intrinsics.matrix().ravel()))
+            p = list(cam.intrinsics.matrix().ravel())
+            proto.P.extend([p[0], p[1], p[2], 0.0, p[3], p[4], p[5], 0.0, p[6], p[7], p[8], 0.0])
+            proto.R.extend([1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0])
+            topic = calibration_topic(cam.name)
+            cid = self._channel_id(topic, "foxglove.CameraCalibration",
+                                   lambda: file_descriptor_set(CameraCalibration.DESCRIPTOR.file), "CameraCalibration")
+            self._writer.add_message(cid, log_time=0, data=proto.SerializeToString(), publish_time=0)
+
+    def write(self, topic: str, message: object) -> None:
+        """Append one message; its topic must be in the car's topic table with a matching type."""
+        spec = self._topics.get(topic)
+        if spec is None:
+            raise KeyError(f"topic {topic!r} is not in the topic table")
+        if type(message) is not spec.message_type:
+            raise TypeError(f"topic {topic!r} carries {spec.message_type.__name__}, got {type(message).__name__}")
+        proto = to_well_known(message)
+        type_name = type(message).__name__
+        if proto is not None:
+            data = proto.SerializeToString()
+            cid = self._channel_id(
+                topic, proto.DESCRIPTOR.full_name, lambda: file_descriptor_set(proto.DESCRIPTOR.file), type_name)
+        else:
+            data = message_codec.encode(message)
+            cid = self._channel_id(
+                topic, message_codec.schema_name(type(message)),
+                lambda: message_codec.schema_data(type(message)), type_name)
+        self._writer.add_message(cid, log_time=int(message.host_mono_ns), data=data,
+                                 publish_time=int(message.sensor_time_ns), sequence=int(message.seq) & 0xFFFFFFFF)
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+        self.last_seq[topic] = max(self.last_seq.get(topic, -1), int(message.seq))
+        self.bytes_written_estimate += len(data) + 32
+
+    def close(self, extra_metadata: dict[str, str] | None = None) -> None:
+        """Finish the file (summary, index, footer); `extra_metadata` goes in a `roadlog.counts` record."""
+        if self._closed:
+            return
+        self._closed = True
+        final = {"messages_per_topic": json.dumps(self.counts), "last_seq_per_topic": json.dumps(self.last_seq)}
+        final.update(extra_metadata or {})
+        self._writer.add_metadata(COUNTS_METADATA_NAME, final)
+        self._writer.finish()
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self._file.close()
+
+    def flush(self) -> None:
+        self._file.flush()
+
+    def __enter__(self) -> LogWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
