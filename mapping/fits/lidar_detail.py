@@ -16,7 +16,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from mapping.outputs.map_metrics import Located
+from mapping.method.mesh_location import Located
 
 THREADS = 2  # each pass's sums are split over the points: numpy's gathers and bincount run partly without
 # the GIL (city31's 3.4 M points: 0.51 -> 0.41 s a pass on a quiet machine, 1.15 -> 0.44 s on a busy one)

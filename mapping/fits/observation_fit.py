@@ -22,8 +22,8 @@ import torch
 from torch import nn
 
 from mapping.fits.vertex_observations import VertexObservations
+from mapping.method.mesh_location import Located
 from mapping.method.road_map import RoadMap
-from mapping.outputs.map_metrics import Located
 
 LABEL_PRIOR = 0.1
 FINAL_LR_FRACTION = 0.05  # the elevation fit's learning rate ends at 5 % of the paper's

@@ -11,9 +11,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from daemon.spine.semantic_classes import NUM_MAP_CLASSES, ROAD_SURFACE_CLASSES, SemanticClass
+from mapping.method.mesh_location import Located, all_observed
 from mapping.method.mesh_renderer import sampled_pixels
 from mapping.method.road_map import NO_LABEL, RoadMap, ViewGeometry, WindowIndex, view_geometry, view_labels, view_rgb
-from mapping.method.road_mesh import RoadMesh, locate
+from mapping.method.road_mesh import locate
 from mapping.method.scene_data import CameraModel, GroundTruth, Keyframe, Trajectory
 
 TRAIN_VIEWS_EVALUATED = 12
@@ -49,7 +50,6 @@ def miou_pct(conf: np.ndarray) -> float | None:
     return float(np.mean(list(per_class.values()))) if per_class else None
 
 
-LOCATE_CHUNK = 1 << 16  # points located at once ahead of time
 OBSERVED_BLOCK_M = 1.0  # the observed area is rasterised on blocks of this size to skip points far from it
 
 
@@ -80,38 +80,8 @@ def observed_triangles(road_map: RoadMap, xy: np.ndarray) -> tuple[np.ndarray, n
     near = np.flatnonzero(_near_observed(road_map, xy))  # locate only points that can be in an observed triangle
     near_ids, near_w, near_ok = locate(road_map.mesh, xy[near])
     ids, w, ok = np.full((len(xy), 3), -1, np.int64), np.zeros((len(xy), 3)), np.zeros(len(xy), bool)
-    ids[near], w[near], ok[near] = near_ids, near_w, near_ok & _all_observed(road_map, near_ids, near_ok)
+    ids[near], w[near], ok[near] = near_ids, near_w, near_ok & all_observed(road_map, near_ids, near_ok)
     return ids, w, ok
-
-
-def _all_observed(road_map: RoadMap, ids: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    seen = road_map.observed[np.where(ok[:, None], ids, 0)] > 0
-    return seen[:, 0] & seen[:, 1] & seen[:, 2]
-
-
-@dataclass(frozen=True)
-class Located:
-    """Points placed on the mesh (its x, y only, so before the fit): the triangle under each (vertex ids),
-    the barycentric weights, and whether it lies inside the mesh."""
-
-    ids: np.ndarray  # (M, 3) int32
-    weights: np.ndarray  # (M, 3) float32
-    inside: np.ndarray  # (M,) bool
-
-    @staticmethod
-    def of(mesh: RoadMesh, xy: np.ndarray) -> Located:
-        """In chunks: this runs beside other threads' work (the image decoding, the other set of points), and
-        numpy's fancy indexing holds the GIL for as long as it runs (whole-array calls slowed the fit beside
-        them by 15 %)."""
-        ids, w, ok = np.empty((len(xy), 3), np.int32), np.empty((len(xy), 3), np.float32), np.empty(len(xy), bool)
-        for lo in range(0, len(xy), LOCATE_CHUNK):
-            part = slice(lo, lo + LOCATE_CHUNK)
-            ids[part], w[part], ok[part] = locate(mesh, xy[part])
-        return Located(ids, w, ok)
-
-    def observed(self, road_map: RoadMap) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """As observed_triangles."""
-        return self.ids, self.weights, self.inside & _all_observed(road_map, self.ids, self.inside)
 
 
 def truth_cells(gt: GroundTruth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -6,7 +6,7 @@ import pytest
 import torch
 import trimesh
 
-import mapping.fits.reconstruction as reconstruction
+import mapping.fits.fast_fit as fast_fit
 import mapping.outputs.map_metrics as map_metrics
 from daemon.spine.config import MapperConfig
 from daemon.spine.semantic_classes import SemanticClass
@@ -20,11 +20,12 @@ from mapping.fits.vertex_observations import (
     pixel_ground_length_m,
     project_points,
 )
+from mapping.method.mesh_location import Located
 from mapping.method.road_map import ABLATIONS, new_road_map, variant_for
 from mapping.method.road_mesh import build_road_mesh, locate
 from mapping.method.row_sparse_adam import RowSparseAdam
 from mapping.method.scene_data import CameraModel, Keyframe, Trajectory
-from mapping.outputs.map_metrics import Located, MetricPoints, elev_error_cm, elev_mae_gt_cm, truth_cells
+from mapping.outputs.map_metrics import MetricPoints, elev_error_cm, elev_mae_gt_cm, truth_cells
 from tests.mapping.synthetic_road_scene import make_scene, texture
 
 CONFIG = MapperConfig(mesh_side_m=0.2, corridor_half_width_m=5.0, keyframe_spacing_m=0.0, threads=1,
@@ -359,7 +360,7 @@ def test_a_failing_reconstruction_cancels_its_background_work(scene, monkeypatch
         raise RuntimeError("colour fit failed")
 
     monkeypatch.setattr(map_metrics, "_view_seen", slow_view)
-    monkeypatch.setattr(reconstruction, "_fit_colours", broken)
+    monkeypatch.setattr(fast_fit, "fit_colour", broken)
     with pytest.raises(RuntimeError, match="colour fit failed"):
         reconstruct(scene.keyframes[:24], scene.cameras, scene.trajectory, scene.lidar,
                     CONFIG.model_copy(update={"epochs": 1}), scene.reference_height_m, None, progress=False)
