@@ -33,7 +33,7 @@ from mcap.reader import make_reader
 
 from daemon.bus import pubsub
 from daemon.log_format.reader import LogRecord, ReadReport, read_log
-from daemon.spine.config import EXIT_CONFIG_ERROR, CarConfig, load_config_or_report
+from daemon.spine.config import CarConfig, ConfigError, load_config, reports_config_errors
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import HOST_CLOCK_WITHIN_NS
 from daemon.spine.process_table import process_table
@@ -245,6 +245,7 @@ def _rate(text: str) -> float | None:
     return value
 
 
+@reports_config_errors
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="roadlog replay", description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", required=True, help="car config YAML")
@@ -254,13 +255,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--end", type=float, default=None, help="seconds from the log start")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s replay %(levelname)s %(message)s")
-    config = load_config_or_report(args.config)
-    if config is None:
-        return EXIT_CONFIG_ERROR
+    config = load_config(args.config)
     missing = [p for p in args.logs if not Path(p).is_file()]
     if missing:
-        print(f"no such log file: {', '.join(missing)}", file=sys.stderr)
-        return 2
+        raise ConfigError(f"no such log file: {', '.join(missing)}")
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())

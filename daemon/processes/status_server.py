@@ -22,7 +22,7 @@ from pathlib import Path
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
-from daemon.spine.config import CarConfig, data_dir, load_config
+from daemon.spine.config import CarConfig, data_dir, load_config, reports_config_errors
 from daemon.spine.messages import DriverHealth
 from daemon.spine.topics import topic_table
 
@@ -233,6 +233,7 @@ def make_server(config: CarConfig, board: HealthBoard, data_folder: Path, port: 
     return server
 
 
+@reports_config_errors
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="roadlog-status", description=__doc__)
     parser.add_argument("--config", required=True)

@@ -12,7 +12,7 @@ import signal
 import threading
 from collections.abc import Callable, Generator
 
-from daemon.spine.config import CameraConfig, load_config, resolve_path
+from daemon.spine.config import CameraConfig, ConfigError, load_config, reports_config_errors, resolve_path
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import CameraFrame, SemanticMask
 from daemon.spine.topics import camera_process, camera_topic, health_topic, mask_topic
@@ -74,6 +74,7 @@ def run_camera_driver(config: CameraConfig, frames: FrameSource, publish: Publis
 OpenSource = Callable[[CameraConfig, threading.Event, HealthCounters, argparse.Namespace], FrameSource]
 
 
+@reports_config_errors
 def camera_process_main(argv: list[str] | None, open_source: OpenSource, *, stay_up_at_end: bool = False,
                         add_arguments: Callable[[argparse.ArgumentParser], None] = lambda _: None,
                         description: str = "roadlog camera driver: one camera's frames onto the bus") -> int:
@@ -92,7 +93,7 @@ def camera_process_main(argv: list[str] | None, open_source: OpenSource, *, stay
     try:
         config = car.camera(args.camera)
     except KeyError as exc:
-        parser.error(f"{args.config}: {exc.args[0]}")
+        raise ConfigError(f"{args.config}: {exc.args[0]}") from None
     device = args.device if args.device is not None else config.device
     if config.backend == "sim" and device:
         device = str(resolve_path(args.config, device))

@@ -19,7 +19,7 @@ import pytest
 import yaml
 
 from daemon.bus import pubsub
-from daemon.spine.config import load_config
+from daemon.spine.config import EXIT_CONFIG_ERROR, load_config
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import DriverHealth, ImuSample, LidarPacket
 from daemon.spine.topics import LIDAR_IMU, LIDAR_PACKETS, health_topic
@@ -303,16 +303,13 @@ def test_hesai_and_velodyne_configs_exit_with_a_clear_error(tmp_path, capsys):
     meta_json = metadata_to_json(simulated_os128_metadata(1024))
     for model in ("hesai-pandar128", "velodyne-vls128"):
         path = write_config(tmp_path, meta_json, model=model)
-        with pytest.raises(SystemExit) as exit_info:
-            udp_driver.main(["--config", str(path)])
-        assert exit_info.value.code == 2
+        assert udp_driver.main(["--config", str(path)]) == EXIT_CONFIG_ERROR
         assert f"{model!r} is not supported: only Ouster sensors" in capsys.readouterr().err
 
 
 def test_unusable_metadata_and_a_taken_port_are_clear_errors(tmp_path, capsys):
     path = write_config(tmp_path, "{}")
-    with pytest.raises(SystemExit):
-        udp_driver.main(["--config", str(path)])
+    assert udp_driver.main(["--config", str(path)]) == EXIT_CONFIG_ERROR
     assert "sensors.lidar.metadata_file" in capsys.readouterr().err
     path = write_config(tmp_path, metadata_to_json(simulated_os128_metadata(1024)))
     car = load_config(path)
