@@ -42,10 +42,10 @@ from daemon.log_format.reader import read_metadata
 from daemon.log_format.recovery import recover_log
 from daemon.log_format.writer import LogWriter
 from daemon.processes import disk_policy
-from daemon.processes.supervisor import RESTARTS_ENV
 from daemon.spine.config import CarConfig, data_dir, load_config, reports_config_errors
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import TimeAnchor
+from daemon.spine.process_table import RESTARTS_ENV
 from daemon.spine.topics import TIME_ANCHOR, health_topic, topic_table
 
 PROCESS = "recorder"

@@ -36,7 +36,7 @@ from daemon.log_format.reader import LogRecord, ReadReport, read_log
 from daemon.spine.config import CarConfig, ConfigError, load_config, reports_config_errors
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import HOST_CLOCK_WITHIN_NS
-from daemon.spine.process_table import process_table
+from daemon.spine.process_table import required_drivers
 from daemon.spine.topics import TIME_ANCHOR, health_topic, topic_table
 
 PROCESS = "replay"
@@ -47,7 +47,7 @@ log = logging.getLogger(__name__)
 
 def replayed_topics(config: CarConfig) -> set[str]:
     """The topics the car's drivers publish (their health excepted): what a replay stands in for."""
-    drivers = {spec.name for spec in process_table(config, "", "live", record=False) if spec.required}
+    drivers = set(required_drivers(config))
     return {name for name, t in topic_table(config).items()
             if t.source in drivers and name != health_topic(t.source)}
 

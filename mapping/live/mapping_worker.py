@@ -44,8 +44,8 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from daemon.bus import pubsub
-from daemon.processes.status_server import preview_dir
 from daemon.spine.config import CarConfig, data_dir, load_config, reports_config_errors, resolve_path
+from daemon.spine.data_layout import preview_dir
 from daemon.spine.health import HealthCounters, process_memory_mb
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.semantic_classes import CLASS_COLOURS
