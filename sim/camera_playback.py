@@ -24,7 +24,7 @@ from daemon.spine.config import CameraConfig, ConfigError
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import RAW_FORMAT_CHANNELS, CameraFrame, SemanticMask
 from daemon.spine.topics import camera_topic, mask_topic
-from drivers.camera.camera_driver import camera_process_main
+from drivers.camera.camera_process import camera_process_main
 from drivers.camera.frame_encoding import FrameEncodingError, encode_image, raw_frame_image
 
 

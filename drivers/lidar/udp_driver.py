@@ -33,7 +33,7 @@ from daemon.spine.topics import LIDAR_IMU, LIDAR_PACKETS, health_topic
 from drivers.lidar.ouster_decoder import count_missing_packets, decode_packets, newest_packet, packet_sequence
 from drivers.lidar.ouster_imu import decode_imu_packet, imu_profile_supported
 from drivers.lidar.ouster_metadata import OusterMetadata, imu_port, parse_metadata
-from drivers.lidar.ouster_packet_layout import OusterPacketLayout, packet_layout
+from drivers.lidar.ouster_packet_layout import OusterPacketLayout, packet_layout, packets_per_second
 
 PROCESS = "lidar"
 # Linux socket options Python's socket module does not name (asm-generic/socket.h).
@@ -278,11 +278,6 @@ def _publish_health(publish: Publish, health: HealthCounters, stats: LidarDriver
     snap = health.snapshot()
     detail = stats.summary() + (f"; last error: {health.last_error}" if health.last_error else "")
     publish(health_topic(PROCESS), dataclasses.replace(snap, detail=detail))
-
-
-def packets_per_second(metadata: OusterMetadata) -> float:
-    """The packet rate the sensor sends: the packets of its column window, fps times a second."""
-    return float(packet_layout(metadata).window_packets[1] * metadata.fps)
 
 
 def batch_period(receive_buffer_bytes: int, layout: OusterPacketLayout, packets_per_s: float,

@@ -26,7 +26,7 @@ from daemon.spine.topics import LIDAR_IMU, LIDAR_PACKETS, health_topic
 from drivers.lidar import udp_driver
 from drivers.lidar.ouster_encoder import encode_frame_packets
 from drivers.lidar.ouster_metadata import metadata_to_json, parse_metadata, simulated_os128_metadata
-from drivers.lidar.ouster_packet_layout import packet_layout
+from drivers.lidar.ouster_packet_layout import packet_layout, packets_per_second
 from drivers.lidar.pcap_udp import read_pcap_udp
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -344,7 +344,7 @@ class DriverRun:
 def run_in_thread(config, meta, send, n_expected: int, timeout_s: float = 10) -> DriverRun:
     """run_lidar_driver in a thread until `send` has sent and n_expected packets came out."""
     run = DriverRun()
-    run.health = HealthCounters("lidar", expected_rate_hz=udp_driver.packets_per_second(meta))
+    run.health = HealthCounters("lidar", expected_rate_hz=packets_per_second(meta))
     stop = threading.Event()
 
     def target() -> None:

@@ -15,7 +15,7 @@ from daemon.spine.config import ConfigError, load_config
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import CameraFrame, SemanticMask
 from daemon.spine.topics import camera_topic, mask_topic
-from drivers.camera.camera_driver import run_camera_driver
+from drivers.camera.camera_process import run_camera_driver
 from sim.camera_playback import sim_frames
 
 CONFIG_FILE = Path(__file__).resolve().parents[2] / "configs" / "sim.yaml"
