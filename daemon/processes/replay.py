@@ -9,10 +9,9 @@ on the recording host's monotonic clock (a topic whose stamps lie within HOST_CL
 arrival: an OAK camera, the time anchors), which move with the host times: so the relations between every
 sensor's clock and the host clock are those of the drive, at any rate, and a consumer cannot tell replay
 from a live drive (kept as they were, a camera's stamps looked free-running and its frames were placed at
-their arrival, 35 ms late on the simulated drive: 0.35 m along the road). Only
-the drivers' topics and the time anchors are played: topics the car's topic table lacks and topics that
-live processes publish themselves (health, poses) are skipped and counted. Progress goes once a second,
-as JSON in `detail`, on the replay's health topic.
+their arrival, late by the camera's delivery delay). Only the drivers' topics and the time anchors are
+played: topics the car's topic table lacks and topics that live processes publish themselves (health,
+poses) are skipped and counted. Progress goes once a second, as JSON in `detail`, on the replay's health topic.
 """
 
 from __future__ import annotations
