@@ -20,11 +20,11 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from daemon.log_format.reader import read_log
-from daemon.spine.config import CameraConfig
+from daemon.spine.config import CameraConfig, ConfigError
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import RAW_FORMAT_CHANNELS, CameraFrame, SemanticMask
 from daemon.spine.topics import camera_topic, mask_topic
-from drivers.camera.camera_driver import camera_process_main
+from drivers.camera.camera_process import camera_process_main
 from drivers.camera.frame_encoding import FrameEncodingError, encode_image, raw_frame_image
 
 
@@ -39,10 +39,10 @@ def sim_frames(config: CameraConfig, stop: threading.Event, health: HealthCounte
                ) -> Iterator[CameraFrame | SemanticMask]:
     """This camera's frames and masks from the log at config.device, paced as described above."""
     if not config.device:
-        raise ValueError(f"camera {config.name}: the sim backend needs `device`: the drive log (.mcap) to play")
+        raise ConfigError(f"camera {config.name}: the sim backend needs `device`: the drive log (.mcap) to play")
     path = Path(config.device)
     if not path.is_file():
-        raise FileNotFoundError(f"camera {config.name}: sim log {path} does not exist")
+        raise ConfigError(f"camera {config.name}: sim log {path} does not exist")
     records = read_log([path], topics=[camera_topic(config.name), mask_topic(config.name)])
     first = next(records, None)
     if first is None:

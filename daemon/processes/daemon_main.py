@@ -8,7 +8,7 @@ import sys
 
 from daemon.bus.pubsub import open_publisher, unlink_all
 from daemon.processes.supervisor import Supervisor
-from daemon.spine.config import EXIT_CONFIG_ERROR, load_config_or_report
+from daemon.spine.config import load_config, reports_config_errors
 from daemon.spine.process_table import process_table
 from daemon.spine.topics import topic_table
 
@@ -39,19 +39,19 @@ def _serve(supervisor: Supervisor, config) -> int:
         unlink_all(config)
 
 
+@reports_config_errors
 def run_main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="roadlog run", description="Run the daemon on the car's live sensors.")
     parser.add_argument("--config", required=True, help="car config YAML")
     parser.add_argument("--output-dir", help="log and map folder (default: recorder.output_dir)")
     parser.add_argument("--no-record", action="store_true", help="do not record logs")
     args = parser.parse_args(argv)
-    config = load_config_or_report(args.config)
-    if config is None:
-        return EXIT_CONFIG_ERROR
+    config = load_config(args.config)
     table = process_table(config, args.config, "live", record=not args.no_record, output_dir=args.output_dir)
     return _serve(Supervisor(config, table), config)
 
 
+@reports_config_errors
 def replay_main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="roadlog replay",
                                      description="Run the daemon with the drivers replaced by a log player.")
@@ -62,9 +62,7 @@ def replay_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output-dir", help="log and map folder (default: recorder.output_dir)")
     parser.add_argument("--no-record", action="store_true", help="do not record the replayed messages again")
     args = parser.parse_args(argv)
-    config = load_config_or_report(args.config)
-    if config is None:
-        return EXIT_CONFIG_ERROR
+    config = load_config(args.config)
     table = process_table(config, args.config, "replay", replay_logs=tuple(args.logs), replay_rate=args.rate,
                           record=not args.no_record, output_dir=args.output_dir)
     return _serve(Supervisor(config, table, exit_when_done=True), config)

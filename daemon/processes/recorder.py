@@ -42,10 +42,10 @@ from daemon.log_format.reader import read_metadata
 from daemon.log_format.recovery import recover_log
 from daemon.log_format.writer import LogWriter
 from daemon.processes import disk_policy
-from daemon.processes.supervisor import RESTARTS_ENV
-from daemon.spine.config import EXIT_CONFIG_ERROR, CarConfig, data_dir, load_config_or_report
+from daemon.spine.config import CarConfig, data_dir, load_config, reports_config_errors
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import TimeAnchor
+from daemon.spine.process_table import RESTARTS_ENV
 from daemon.spine.topics import TIME_ANCHOR, health_topic, topic_table
 
 PROCESS = "recorder"
@@ -411,6 +411,7 @@ def run(config: CarConfig, output_dir: Path, stop: threading.Event, config_path:
     return rec
 
 
+@reports_config_errors
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="roadlog recorder", description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", required=True, help="car config YAML")
@@ -421,9 +422,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="read losslessly: publishers wait for the recorder (replay at max speed only)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s recorder %(levelname)s %(message)s")
-    config = load_config_or_report(args.config)
-    if config is None:
-        return EXIT_CONFIG_ERROR
+    config = load_config(args.config)
     output_dir = data_dir(config, args.config, args.output_dir)
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):

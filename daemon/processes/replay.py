@@ -9,10 +9,9 @@ on the recording host's monotonic clock (a topic whose stamps lie within HOST_CL
 arrival: an OAK camera, the time anchors), which move with the host times: so the relations between every
 sensor's clock and the host clock are those of the drive, at any rate, and a consumer cannot tell replay
 from a live drive (kept as they were, a camera's stamps looked free-running and its frames were placed at
-their arrival, 35 ms late on the simulated drive: 0.35 m along the road). Only
-the drivers' topics and the time anchors are played: topics the car's topic table lacks and topics that
-live processes publish themselves (health, poses) are skipped and counted. Progress goes once a second,
-as JSON in `detail`, on the replay's health topic.
+their arrival, late by the camera's delivery delay). Only the drivers' topics and the time anchors are
+played: topics the car's topic table lacks and topics that live processes publish themselves (health,
+poses) are skipped and counted. Progress goes once a second, as JSON in `detail`, on the replay's health topic.
 """
 
 from __future__ import annotations
@@ -33,10 +32,10 @@ from mcap.reader import make_reader
 
 from daemon.bus import pubsub
 from daemon.log_format.reader import LogRecord, ReadReport, read_log
-from daemon.spine.config import EXIT_CONFIG_ERROR, CarConfig, load_config_or_report
+from daemon.spine.config import CarConfig, ConfigError, load_config, reports_config_errors
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import HOST_CLOCK_WITHIN_NS
-from daemon.spine.process_table import process_table
+from daemon.spine.process_table import required_drivers
 from daemon.spine.topics import TIME_ANCHOR, health_topic, topic_table
 
 PROCESS = "replay"
@@ -47,7 +46,7 @@ log = logging.getLogger(__name__)
 
 def replayed_topics(config: CarConfig) -> set[str]:
     """The topics the car's drivers publish (their health excepted): what a replay stands in for."""
-    drivers = {spec.name for spec in process_table(config, "", "live", record=False) if spec.required}
+    drivers = set(required_drivers(config))
     return {name for name, t in topic_table(config).items()
             if t.source in drivers and name != health_topic(t.source)}
 
@@ -245,6 +244,7 @@ def _rate(text: str) -> float | None:
     return value
 
 
+@reports_config_errors
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="roadlog replay", description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", required=True, help="car config YAML")
@@ -254,13 +254,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--end", type=float, default=None, help="seconds from the log start")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s replay %(levelname)s %(message)s")
-    config = load_config_or_report(args.config)
-    if config is None:
-        return EXIT_CONFIG_ERROR
+    config = load_config(args.config)
     missing = [p for p in args.logs if not Path(p).is_file()]
     if missing:
-        print(f"no such log file: {', '.join(missing)}", file=sys.stderr)
-        return 2
+        raise ConfigError(f"no such log file: {', '.join(missing)}")
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())

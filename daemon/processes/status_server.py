@@ -22,22 +22,11 @@ from pathlib import Path
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
-from daemon.spine.config import CarConfig, data_dir, load_config
+from daemon.spine.config import CarConfig, data_dir, load_config, reports_config_errors
+from daemon.spine.data_layout import PREVIEWS, preview_dir
 from daemon.spine.messages import DriverHealth
+from daemon.spine.process_table import required_drivers
 from daemon.spine.topics import topic_table
-
-PREVIEWS = ("rgb", "semantics", "elevation")
-
-
-def preview_dir(data_folder: Path) -> Path:
-    """Where the mapping worker writes its latest previews (and the status server reads them)."""
-    return Path(data_folder) / "map" / "previews"
-
-
-def required_processes(config: CarConfig) -> list[str]:
-    """The drivers whose health decides readiness: every configured sensor."""
-    return sorted({t.source for t in topic_table(config).values()
-                   if t.name.startswith(("camera/", "lidar/", "gnss/", "can/"))})
 
 
 class HealthBoard:
@@ -121,7 +110,7 @@ def readiness(config: CarConfig, board: HealthBoard, max_health_age_s: float = 3
     now = time.monotonic()
     snapshot = board.snapshot()
     problems = []
-    for process in required_processes(config):
+    for process in required_drivers(config):
         if process not in snapshot:
             problems.append(f"{process}: no health yet")
             continue
@@ -233,6 +222,7 @@ def make_server(config: CarConfig, board: HealthBoard, data_folder: Path, port: 
     return server
 
 
+@reports_config_errors
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="roadlog-status", description=__doc__)
     parser.add_argument("--config", required=True)

@@ -22,14 +22,13 @@ from dataclasses import dataclass, field
 
 from daemon.spine.config import EXIT_CONFIG_ERROR, CarConfig
 from daemon.spine.health import HealthCounters
-from daemon.spine.process_table import ProcessSpec
+from daemon.spine.process_table import RESTARTS_ENV, ProcessSpec
 from daemon.spine.topics import health_topic
 
 MAX_BACKOFF_S = 30.0
 CRASH_LOOP_RESTARTS = 3  # this many restarts of one process ...
 CRASH_LOOP_WINDOW_S = 60.0  # ... within this window: the daemon is unhealthy (systemd's watchdog starves)
 STARTUP_GRACE_S = 20.0
-RESTARTS_ENV = "ROADLOG_RESTARTS"  # how many times the supervisor restarted this process (0: first start)
 
 
 def sd_notify(state: str) -> bool:

@@ -10,13 +10,17 @@ Conventions used everywhere:
 
 from __future__ import annotations
 
+import functools
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Literal
+from typing import Literal, ParamSpec
 
 import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+P = ParamSpec("P")
 
 
 class ConfigError(Exception):
@@ -321,14 +325,20 @@ def load_config(path: str | Path) -> CarConfig:
 EXIT_CONFIG_ERROR = 2  # a process's exit status for "this config cannot work": the supervisor does not retry
 
 
-def load_config_or_report(path: str | Path) -> CarConfig | None:
-    """For a process's main(): the config, or None once the reason it cannot be used is on stderr
-    (the caller then exits with EXIT_CONFIG_ERROR)."""
-    try:
-        return load_config(path)
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return None
+def reports_config_errors(main: Callable[P, int]) -> Callable[P, int]:
+    """The one exit rule for configuration errors, decorating every process's main(): a ConfigError raised while
+    it runs (an unusable config, a file it names that it needs, a platform the bus cannot run on) becomes one
+    `error: ...` line on stderr and exit status EXIT_CONFIG_ERROR, which the supervisor does not retry."""
+
+    @functools.wraps(main)
+    def reporting(*args: P.args, **kwargs: P.kwargs) -> int:
+        try:
+            return main(*args, **kwargs)
+        except ConfigError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return EXIT_CONFIG_ERROR
+
+    return reporting
 
 
 def config_to_yaml(config: CarConfig) -> str:

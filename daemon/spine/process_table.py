@@ -13,6 +13,7 @@ from daemon.spine.topics import camera_process
 
 Mode = Literal["live", "replay"]
 MAPPER_NICE = 10  # the mapper's CPU priority below the drivers' and the recorder's
+RESTARTS_ENV = "ROADLOG_RESTARTS"  # set by the supervisor: how many times it restarted this process (0: first start)
 
 
 @dataclass(frozen=True)
@@ -20,7 +21,7 @@ class ProcessSpec:
     name: str  # also the name it publishes health under
     module: str  # run as `python -m module *args`
     args: tuple[str, ...] = ()
-    required: bool = False  # a driver that readiness waits for
+    required: bool = False  # a driver that readiness waits for (required_drivers)
     heartbeat_s: float = 10.0  # restart when its health is older than this (0: not watched)
     restart_on_success: bool = True  # False: a clean exit means "done" (replay at the end of its logs)
     stop_timeout_s: float = 10.0  # how long it may take to exit after SIGTERM
@@ -71,3 +72,9 @@ def process_table(
                                  stop_timeout_s=map_stop_timeout_s, restart_on_success=False, nice=MAPPER_NICE))
     table.append(ProcessSpec("status", "daemon.processes.status_server", cfg + out, heartbeat_s=0.0))
     return table
+
+
+def required_drivers(config: CarConfig) -> list[str]:
+    """The drivers whose health decides readiness, in live and replay runs alike (a replay stands in for them):
+    the live table's `required` processes, one per configured sensor."""
+    return sorted(spec.name for spec in process_table(config, "", "live", record=False) if spec.required)

@@ -1,24 +1,13 @@
-"""The camera driver process (one per camera): frames from the configured backend onto the bus.
-
-Frames go to `camera/<name>` (encoded as the car logs them, with the sensor time), the simulator's
-semantic masks to `mask/<name>`, and the process's health to `health/camera_<name>` once a second from
-a thread of its own (so a stalled device still shows up as stalled).
-"""
+"""The camera driver process of the device backends (opencv, depthai): one camera's frames onto the bus, run in the
+camera process (drivers.camera.camera_process)."""
 
 from __future__ import annotations
 
-import argparse
-import signal
 import threading
-from collections.abc import Callable, Generator
 
-from daemon.spine.config import CameraConfig, load_config, resolve_path
+from daemon.spine.config import CameraConfig
 from daemon.spine.health import HealthCounters
-from daemon.spine.messages import CameraFrame, SemanticMask
-from daemon.spine.topics import camera_process, camera_topic, health_topic, mask_topic
-
-Publish = Callable[[str, object], None]
-FrameSource = Generator[CameraFrame | SemanticMask, None, None]
+from drivers.camera.camera_process import FrameSource, camera_process_main
 
 
 def open_frame_source(config: CameraConfig, stop: threading.Event, health: HealthCounters) -> FrameSource:
@@ -32,86 +21,6 @@ def open_frame_source(config: CameraConfig, stop: threading.Event, health: Healt
 
         return depthai_frames(config, stop, health)
     raise ValueError(f"camera {config.name}: backend {config.backend!r} is not a device backend")
-
-
-def _health_loop(publish: Publish, health: HealthCounters, lock: threading.Lock, done: threading.Event,
-                 period_s: float) -> None:
-    while not done.wait(period_s):
-        with lock:
-            snapshot = health.snapshot()
-        publish(health_topic(health.process), snapshot)
-
-
-def run_camera_driver(config: CameraConfig, frames: FrameSource, publish: Publish, stop: threading.Event,
-                      health: HealthCounters, *, health_period_s: float = 1.0) -> None:
-    """Publish every frame and mask until the source ends or `stop` is set; health every period."""
-    lock = threading.Lock()
-    done = threading.Event()
-    reporter = threading.Thread(target=_health_loop, args=(publish, health, lock, done, health_period_s),
-                                name=f"health-{config.name}", daemon=True)
-    reporter.start()
-    frame_topic, masks_topic = camera_topic(config.name), mask_topic(config.name)
-    try:
-        for message in frames:
-            publish(masks_topic if isinstance(message, SemanticMask) else frame_topic, message)
-            with lock:
-                health.count_published()
-            if stop.is_set():
-                break
-    except Exception as exc:
-        with lock:
-            health.count_error(f"{type(exc).__name__}: {exc}")
-        raise
-    finally:
-        frames.close()
-        done.set()
-        reporter.join()
-        with lock:
-            snapshot = health.snapshot()
-        publish(health_topic(health.process), snapshot)
-
-
-OpenSource = Callable[[CameraConfig, threading.Event, HealthCounters, argparse.Namespace], FrameSource]
-
-
-def camera_process_main(argv: list[str] | None, open_source: OpenSource, *, stay_up_at_end: bool = False,
-                        add_arguments: Callable[[argparse.ArgumentParser], None] = lambda _: None,
-                        description: str = "roadlog camera driver: one camera's frames onto the bus") -> int:
-    """One camera process: parse the arguments, open the bus, publish what open_source gives until stopped.
-    stay_up_at_end: keep reporting health once the source ends (a played log), instead of exiting."""
-    parser = argparse.ArgumentParser(description=description)
-    parser.add_argument("--config", required=True, help="car config YAML")
-    parser.add_argument("--camera", required=True, help="camera name in sensors.cameras")
-    parser.add_argument("--device", help="override the camera's device (V4L2 path, pipeline, serial, .mcap)")
-    add_arguments(parser)
-    args = parser.parse_args(argv)
-
-    from daemon.bus.pubsub import open_publisher
-
-    car = load_config(args.config)
-    try:
-        config = car.camera(args.camera)
-    except KeyError as exc:
-        parser.error(f"{args.config}: {exc.args[0]}")
-    device = args.device if args.device is not None else config.device
-    if config.backend == "sim" and device:
-        device = str(resolve_path(args.config, device))
-    config = config.model_copy(update={"device": device})
-    process = camera_process(config.name)
-    publishers = {t: open_publisher(car, t) for t in
-                  (camera_topic(config.name), mask_topic(config.name), health_topic(process))}
-    health = HealthCounters(process, expected_rate_hz=config.rate_hz)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    frames = open_source(config, stop, health, args)
-    run_camera_driver(config, frames, lambda t, m: publishers[t].publish(m), stop, health)
-    if stay_up_at_end:
-        while not stop.wait(1.0):
-            publishers[health_topic(process)].publish(health.snapshot())
-    print(f"camera {config.name} stopped: received={health.received} published={health.published} "
-          f"dropped={health.dropped} errors={health.errors}", flush=True)
-    return 0
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -20,13 +20,20 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import can
+from cantools.database import UnsupportedDatabaseFormatError
 
-from daemon.spine.config import CanConfig, load_config, resolve_path
+from daemon.spine.config import CanConfig, ConfigError, load_config, reports_config_errors, resolve_path
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import CanFrame
 from daemon.spine.topics import CAN_FRAMES, WHEEL_SPEEDS, health_topic
 from drivers.can.can_bus import open_can_bus
-from drivers.can.wheel_speed_codec import CanDecodeError, WheelSpeedDecoder, load_dbc, wheel_speed_layout
+from drivers.can.wheel_speed_codec import (
+    CanDecodeError,
+    WheelSpeedDecoder,
+    WheelSpeedLayoutError,
+    load_dbc,
+    wheel_speed_layout,
+)
 
 PROCESS = "can"
 CAN_ERR_BUSOFF = 0x40  # error class bit in a socketcan error frame's id (linux/can/error.h)
@@ -163,6 +170,7 @@ def run_can_driver(
     return stats
 
 
+@reports_config_errors
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="roadlog CAN driver: raw frames and wheel speeds onto the bus")
     parser.add_argument("--config", required=True, help="car config YAML")
@@ -175,12 +183,15 @@ def main(argv: list[str] | None = None) -> int:
 
     car = load_config(args.config)
     if car.sensors.can is None:
-        parser.error(f"{args.config}: has no sensors.can section")
+        raise ConfigError(f"{args.config}: has no sensors.can section")
     overrides = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
     config = car.sensors.can.model_copy(update=overrides)
     dbc_path = Path(args.dbc) if args.dbc else resolve_path(args.config, config.dbc_file)
+    try:
+        cycle_ms = wheel_speed_layout(load_dbc(dbc_path), config.signals).wheel_message.cycle_time
+    except (OSError, UnsupportedDatabaseFormatError, WheelSpeedLayoutError) as exc:
+        raise ConfigError(f"{args.config}: sensors.can with DBC {str(dbc_path)!r}: {exc}") from None
     publishers = {topic: open_publisher(car, topic) for topic in (CAN_FRAMES, WHEEL_SPEEDS, health_topic(PROCESS))}
-    cycle_ms = wheel_speed_layout(load_dbc(dbc_path), config.signals).wheel_message.cycle_time
     health = HealthCounters(PROCESS, expected_rate_hz=1000.0 / cycle_ms if cycle_ms else 0.0)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

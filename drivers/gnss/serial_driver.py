@@ -19,7 +19,7 @@ import serial
 
 from daemon.bus.pubsub import open_publisher
 from daemon.spine import topics
-from daemon.spine.config import EXIT_CONFIG_ERROR, GnssConfig, load_config_or_report
+from daemon.spine.config import ConfigError, GnssConfig, load_config, reports_config_errors
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import GnssFix
 from drivers.gnss.gnss_messages import GnssDecoder
@@ -162,19 +162,17 @@ def run_gnss_driver(
                            framer.skipped_bytes)
 
 
+@reports_config_errors
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="roadlog GNSS/IMU serial driver")
     parser.add_argument("--config", required=True, help="car config YAML")
     parser.add_argument("--port", help="serial port, overriding sensors.gnss.port")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s gnss %(levelname)s %(message)s")
-    config = load_config_or_report(args.config)
-    if config is None:
-        return EXIT_CONFIG_ERROR
+    config = load_config(args.config)
     gnss = config.sensors.gnss
     if gnss is None:
-        print(f"{args.config}: sensors.gnss is not configured", file=sys.stderr)
-        return 2
+        raise ConfigError(f"{args.config}: sensors.gnss is not configured")
     names = (topics.GNSS_FIX, topics.IMU, topics.health_topic(PROCESS))
     publishers = {name: open_publisher(config, name) for name in names}
     stop = threading.Event()

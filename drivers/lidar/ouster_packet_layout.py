@@ -141,3 +141,8 @@ def packet_layout(meta: OusterMetadata) -> OusterPacketLayout:
     if layout.packet_size > 65535:
         raise ValueError(f"Ouster lidar packet of {layout.packet_size} bytes exceeds a UDP datagram")
     return layout
+
+
+def packets_per_second(metadata: OusterMetadata) -> float:
+    """The packet rate the sensor sends: the packets of its column window, fps times a second."""
+    return float(packet_layout(metadata).window_packets[1] * metadata.fps)

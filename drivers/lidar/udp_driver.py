@@ -26,14 +26,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from daemon.spine.config import LidarConfig, load_config, resolve_path
+from daemon.spine.config import ConfigError, LidarConfig, load_config, reports_config_errors, resolve_path
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import LidarPacket
 from daemon.spine.topics import LIDAR_IMU, LIDAR_PACKETS, health_topic
 from drivers.lidar.ouster_decoder import count_missing_packets, decode_packets, newest_packet, packet_sequence
 from drivers.lidar.ouster_imu import decode_imu_packet, imu_profile_supported
 from drivers.lidar.ouster_metadata import OusterMetadata, imu_port, parse_metadata
-from drivers.lidar.ouster_packet_layout import OusterPacketLayout, packet_layout
+from drivers.lidar.ouster_packet_layout import OusterPacketLayout, packet_layout, packets_per_second
 
 PROCESS = "lidar"
 # Linux socket options Python's socket module does not name (asm-generic/socket.h).
@@ -280,11 +280,6 @@ def _publish_health(publish: Publish, health: HealthCounters, stats: LidarDriver
     publish(health_topic(PROCESS), dataclasses.replace(snap, detail=detail))
 
 
-def packets_per_second(metadata: OusterMetadata) -> float:
-    """The packet rate the sensor sends: the packets of its column window, fps times a second."""
-    return float(packet_layout(metadata).window_packets[1] * metadata.fps)
-
-
 def batch_period(receive_buffer_bytes: int, layout: OusterPacketLayout, packets_per_s: float,
                  longest_s: float) -> float:
     """How long to let datagrams gather: at most a quarter of the time the receive buffer takes to fill
@@ -352,6 +347,7 @@ def run_lidar_driver(
     return stats
 
 
+@reports_config_errors
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="roadlog Lidar driver: raw Ouster UDP packets onto the bus")
     parser.add_argument("--config", required=True, help="car config YAML")
@@ -363,18 +359,18 @@ def main(argv: list[str] | None = None) -> int:
 
     car = load_config(args.config)
     if car.sensors.lidar is None:
-        parser.error(f"{args.config}: has no sensors.lidar section")
+        raise ConfigError(f"{args.config}: has no sensors.lidar section")
     overrides = {k: v for k, v in (("port", args.port), ("bind_address", args.bind)) if v is not None}
     config = car.sensors.lidar.model_copy(update=overrides)
     if not config.model.startswith("ouster-"):
-        parser.error(f"{args.config}: sensors.lidar.model {config.model!r} is not supported: only Ouster sensors "
-                     f"(ouster-os-128, ouster-os-32) have a packet decoder")
+        raise ConfigError(f"{args.config}: sensors.lidar.model {config.model!r} is not supported: only Ouster "
+                          f"sensors (ouster-os-128, ouster-os-32) have a packet decoder")
     metadata_path = resolve_path(args.config, config.metadata_file)
     try:
         metadata = parse_metadata(metadata_path)
         layout = packet_layout(metadata)
     except (OSError, ValueError) as exc:
-        parser.error(f"{args.config}: sensors.lidar.metadata_file {str(metadata_path)!r}: {exc}")
+        raise ConfigError(f"{args.config}: sensors.lidar.metadata_file {str(metadata_path)!r}: {exc}") from None
     if metadata.columns_per_frame != config.columns_per_frame or metadata.fps != config.rate_hz:
         print(f"lidar driver: warning: the sensor metadata says {metadata.lidar_mode}, the config "
               f"{config.columns_per_frame}x{config.rate_hz}; decoding as the metadata says", file=sys.stderr)

@@ -44,8 +44,8 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from daemon.bus import pubsub
-from daemon.processes.status_server import preview_dir
-from daemon.spine.config import CarConfig, ConfigError, data_dir, load_config, resolve_path
+from daemon.spine.config import CarConfig, data_dir, load_config, reports_config_errors, resolve_path
+from daemon.spine.data_layout import preview_dir
 from daemon.spine.health import HealthCounters, process_memory_mb
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.semantic_classes import CLASS_COLOURS
@@ -754,18 +754,15 @@ class MappingWorker:
         return 0
 
 
+@reports_config_errors
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="mapping_worker", description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", required=True, help="car config YAML")
     parser.add_argument("--output-dir", help="data folder (default: recorder.output_dir of the config)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s mapper %(levelname)s %(message)s")
-    try:
-        config = load_config(args.config)
-        worker = MappingWorker(config, args.config, args.output_dir)
-    except ConfigError as exc:  # the config, or a file it names (the segmentation model): not retried
-        print(exc, file=sys.stderr)
-        return 2
+    config = load_config(args.config)
+    worker = MappingWorker(config, args.config, args.output_dir)  # a ConfigError here: exit 2, not retried
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from daemon.log_format.reader import read_metadata
-from daemon.spine.config import CarConfig, ConfigError, config_to_yaml, load_config, parse_config
+from daemon.spine.config import CarConfig, ConfigError, config_to_yaml, load_config, parse_config, reports_config_errors
 from daemon.spine.health import process_memory_mb
 from daemon.spine.local_frame import LocalFrame
 from mapping.fits.reconstruction import ReconstructionResult, reconstruct
@@ -100,6 +100,7 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
     return result, drive
 
 
+@reports_config_errors
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="roadlog reconstruct", description=__doc__.split("\n\n")[0])
     parser.add_argument("logs", nargs="+", help="MCAP drive log segments")
@@ -111,23 +112,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--faithful", action="store_true", help="the paper's full computation (slow)")
     parser.add_argument("--epochs", type=int, help="optimisation epochs (default: the config's mapper.epochs)")
     args = parser.parse_args(argv)
-    try:
-        if args.config:
-            config, config_path = load_config(args.config), Path(args.config)
-        else:
-            config, config_path = config_from_logs(args.logs)
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    if args.config:
+        config, config_path = load_config(args.config), Path(args.config)
+    else:
+        config, config_path = config_from_logs(args.logs)
     if args.epochs is not None:
         config = config.model_copy(update={"mapper": config.mapper.model_copy(update={"epochs": args.epochs})})
     truth = DriveTruth.load(args.gt) if args.gt else None
-    try:
-        result, _ = run_reconstruction(args.logs, args.out, config, config_path, truth=truth,
-                                       use_lidar=not args.no_lidar, ablation=args.ablation, faithful=args.faithful)
-    except ConfigError as exc:  # a file the config names (the segmentation model)
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    result, _ = run_reconstruction(args.logs, args.out, config, config_path, truth=truth,  # ConfigError: exit 2
+                                   use_lidar=not args.no_lidar, ablation=args.ablation, faithful=args.faithful)
     keys = ("psnr_db", "psnr_train_db", "miou_pct", "iou_pct", "elev_error_cm", "elev_mae_gt_cm", "drive_s", "wall_s",
             "rtf", "rtf_mapping", "peak_rss_mb", "vertices")
     print(json.dumps({k: result.metrics.get(k) for k in keys}))

@@ -24,9 +24,9 @@ from daemon.log_format.reader import read_log, read_metadata
 from daemon.processes import disk_policy
 from daemon.processes.disk_policy import Segment, required_free_bytes, segments_to_delete
 from daemon.processes.recorder import OPEN_SUFFIX, closed_segments, segment_name
-from daemon.processes.supervisor import RESTARTS_ENV
 from daemon.spine.config import CarConfig, load_config
 from daemon.spine.messages import CameraFrame, CanFrame, ImuSample, LidarPacket
+from daemon.spine.process_table import RESTARTS_ENV
 from daemon.spine.topics import CAN_FRAMES, IMU, LIDAR_PACKETS, TIME_ANCHOR, camera_topic, health_topic
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -10,9 +10,11 @@ import numpy as np
 import pytest
 
 from daemon.bus.pubsub import open_publisher, unlink_all
-from daemon.processes.status_server import HealthBoard, make_server, preview_dir, required_processes
+from daemon.processes.status_server import HealthBoard, make_server
+from daemon.spine.data_layout import preview_dir
 from daemon.spine.health import HealthCounters
-from daemon.spine.topics import health_topic
+from daemon.spine.process_table import required_drivers
+from daemon.spine.topics import health_topic, topic_table
 from tests.daemon_fixtures import private_config
 
 
@@ -49,12 +51,24 @@ def _healthy(process, rate=10.0, detail=""):
     return snap
 
 
+def test_readiness_waits_for_one_driver_per_configured_sensor(tmp_path):
+    full, _ = private_config(tmp_path)
+    assert required_drivers(full) == ["camera_front_left", "camera_front_right", "camera_front_wide", "can", "gnss",
+                                      "lidar"]
+    data = full.model_dump(mode="json")
+    data["sensors"].update(lidar=None, can=None, cameras=data["sensors"]["cameras"][:1])
+    assert required_drivers(type(full).model_validate(data)) == ["camera_front_wide", "gnss"]
+    # every sensor topic comes from a driver readiness waits for, and no driver goes without one
+    assert required_drivers(full) == sorted({t.source for t in topic_table(full).values()
+                                             if t.name.startswith(("camera/", "lidar/", "gnss/", "can/"))})
+
+
 def test_livez_and_readiness_follow_the_drivers(served):
     cfg, board, base, _ = served
     assert _get(base + "/livez")[0] == 200
     code, _, body = _get(base + "/readyz")
     assert code == 503 and "no health yet" in body.decode()
-    for process in required_processes(cfg):
+    for process in required_drivers(cfg):
         board.update(_healthy(process))
     assert _get(base + "/readyz")[0] == 200
     slow = _healthy("lidar", rate=640.0)
@@ -66,7 +80,7 @@ def test_livez_and_readiness_follow_the_drivers(served):
 
 def test_status_json_and_metrics(served):
     cfg, board, base, _ = served
-    for process in required_processes(cfg):
+    for process in required_drivers(cfg):
         board.update(_healthy(process))
     board.update(_healthy("recorder", detail=json.dumps(
         {"segment": "x.mcap.open", "disk_free_bytes": 123, "written": {"imu": 500}, "lost": {"imu": 2}})))

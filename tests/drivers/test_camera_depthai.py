@@ -19,7 +19,7 @@ dai = pytest.importorskip("depthai")
 from daemon.spine.config import CameraConfig  # noqa: E402
 from daemon.spine.health import HealthCounters  # noqa: E402
 from daemon.spine.topics import camera_topic  # noqa: E402
-from drivers.camera.camera_driver import run_camera_driver  # noqa: E402
+from drivers.camera.camera_process import run_camera_driver  # noqa: E402
 from drivers.camera.depthai_camera import (  # noqa: E402
     camera_frame,
     mid_exposure_ns,

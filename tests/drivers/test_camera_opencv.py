@@ -13,7 +13,8 @@ from daemon.spine.config import CameraConfig
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import CameraFrame, DriverHealth
 from daemon.spine.topics import camera_topic, health_topic
-from drivers.camera.camera_driver import open_frame_source, run_camera_driver
+from drivers.camera.camera_driver import open_frame_source
+from drivers.camera.camera_process import run_camera_driver
 from drivers.camera.frame_encoding import encode_image, raw_frame_image
 from drivers.camera.opencv_camera import capture_arguments
 

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from daemon.log_format.writer import LogWriter
-from daemon.spine.config import load_config
+from daemon.spine.config import ConfigError, load_config
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import CameraFrame, SemanticMask
 from daemon.spine.topics import camera_topic, mask_topic
-from drivers.camera.camera_driver import run_camera_driver
+from drivers.camera.camera_process import run_camera_driver
 from sim.camera_playback import sim_frames
 
 CONFIG_FILE = Path(__file__).resolve().parents[2] / "configs" / "sim.yaml"
@@ -119,8 +119,8 @@ def test_raw_frames_in_the_log_are_delivered_as_jpeg(tmp_path):
         assert np.abs(decoded[180, 20 * i + 10].astype(int) - (220, 120, 40)).max() < 15  # rgb8 is RGB, not BGR
 
 
-def test_a_missing_log_is_an_error(tmp_path):
-    with pytest.raises(FileNotFoundError):
+def test_a_missing_log_is_a_config_error(tmp_path):
+    with pytest.raises(ConfigError, match="nope.mcap does not exist"):
         play(tmp_path / "nope.mcap", None)
-    with pytest.raises(ValueError, match="needs `device`"):
+    with pytest.raises(ConfigError, match="needs `device`"):
         play("", None)

@@ -1,0 +1,94 @@
+"""One exit rule for configuration errors: every process, run for real as `python -m <module>`, meets an unusable
+config (bad YAML, an unknown key, an unknown camera, a missing file it needs at start) with one `error: ...` line on
+stderr, no traceback, and exit status EXIT_CONFIG_ERROR (which the supervisor does not retry)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from daemon.spine.config import EXIT_CONFIG_ERROR
+
+ROOT = Path(__file__).resolve().parents[1]
+SIM_CONFIG = ROOT / "configs" / "sim.yaml"
+
+# Each process module with the arguments it needs besides --config; {tmp} is the test's folder.
+PROCESSES = {
+    "drivers.camera.camera_driver": ["--camera", "front_wide"],
+    "sim.camera_playback": ["--camera", "front_wide"],
+    "drivers.lidar.udp_driver": [],
+    "drivers.gnss.serial_driver": [],
+    "drivers.can.can_driver": [],
+    "daemon.processes.recorder": ["--output-dir", "{tmp}/out"],
+    "daemon.processes.replay": ["{tmp}/drive.mcap"],
+    "daemon.processes.status_server": ["--output-dir", "{tmp}/out"],
+    "daemon.commands.cli run": ["--output-dir", "{tmp}/out"],  # daemon_main.run_main
+    "daemon.commands.cli replay": ["{tmp}/drive.mcap", "--output-dir", "{tmp}/out"],  # daemon_main.replay_main
+    "mapping.live.mapping_worker": ["--output-dir", "{tmp}/out"],
+    "mapping.offline.reconstruct_command": ["{tmp}/drive.mcap", "--out", "{tmp}/out"],
+}
+
+
+def _bad_yaml(tmp: Path) -> Path:
+    path = tmp / "bad.yaml"
+    path.write_text("sensors: [cameras: {\n")
+    return path
+
+
+def _unknown_key(tmp: Path) -> Path:
+    data = yaml.safe_load(SIM_CONFIG.read_text())
+    data["recorder"]["segment_secs"] = 60
+    path = tmp / "bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+BAD_CONFIGS = {"bad YAML": (_bad_yaml, "not valid YAML"), "unknown key": (_unknown_key, "recorder.segment_secs")}
+
+
+def run_process(module: str, args: list[str], config: Path, tmp: Path) -> subprocess.CompletedProcess:
+    argv = [a.replace("{tmp}", str(tmp)) for a in args]
+    return subprocess.run([sys.executable, "-m", *module.split(), "--config", str(config), *argv], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+
+
+def assert_config_error(run: subprocess.CompletedProcess, expected: str) -> None:
+    assert run.returncode == EXIT_CONFIG_ERROR, run.stderr[-3000:]
+    assert "Traceback" not in run.stderr, run.stderr[-3000:]
+    errors = [line for line in run.stderr.splitlines() if line.startswith("error: ")]
+    assert len(errors) == 1, run.stderr[-3000:]
+    assert expected in run.stderr, run.stderr[-3000:]
+
+
+@pytest.mark.parametrize("bad", BAD_CONFIGS)
+@pytest.mark.parametrize("module", PROCESSES)
+def test_every_process_exits_2_with_one_error_line_on_an_unusable_config(module, bad, tmp_path):
+    make, expected = BAD_CONFIGS[bad]
+    config = make(tmp_path)
+    run = run_process(module, PROCESSES[module], config, tmp_path)
+    assert_config_error(run, expected)
+    assert str(config) in run.stderr
+
+
+def _sim_config_elsewhere(tmp: Path) -> Path:
+    """The shipped sim config, valid, but in a folder without the files it names (Lidar metadata, DBC)."""
+    path = tmp / "car.yaml"
+    path.write_text(SIM_CONFIG.read_text())
+    return path
+
+
+@pytest.mark.parametrize("module, args, expected", [
+    ("drivers.camera.camera_driver", ["--camera", "rear"], "no camera named 'rear'"),
+    ("sim.camera_playback", ["--camera", "rear"], "no camera named 'rear'"),
+    ("sim.camera_playback", ["--camera", "front_wide", "--device", "{tmp}/nope.mcap"], "nope.mcap does not exist"),
+    ("drivers.lidar.udp_driver", [], "sensors.lidar.metadata_file"),
+    ("drivers.can.can_driver", [], "sim_car.dbc"),
+    ("daemon.processes.replay", ["{tmp}/nope.mcap"], "no such log file"),
+])
+def test_a_config_naming_what_is_not_there_exits_2(module, args, expected, tmp_path):
+    run = run_process(module, args, _sim_config_elsewhere(tmp_path), tmp_path)
+    assert_config_error(run, expected)
