@@ -19,7 +19,7 @@ from daemon.log_format.foxglove_schemas import file_descriptor_set, to_well_know
 from daemon.log_format.metadata_records import COUNTS_METADATA_NAME, METADATA_NAME, SOFTWARE_VERSION
 from daemon.spine import message_codec
 from daemon.spine.config import CarConfig, config_to_yaml, resolve_path
-from daemon.spine.topics import calibration_topic, topic_table
+from daemon.spine.topics import LOG_ONLY_CHANNELS, calibration_topic, topic_table
 
 
 def calibration_json(config: CarConfig) -> str:
@@ -103,12 +103,14 @@ class LogWriter:
             self._writer.add_message(cid, log_time=0, data=proto.SerializeToString(), publish_time=0)
 
     def write(self, topic: str, message: object) -> None:
-        """Append one message; its topic must be in the car's topic table with a matching type."""
+        """Append one message; its topic must be in the car's topic table (or be a log-only channel) with a
+        matching type."""
         spec = self._topics.get(topic)
-        if spec is None:
+        message_type = spec.message_type if spec is not None else LOG_ONLY_CHANNELS.get(topic)
+        if message_type is None:
             raise KeyError(f"topic {topic!r} is not in the topic table")
-        if type(message) is not spec.message_type:
-            raise TypeError(f"topic {topic!r} carries {spec.message_type.__name__}, got {type(message).__name__}")
+        if type(message) is not message_type:
+            raise TypeError(f"topic {topic!r} carries {message_type.__name__}, got {type(message).__name__}")
         proto = to_well_known(message)
         type_name = type(message).__name__
         if proto is not None:

@@ -32,7 +32,7 @@ class Topic:
     rate_hz: float
     ring_bytes: int
     logged: bool = True
-    source: str = ""  # the process that writes it (a driver name, "pose_fusion", ...)
+    source: str = ""  # the process that writes it (a process table name, or "supervisor")
 
 
 def camera_topic(camera: str) -> str:
@@ -46,6 +46,13 @@ def mask_topic(camera: str) -> str:
 def calibration_topic(camera: str) -> str:
     """Log-only channel (foxglove.CameraCalibration) written once at the start of every log file."""
     return f"calibration/{camera}"
+
+
+# Log-only channel (foxglove.PoseInFrame): vehicle poses that came with a log from elsewhere (an importer's ground
+# truth, another system's localisation). No roadlog process publishes it, so it is not a bus topic; `roadlog
+# reconstruct` uses a log's poses instead of fusing its GNSS, IMU and wheel speeds.
+POSE = "pose"
+LOG_ONLY_CHANNELS: dict[str, type] = {POSE: VehiclePose}  # channels a log may carry beside the bus topics
 
 
 def camera_process(camera: str) -> str:
@@ -62,11 +69,10 @@ GNSS_FIX = "gnss/fix"
 IMU = "imu"
 CAN_FRAMES = "can/frames"
 WHEEL_SPEEDS = "wheel_speeds"
-POSE = "pose"
 TIME_ANCHOR = "time_anchor"
 
 # Processes that publish a health topic besides one camera driver per camera ("camera_<name>").
-HEALTH_PROCESSES = ("lidar", "gnss", "can", "recorder", "mapper", "replay", "pose_fusion", "supervisor", "status")
+HEALTH_PROCESSES = ("lidar", "gnss", "can", "recorder", "mapper", "replay", "supervisor", "status")
 
 
 def topic_table(config: CarConfig) -> dict[str, Topic]:
@@ -91,7 +97,6 @@ def topic_table(config: CarConfig) -> dict[str, Topic]:
     if sensors.can is not None:
         topics.append(Topic(CAN_FRAMES, CanFrame, 2000.0, 16 * MB, True, "can"))
         topics.append(Topic(WHEEL_SPEEDS, WheelSpeeds, 50.0, 4 * MB, True, "can"))
-    topics.append(Topic(POSE, VehiclePose, 100.0, 8 * MB, True, "pose_fusion"))
     topics.append(Topic(TIME_ANCHOR, TimeAnchor, 1.0, 1 * MB, True, "recorder"))
     for process in HEALTH_PROCESSES:
         topics.append(Topic(health_topic(process), DriverHealth, 1.0, 1 * MB, True, process))

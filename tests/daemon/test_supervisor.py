@@ -11,7 +11,7 @@ import pytest
 from daemon.bus.pubsub import open_subscriber, unlink_all
 from daemon.processes.supervisor import Supervisor
 from daemon.spine.process_table import ProcessSpec, process_table
-from daemon.spine.topics import health_topic
+from daemon.spine.topics import POSE, health_topic, topic_table
 from tests.daemon_fixtures import REPO, private_config
 
 ENV = {"PYTHONPATH": f"{REPO / 'tests' / 'fakes'}{os.pathsep}{REPO}"}
@@ -221,6 +221,15 @@ def test_process_table_live_and_replay(config):
     assert "--lossless" in recorder_args["max"] and "--lossless" not in recorder_args["1.0"]
     assert "--lossless" not in next(p for p in live if p.name == "recorder").args
     assert {p.name: p.nice for p in live if p.nice} == {"mapper": 10}  # the log before the map
+
+
+def test_every_topic_has_a_process_that_publishes_it(config):
+    """No ghosts: each topic's source is a process the daemon runs (live or replay) or the supervisor itself."""
+    cfg, path = config
+    running = {p.name for mode in ("live", "replay") for p in process_table(cfg, str(path), mode)} | {"supervisor"}
+    table = topic_table(cfg)
+    assert {name: t.source for name, t in table.items() if t.source not in running} == {}
+    assert POSE not in table  # poses come only with imported logs (a log-only channel)
 
 
 def test_a_process_runs_at_its_cpu_priority(config):
