@@ -57,7 +57,7 @@ class FaithfulOptimisation:
         self.lidar_order = np.argsort(road_map.mesh.s[lidar_ids], kind="stable")
         self.lidar_s = road_map.mesh.s[lidar_ids][self.lidar_order]
         self.lookup = np.full(road_map.mesh.num_vertices, -1, np.int64)
-        lr = config.learning_rates
+        lr = config.faithful_fit.learning_rates
         self.optimisers = []
         if road_map.elevation is not None:
             self.optimisers.append(torch.optim.Adam(road_map.elevation.parameters(), lr=lr.elevation_mlp))
@@ -83,7 +83,7 @@ class FaithfulOptimisation:
     # -- one optimisation step ------------------------------------------------------------------
     def step(self, batch: list[Keyframe], s_center: float) -> dict[str, float]:
         cfg = self.config
-        s_lo, s_hi = s_center - cfg.window_before_m, s_center + cfg.window_after_m
+        s_lo, s_hi = s_center - cfg.windows.before_m, s_center + cfg.windows.after_m
         window = self.windows.vertices(s_lo, s_hi)
         z = self.map.elevation_of(window)
         self.map.z_now[window] = z.detach().numpy()
@@ -102,7 +102,7 @@ class FaithfulOptimisation:
         return result
 
     def _losses(self, sup, ids, touched, lidar_ids, lidar_z, z=None) -> dict[str, float]:
-        rm, w_cfg = self.map, self.config.loss_weights
+        rm, w_cfg = self.map, self.config.faithful_fit.loss_weights
         z = rm.elevation_of(ids) if z is None else z
         codes = rm.colour_params[ids].clone().requires_grad_(True)
         logits_v = None
@@ -184,10 +184,11 @@ def fit_faithful(road_map: RoadMap, cameras: dict[str, CameraModel], train: list
     order. The total loss of every step, and the number of steps of the last epoch."""
     lidar_ids, lidar_z = lidar_vertex_targets(road_map.mesh, supervision, lidar_at)
     opt = FaithfulOptimisation(road_map, cameras, config, lidar_ids, lidar_z)
-    batches = _batches(train, trajectory, config.batch_size)
+    epochs = config.faithful_fit.epochs
+    batches = _batches(train, trajectory, config.faithful_fit.batch_size)
     history: list[float] = []
-    with tqdm(total=config.epochs * len(batches), desc="emie-map", disable=not progress, unit="step") as bar:
-        for _ in range(config.epochs):
+    with tqdm(total=epochs * len(batches), desc="emie-map", disable=not progress, unit="step") as bar:
+        for _ in range(epochs):
             road_map.refresh_elevation()
             for b in rng.permutation(len(batches)):
                 terms = opt.step(*batches[b])

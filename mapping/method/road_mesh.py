@@ -67,8 +67,8 @@ def _resampled_track(trajectory: Trajectory) -> tuple[np.ndarray, np.ndarray, np
 def _blocks_near_track(tree: cKDTree, lo: np.ndarray, hi: np.ndarray, half_width_m: float) -> np.ndarray:
     """(X, Y) bool over _BLOCK_M squares from `lo` covering `hi`: the squares that may hold a point within
     `half_width_m` of the track (their centre within that plus half their diagonal). Only the nodes in them
-    are looked up in the tree: a drive's bounding box is mostly far from its track (city31: a third of the
-    box's 3.1 M lattice nodes are in the corridor, the lookups were 3 s)."""
+    are looked up in the tree: a drive's bounding box is mostly far from its track, and most of its lattice
+    nodes need no lookup."""
     shape = np.floor((hi - lo) / _BLOCK_M).astype(np.int64) + 1
     ix, iy = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
     centres = lo + (np.stack([ix.ravel(), iy.ravel()], 1) + 0.5) * _BLOCK_M
