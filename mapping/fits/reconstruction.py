@@ -21,6 +21,7 @@ import torch
 
 from daemon.spine.config import MapperConfig
 from mapping.fits import faithful_fit, fast_fit
+from mapping.localization.keyframe_spacing import spaced_by_distance
 from mapping.method.mesh_location import Located
 from mapping.method.road_map import RoadMap, new_road_map, variant_for
 from mapping.method.road_mesh import build_road_mesh
@@ -43,14 +44,18 @@ class ReconstructionResult:
 
 
 def select_keyframes(keyframes: list[Keyframe], trajectory: Trajectory, spacing_m: float) -> list[Keyframe]:
-    """Per camera, keep a frame each time the vehicle has moved `spacing_m` since the last kept one."""
-    kept, last = [], {}
-    for kf in sorted(keyframes, key=lambda k: k.timestamp):
-        s = float(trajectory.along_track_at(kf.timestamp))
-        if kf.camera not in last or s - last[kf.camera] >= spacing_m:
-            kept.append(kf)
-            last[kf.camera] = s
-    return kept
+    """Per camera, a frame each time the vehicle has moved `spacing_m` (horizontally) since the last kept one;
+    in time order."""
+    in_time = sorted(keyframes, key=lambda k: k.timestamp)
+
+    def travelled(kf: Keyframe) -> float:
+        return float(trajectory.along_track_at(kf.timestamp))
+
+    kept = set()
+    for camera in dict.fromkeys(kf.camera for kf in in_time):
+        mine = [kf for kf in in_time if kf.camera == camera]
+        kept.update(id(kf) for kf in spaced_by_distance(mine, travelled, spacing_m))
+    return [kf for kf in in_time if id(kf) in kept]
 
 
 def _waited_for(value, timings: dict[str, float], key: str):

@@ -37,10 +37,12 @@ from mapping.inputs.lidar_ground import (
     LidarDecoding,
     TrajectoryGround,
     ground_points,
+    keeps_scan,
     lidar_world_points,
 )
 from mapping.inputs.segmentation import OnnxSegmenter
 from mapping.localization import pose_fusion
+from mapping.localization.keyframe_spacing import spaced_by_distance
 from mapping.localization.sensor_time import ClockMap, fit_clock
 from mapping.localization.trajectory import Trajectory
 from mapping.method.scene_data import CameraModel, Keyframe
@@ -277,23 +279,27 @@ def _keyframe_messages(config: CarConfig, frames: dict[str, list[CameraFrame]],
     t0 = trajectory.times_ns[0]
     for cam in config.sensors.cameras:
         T_vc = cam.extrinsics.matrix()
-        last_s = -np.inf
+        inside = []  # (frame, host time)
         for f in frames.get(cam.name, []):
             counts["frames"] += 1
             t = int(clocks[camera_topic(cam.name)].to_host([f.sensor_time_ns])[0])
             if not trajectory.times_ns[0] <= t <= trajectory.times_ns[-1]:
                 counts["frames_outside_trajectory"] += 1
                 continue
-            s = float(trajectory.distance_at(np.array([t], np.int64))[0])
-            if s - last_s < spacing_m:
-                continue
-            mask = None
-            if masks is not None:
-                mask = masks.get(cam.name, {}).get(f.sensor_time_ns)
-                if mask is None:
-                    counts["frames_without_mask"] += 1
-                    continue
-            last_s = s
+            inside.append((f, t))
+        cam_masks = masks.get(cam.name, {}) if masks is not None else None
+
+        def has_mask(frame_time: tuple[CameraFrame, int], cam_masks=cam_masks) -> bool:
+            if cam_masks is None or frame_time[0].sensor_time_ns in cam_masks:
+                return True
+            counts["frames_without_mask"] += 1
+            return False
+
+        def travelled(frame_time: tuple[CameraFrame, int]) -> float:
+            return float(trajectory.distance_at(np.array([frame_time[1]], np.int64))[0])
+
+        for f, t in spaced_by_distance(inside, travelled, spacing_m, has_mask):
+            mask = cam_masks[f.sensor_time_ns] if cam_masks is not None else None
             chosen.append(_KeyframeMessages(cam.name, (t - t0) / 1e9, camera_pose(trajectory, t, T_vc), f, mask))
     chosen.sort(key=lambda k: k.timestamp)
     return chosen, counts
@@ -335,5 +341,6 @@ def lidar_ground_from_packets(packets: list[LidarPacket], clock: ClockMap, metad
         return ground_points(lidar_world_points(chunk, clock, decoding, T_vl, trajectory, settings), road, settings)
 
     with ThreadPoolExecutor(config.mapper.runtime.lidar_ground_threads, thread_name_prefix="lidar-ground") as pool:
-        out = list(pool.map(scan_ground, range(0, len(packets), per_scan * every_n_scans)))
+        starts = [start for start in range(0, len(packets), per_scan) if keeps_scan(start, per_scan, every_n_scans)]
+        out = list(pool.map(scan_ground, starts))
     return np.concatenate(out) if out else np.zeros((0, 3))

@@ -30,6 +30,12 @@ TILE_CELLS = 64  # the ground raster is stored as square tiles of this many cell
 TILES_PER_QUERY = 256  # tiles whose cell centres are looked up in the trajectory k-d tree at once
 
 
+def keeps_scan(packet_index: int, packets_per_scan: int, every_n_scans: int) -> bool:
+    """Whether the Lidar scan holding the `packet_index`-th packet (counted from the first, `packets_per_scan`
+    to a scan) is used: every n-th scan (`mapper.inputs.lidar_every_n_scans`), the first one included."""
+    return (packet_index // packets_per_scan) % every_n_scans == 0
+
+
 @dataclass(frozen=True)
 class GroundFilter:
     max_range_m: float = 40.0

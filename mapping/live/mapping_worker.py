@@ -71,11 +71,12 @@ from mapping.inputs.drive_inputs import (
     lidar_ground_from_packets,
     segmenter_for,
 )
-from mapping.inputs.lidar_ground import GroundFilter
+from mapping.inputs.lidar_ground import GroundFilter, keeps_scan
 from mapping.live import live_view, map_tiles
 from mapping.live.keyframe_spool import KeyframeSpool
 from mapping.live.worker_journal import VERSION as JOURNAL_VERSION
 from mapping.live.worker_journal import append_line, new_state, progress_line, read_journal
+from mapping.localization.keyframe_spacing import spaced_by_distance
 from mapping.localization.sensor_time import ClockMap, fit_clock
 from mapping.localization.trajectory import Trajectory
 from mapping.method.road_map import NO_LABEL
@@ -92,7 +93,6 @@ STALLED_TOPIC_NS = 30_000_000_000  # a topic this far behind the newest message 
 FREE_CLOCK_RATE_FIT_MIN_S = 600.0  # shorter spans: a free-running clock is taken at rate 1
 TILE_M = 40.0
 OVERVIEW_MAX_CELLS = 4_000_000  # the final map's PNGs: an overview, coarser past 4 M cells of bounding box
-LIDAR_EVERY_N_SCANS = 2
 WINDOW_ATTEMPTS = 2
 DRAIN_QUIET_S = 1.0  # at shutdown: the bus counts as drained after this long without a message
 SMALL_TOPICS = (GNSS_FIX, IMU, WHEEL_SPEEDS, TIME_ANCHOR)
@@ -258,7 +258,7 @@ class BusReader(threading.Thread):
         if topic == LIDAR_PACKETS:
             n = self.lidar_count
             self.lidar_count += 1
-            if (n // self.packets_per_scan) % LIDAR_EVERY_N_SCANS:
+            if not keeps_scan(n, self.packets_per_scan, self.config.mapper.inputs.lidar_every_n_scans):
                 return
         with self.lock:
             self.spool.append(topic, msg, arrival)
@@ -519,14 +519,9 @@ class MappingWorker:
             if not frames:
                 continue
             host = clocks[camera_topic(cam.name)].to_host([f.sensor_time_ns for f in frames])
-            last_s = -np.inf
-            for f, t in zip(frames, host, strict=True):
-                if not t_lo <= t <= t_hi or (self.segmenter is None and f.sensor_time_ns not in masks):
-                    continue
-                s = float(traj.distance_at(int(t))[0])
-                if s - last_s < spacing:
-                    continue
-                last_s = s
+            candidates = [(f, t) for f, t in zip(frames, host, strict=True)
+                          if t_lo <= t <= t_hi and (self.segmenter is not None or f.sensor_time_ns in masks)]
+            for f, t in spaced_by_distance(candidates, lambda ft: float(traj.distance_at(int(ft[1]))[0]), spacing):
                 image = decode_image(f)
                 keyframes.append(Keyframe(cam.name, (int(t) - t_lo) / 1e9,
                                           camera_pose(traj, int(t), cam.extrinsics.matrix()), image,
