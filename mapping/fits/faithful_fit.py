@@ -13,13 +13,14 @@ from tqdm import tqdm
 
 from daemon.spine.config import MapperConfig
 from daemon.spine.semantic_classes import NUM_MAP_CLASSES
+from mapping.localization.trajectory import HorizontalTrack
 from mapping.method import losses
 from mapping.method.mesh_location import Located
 from mapping.method.mesh_renderer import pixel_rays, rasterise, ray_triangle_weights, world_rays
 from mapping.method.road_map import RoadMap, WindowIndex
 from mapping.method.road_mesh import RoadMesh
 from mapping.method.row_sparse_adam import RowSparseAdam
-from mapping.method.scene_data import CameraModel, Keyframe, Trajectory
+from mapping.method.scene_data import CameraModel, Keyframe
 
 
 def lidar_vertex_targets(mesh: RoadMesh, points: np.ndarray | None,
@@ -167,8 +168,8 @@ class FaithfulOptimisation:
         return torch.from_numpy(np.stack([own[keep], nb_local[keep]], 1))
 
 
-def _batches(keyframes: list[Keyframe], trajectory: Trajectory, size: int) -> list[tuple[list[Keyframe], float]]:
-    s = np.array([float(trajectory.along_track_at(k.timestamp)) for k in keyframes])
+def _batches(keyframes: list[Keyframe], trajectory: HorizontalTrack, size: int) -> list[tuple[list[Keyframe], float]]:
+    s = np.array([float(trajectory.horizontal_distance_at(k.timestamp)) for k in keyframes])
     order = np.argsort(s, kind="stable")
     out = []
     for lo in range(0, len(order), size):
@@ -177,7 +178,7 @@ def _batches(keyframes: list[Keyframe], trajectory: Trajectory, size: int) -> li
     return out
 
 
-def fit_faithful(road_map: RoadMap, cameras: dict[str, CameraModel], train: list[Keyframe], trajectory: Trajectory,
+def fit_faithful(road_map: RoadMap, cameras: dict[str, CameraModel], train: list[Keyframe], trajectory: HorizontalTrack,
                  supervision: np.ndarray | None, lidar_at: Located | None, config: MapperConfig,
                  rng: np.random.Generator, progress: bool) -> tuple[list[float], int]:
     """Fit `road_map` to the training keyframes' pixels: `epochs` passes over the trajectory batches in a random

@@ -18,9 +18,10 @@ from daemon.spine.config import FastFitConfig, MapperConfig
 from mapping.fits.lidar_detail import fit_lidar_detail
 from mapping.fits.observation_fit import fit_colours, fit_elevation, semantic_logits_from_counts
 from mapping.fits.vertex_observations import MeshFootprint, VertexObservations, observe_keyframe
+from mapping.localization.trajectory import HorizontalTrack
 from mapping.method.mesh_location import Located
 from mapping.method.road_map import RoadMap, WindowIndex
-from mapping.method.scene_data import CameraModel, Keyframe, Trajectory
+from mapping.method.scene_data import CameraModel, Keyframe
 
 
 def fit_surface(road_map: RoadMap, supervision: np.ndarray | None, lidar_at: Located | None, config: MapperConfig,
@@ -54,7 +55,7 @@ def _fit_elevation(road_map: RoadMap, lidar: np.ndarray | None, located: Located
     return first_last
 
 
-def observe(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraModel], trajectory: Trajectory,
+def observe(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraModel], trajectory: HorizontalTrack,
             config: MapperConfig, progress: bool, timings: dict[str, float]) -> VertexObservations:
     """Every keyframe's view of every vertex in reach; sets the vertices' observation counts and semantics."""
     started = time.perf_counter()
@@ -67,7 +68,7 @@ def observe(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraM
         part = VertexObservations.empty(mesh.num_vertices, road_map.decoder.camera_names)
         footprint = MeshFootprint.of(mesh.neighbours)
         for kf in keyframes:
-            s = float(trajectory.along_track_at(kf.timestamp))
+            s = float(trajectory.horizontal_distance_at(kf.timestamp))
             a, b = np.searchsorted(windows.vertex_s, [s - fast.behind_m, s + fast.ahead_m])
             ids = windows.vertex_order[a:b]
             points = np.concatenate([mesh.xy[ids], road_map.z_now[ids, None].astype(np.float64)], 1)

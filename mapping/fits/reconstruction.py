@@ -22,10 +22,11 @@ import torch
 from daemon.spine.config import MapperConfig
 from mapping.fits import faithful_fit, fast_fit
 from mapping.localization.keyframe_spacing import spaced_by_distance
+from mapping.localization.trajectory import HorizontalTrack
 from mapping.method.mesh_location import Located
 from mapping.method.road_map import RoadMap, new_road_map, variant_for
 from mapping.method.road_mesh import build_road_mesh
-from mapping.method.scene_data import CameraModel, GroundTruth, Keyframe, Trajectory
+from mapping.method.scene_data import CameraModel, GroundTruth, Keyframe
 from mapping.outputs.map_export import export_map
 from mapping.outputs.map_metrics import (
     MetricPoints,
@@ -43,13 +44,13 @@ class ReconstructionResult:
     files: dict[str, Path] = field(default_factory=dict)
 
 
-def select_keyframes(keyframes: list[Keyframe], trajectory: Trajectory, spacing_m: float) -> list[Keyframe]:
+def select_keyframes(keyframes: list[Keyframe], trajectory: HorizontalTrack, spacing_m: float) -> list[Keyframe]:
     """Per camera, a frame each time the vehicle has moved `spacing_m` (horizontally) since the last kept one;
     in time order."""
     in_time = sorted(keyframes, key=lambda k: k.timestamp)
 
     def travelled(kf: Keyframe) -> float:
-        return float(trajectory.along_track_at(kf.timestamp))
+        return float(trajectory.horizontal_distance_at(kf.timestamp))
 
     kept = set()
     for camera in dict.fromkeys(kf.camera for kf in in_time):
@@ -72,7 +73,7 @@ def _waited_for(value, timings: dict[str, float], key: str):
 def reconstruct(
     keyframes: list[Keyframe] | Future[list[Keyframe]],
     cameras: dict[str, CameraModel],
-    trajectory: Trajectory,
+    trajectory: HorizontalTrack,
     lidar_ground_points: np.ndarray | None | Future[np.ndarray | None],
     config: MapperConfig,
     reference_height_m: float,

@@ -44,15 +44,8 @@ from mapping.inputs.segmentation import OnnxSegmenter
 from mapping.localization import pose_fusion
 from mapping.localization.keyframe_spacing import spaced_by_distance
 from mapping.localization.sensor_time import ClockMap, fit_clock
-from mapping.localization.trajectory import Trajectory
+from mapping.localization.trajectory import HorizontalTrack, Trajectory
 from mapping.method.scene_data import CameraModel, Keyframe
-from mapping.method.scene_data import Trajectory as PathTrajectory
-
-
-def reconstruction_path(trajectory: Trajectory) -> PathTrajectory:
-    """The trajectory as the reconstruction takes it (seconds from the drive start, positions)."""
-    t0 = trajectory.times_ns[0]
-    return PathTrajectory((trajectory.times_ns - t0) / 1e9, trajectory.positions)
 
 
 @dataclass
@@ -66,8 +59,8 @@ class DriveInputs:
     report: ReadReport | None = None
 
     @property
-    def path(self) -> PathTrajectory:
-        return reconstruction_path(self.trajectory)
+    def path(self) -> HorizontalTrack:
+        return self.trajectory.horizontal_track()
 
     @property
     def drive_s(self) -> float:
@@ -89,8 +82,8 @@ class LoadingDrive:
     report: ReadReport
 
     @property
-    def path(self) -> PathTrajectory:
-        return reconstruction_path(self.trajectory)
+    def path(self) -> HorizontalTrack:
+        return self.trajectory.horizontal_track()
 
     def result(self) -> DriveInputs:
         """The finished inputs (waits for the background work; its errors are raised here)."""
@@ -296,7 +289,7 @@ def _keyframe_messages(config: CarConfig, frames: dict[str, list[CameraFrame]],
             return False
 
         def travelled(frame_time: tuple[CameraFrame, int]) -> float:
-            return float(trajectory.distance_at(np.array([frame_time[1]], np.int64))[0])
+            return float(trajectory.distance_3d_at(np.array([frame_time[1]], np.int64))[0])
 
         for f, t in spaced_by_distance(inside, travelled, spacing_m, has_mask):
             mask = cam_masks[f.sensor_time_ns] if cam_masks is not None else None

@@ -78,10 +78,9 @@ from mapping.live.worker_journal import VERSION as JOURNAL_VERSION
 from mapping.live.worker_journal import append_line, new_state, progress_line, read_journal
 from mapping.localization.keyframe_spacing import spaced_by_distance
 from mapping.localization.sensor_time import ClockMap, fit_clock
-from mapping.localization.trajectory import Trajectory
+from mapping.localization.trajectory import HorizontalTrack, Trajectory
 from mapping.method.road_map import NO_LABEL
 from mapping.method.scene_data import Keyframe
-from mapping.method.scene_data import Trajectory as PathTrajectory
 from mapping.outputs.map_export import bev_rasters, elevation_image
 
 PROCESS = "mapper"
@@ -510,7 +509,7 @@ class MappingWorker:
         inside = (traj.times_ns > t_lo) & (traj.times_ns < t_hi)
         times = np.concatenate([[t_lo], traj.times_ns[inside], [t_hi]]).astype(np.int64)
         pos, _ = traj.interpolate(times)
-        path = PathTrajectory((times - t_lo) / 1e9, pos)
+        path = HorizontalTrack((times - t_lo) / 1e9, pos)
         keyframes = []
         spacing = m.inputs.keyframe_spacing_m
         for cam in self.config.sensors.cameras:
@@ -521,7 +520,7 @@ class MappingWorker:
             host = clocks[camera_topic(cam.name)].to_host([f.sensor_time_ns for f in frames])
             candidates = [(f, t) for f, t in zip(frames, host, strict=True)
                           if t_lo <= t <= t_hi and (self.segmenter is not None or f.sensor_time_ns in masks)]
-            for f, t in spaced_by_distance(candidates, lambda ft: float(traj.distance_at(int(ft[1]))[0]), spacing):
+            for f, t in spaced_by_distance(candidates, lambda ft: float(traj.distance_3d_at(int(ft[1]))[0]), spacing):
                 image = decode_image(f)
                 keyframes.append(Keyframe(cam.name, (int(t) - t_lo) / 1e9,
                                           camera_pose(traj, int(t), cam.extrinsics.matrix()), image,

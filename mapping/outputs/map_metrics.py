@@ -11,11 +11,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from daemon.spine.semantic_classes import NUM_MAP_CLASSES, ROAD_SURFACE_CLASSES, SemanticClass
+from mapping.localization.trajectory import HorizontalTrack
 from mapping.method.mesh_location import Located, all_observed
 from mapping.method.mesh_renderer import sampled_pixels
 from mapping.method.road_map import NO_LABEL, RoadMap, ViewGeometry, WindowIndex, view_geometry, view_labels, view_rgb
 from mapping.method.road_mesh import locate
-from mapping.method.scene_data import CameraModel, GroundTruth, Keyframe, Trajectory
+from mapping.method.scene_data import CameraModel, GroundTruth, Keyframe
 
 TRAIN_VIEWS_EVALUATED = 12
 HOLDOUT_VIEWS_EVALUATED = 36  # evenly spaced along the drive: evaluation costs the same on long drives
@@ -169,11 +170,11 @@ class _ViewSeen:
     confusion: np.ndarray  # (C, C) rendered semantics against the view's segmentation mask
 
 
-def _view_seen(road_map: RoadMap, cameras: dict[str, CameraModel], kf: Keyframe, trajectory: Trajectory,
+def _view_seen(road_map: RoadMap, cameras: dict[str, CameraModel], kf: Keyframe, trajectory: HorizontalTrack,
                window_before_m: float, window_after_m: float, windows: WindowIndex, mapped: np.ndarray,
                stride: int = EVAL_STRIDE) -> _ViewSeen:
     """One view over the pixels that see the mapped surface (faces whose vertices were all supervised)."""
-    s = float(trajectory.along_track_at(kf.timestamp))
+    s = float(trajectory.horizontal_distance_at(kf.timestamp))
     faces = windows.faces(s - min(window_before_m, BEHIND_CAMERA_M), s + window_after_m)
     camera = cameras[kf.camera]
     geometry = view_geometry(road_map, faces[mapped[faces]], kf, camera, stride)
@@ -215,7 +216,7 @@ def start_evaluation(
     cameras: dict[str, CameraModel],
     holdout: list[Keyframe],
     train: list[Keyframe],
-    trajectory: Trajectory,
+    trajectory: HorizontalTrack,
     lidar_points: np.ndarray | None,
     gt: GroundTruth | None,
     window_before_m: float,

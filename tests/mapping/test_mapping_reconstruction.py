@@ -27,11 +27,12 @@ from mapping.fits.vertex_observations import (
     pixel_ground_length_m,
     project_points,
 )
+from mapping.localization.trajectory import HorizontalTrack
 from mapping.method.mesh_location import Located
 from mapping.method.road_map import ABLATIONS, new_road_map, variant_for
 from mapping.method.road_mesh import build_road_mesh, locate
 from mapping.method.row_sparse_adam import RowSparseAdam
-from mapping.method.scene_data import CameraModel, Keyframe, Trajectory
+from mapping.method.scene_data import CameraModel, Keyframe
 from mapping.outputs.map_metrics import MetricPoints, elev_error_cm, elev_mae_gt_cm, truth_cells
 from tests.mapping.synthetic_road_scene import make_scene, texture
 
@@ -197,7 +198,7 @@ def test_labels_read_over_the_vertex_footprint_place_edges_between_vertices():
     """A camera looking straight down (1 cm pixels) at 15 cm stripes on a 0.1 m mesh: the class interpolated
     between vertices is right more often when each vertex reads its whole footprint than its centre only
     (the centre alone puts every edge half-way between two vertices)."""
-    mesh = build_road_mesh(Trajectory(np.array([0.0, 10.0]), np.array([[-3.0, 0.0, 1.5], [3.0, 0.0, 1.5]])),
+    mesh = build_road_mesh(HorizontalTrack(np.array([0.0, 10.0]), np.array([[-3.0, 0.0, 1.5], [3.0, 0.0, 1.5]])),
                            2.0, 0.1, 1.5)
     camera = CameraModel("down", np.array([[1000.0, 0, 200], [0, 1000.0, 200], [0, 0, 1]]), (0.0,) * 5, 401, 401)
     pose = _looking_down(10.0)
@@ -247,7 +248,7 @@ def test_labels_from_sharp_views_outweigh_more_numerous_coarse_ones():
     """One view from 2 m (2 mm pixels) sees lane marking, two from 60 m (6 cm pixels) see road: counted
     equally the road wins; weighted by what a pixel covers (label_sharp_m 2 cm: the far views count 1/3
     each) the sharp view does."""
-    mesh = build_road_mesh(Trajectory(np.array([0.0, 10.0]), np.array([[-1.0, 0.0, 1.5], [1.0, 0.0, 1.5]])),
+    mesh = build_road_mesh(HorizontalTrack(np.array([0.0, 10.0]), np.array([[-1.0, 0.0, 1.5], [1.0, 0.0, 1.5]])),
                            0.5, 0.1, 1.5)
     camera = CameraModel("down", np.array([[1000.0, 0, 200], [0, 1000.0, 200], [0, 0, 1]]), (0.0,) * 5, 401, 401)
     points = np.concatenate([mesh.xy, np.zeros((mesh.num_vertices, 1))], 1)
@@ -272,7 +273,7 @@ def test_labels_from_sharp_views_outweigh_more_numerous_coarse_ones():
 def test_lidar_detail_puts_a_curb_step_into_the_smooth_surface():
     """A flat surface under Lidar points of a road with a 15 cm curb: the detail raises the vertices on the
     curb and leaves the road where it is, within a vertex of the step."""
-    mesh = build_road_mesh(Trajectory(np.array([0.0, 10.0]), np.array([[0.0, 0.0, 1.5], [20.0, 0.0, 1.5]])),
+    mesh = build_road_mesh(HorizontalTrack(np.array([0.0, 10.0]), np.array([[0.0, 0.0, 1.5], [20.0, 0.0, 1.5]])),
                            4.0, 0.1, 1.5)
     rng = np.random.default_rng(0)
     xy = np.column_stack([rng.uniform(0, 20, 100_000), rng.uniform(-4, 4, 100_000)])
