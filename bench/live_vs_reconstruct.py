@@ -242,7 +242,7 @@ def main() -> int:
 
         maps = {"live": RasterMap.load(final, live_meta, LocalFrame(*live_meta["origin_lat_lon_alt"])),
                 "reconstruct": RasterMap.load(work / "reconstruct", rec_meta, truth.origin)}
-        selected = select_keyframes(drive.keyframes, drive.path, config.mapper.keyframe_spacing_m)
+        selected = select_keyframes(drive.keyframes, drive.path, config.mapper.inputs.keyframe_spacing_m)
         held = [i % HOLDOUT_EVERY == HOLDOUT_EVERY // 2 for i in range(len(selected))]
         holdout = [k for k, h in zip(selected, held, strict=True) if h]
         train = [k for k, h in zip(selected, held, strict=True) if not h]

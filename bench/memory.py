@@ -66,8 +66,8 @@ RATES_HZ = {"gnss": 10, "imu": 100, "wheels": 50, "camera": 10}
 CAMERA = "front_left"
 SOURCE_SECONDS = 2.0
 WINDOW_M = 80.0  # before and after the centre: 160 m windows (the default), centres every 80 m
-MAPPER = {"window_before_m": WINDOW_M, "window_after_m": WINDOW_M, "epochs": 1, "corridor_half_width_m": 4.0,
-          "mesh_side_m": 0.8, "keyframe_spacing_m": 6.0, "threads": 1}
+MAPPER = {"windows": {"before_m": WINDOW_M, "after_m": WINDOW_M}, "mesh": {"side_m": 0.8, "corridor_half_width_m": 4.0},
+          "inputs": {"keyframe_spacing_m": 6.0}}
 LEAD_M = 4 * WINDOW_M  # two windows: the next one is always fed, with the inputs beyond its end
 ATTACH_S = 1.0  # the worker attaches (lossless) to new rings every 0.5 s
 HWM_POLL_S = 0.02

@@ -24,8 +24,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from daemon.spine.semantic_classes import NUM_MAP_CLASSES  # noqa: E402
+from mapping.localization.trajectory import HorizontalTrack  # noqa: E402
 from mapping.method.road_mesh import build_road_mesh, locate  # noqa: E402
-from mapping.method.scene_data import Trajectory  # noqa: E402
 from mapping.offline.reconstruct_command import DriveTruth  # noqa: E402
 from mapping.outputs.map_metrics import confusion, truth_cells  # noqa: E402
 
@@ -60,7 +60,7 @@ def vertex_labels(truth: DriveTruth, xy: np.ndarray, side_m: float, footprint: b
     return out
 
 
-def ceiling(truth: DriveTruth, trajectory: Trajectory, side_m: float, footprint: bool) -> dict:
+def ceiling(truth: DriveTruth, trajectory: HorizontalTrack, side_m: float, footprint: bool) -> dict:
     mesh = build_road_mesh(trajectory, HALF_WIDTH_M, side_m, 0.0)
     labels = vertex_labels(truth, mesh.xy, side_m, footprint)
     rows, cols, xy = truth_cells(truth.elevation)  # the cells the bird's-eye mIoU is taken on
@@ -83,7 +83,7 @@ def main() -> int:
     log = mapping_bench.drive(args.scenario, 3.0 if args.quick else args.seconds)
     truth = DriveTruth.load(log.with_suffix(".gt.npz"))
     gt = np.load(log.with_suffix(".gt.npz"))
-    trajectory = Trajectory(gt["trajectory_host_mono_ns"] * 1e-9, gt["trajectory_position_enu"].astype(np.float64))
+    trajectory = HorizontalTrack(gt["trajectory_host_mono_ns"] * 1e-9, gt["trajectory_position_enu"].astype(np.float64))
     result: dict[str, object] = {"scenario": args.scenario, "log": str(log),
                                  "classes": ["road", "lane_marking", "curb", "manhole", "background"]}
     for side in (0.1, 0.05):

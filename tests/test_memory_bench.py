@@ -102,7 +102,7 @@ def test_pose_fusion_follows_the_synthetic_drive(memory_bench, drive, config):
     t = (traj.times_ns - 5_000_000_000) / 1e9
     err = np.linalg.norm(traj.positions - memory_bench.vehicle_enu(t), axis=1)
     assert np.max(err) < 0.1  # the antenna's lever arm (0.5 m) taken off, 2 cm GNSS noise
-    length = float(traj.distance_at(traj.times_ns[-1:])[0])
+    length = float(traj.distance_3d_at(traj.times_ns[-1:])[0])
     assert length == pytest.approx(memory_bench.SPEED * (t[-1] - t[0]), rel=1e-3)
 
 

@@ -20,8 +20,8 @@ from mapping.live import map_tiles
 from mapping.live.mapping_worker import MappingWorker, Odometry, span_clock
 from tests.daemon_fixtures import REPO, private_config
 
-SMALL_WINDOWS = {"window_before_m": 10.0, "window_after_m": 10.0, "epochs": 1, "corridor_half_width_m": 6.0,
-                 "mesh_side_m": 0.25, "keyframe_spacing_m": 2.0}
+SMALL_WINDOWS = {"windows": {"before_m": 10.0, "after_m": 10.0}, "mesh": {"side_m": 0.25, "corridor_half_width_m": 6.0},
+                 "inputs": {"keyframe_spacing_m": 2.0}}
 UTC_2026_NS = 1_790_000_000_000_000_000
 
 

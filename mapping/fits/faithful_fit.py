@@ -13,13 +13,14 @@ from tqdm import tqdm
 
 from daemon.spine.config import MapperConfig
 from daemon.spine.semantic_classes import NUM_MAP_CLASSES
+from mapping.localization.trajectory import HorizontalTrack
 from mapping.method import losses
 from mapping.method.mesh_location import Located
 from mapping.method.mesh_renderer import pixel_rays, rasterise, ray_triangle_weights, world_rays
 from mapping.method.road_map import RoadMap, WindowIndex
 from mapping.method.road_mesh import RoadMesh
 from mapping.method.row_sparse_adam import RowSparseAdam
-from mapping.method.scene_data import CameraModel, Keyframe, Trajectory
+from mapping.method.scene_data import CameraModel, Keyframe
 
 
 def lidar_vertex_targets(mesh: RoadMesh, points: np.ndarray | None,
@@ -57,7 +58,7 @@ class FaithfulOptimisation:
         self.lidar_order = np.argsort(road_map.mesh.s[lidar_ids], kind="stable")
         self.lidar_s = road_map.mesh.s[lidar_ids][self.lidar_order]
         self.lookup = np.full(road_map.mesh.num_vertices, -1, np.int64)
-        lr = config.learning_rates
+        lr = config.faithful_fit.learning_rates
         self.optimisers = []
         if road_map.elevation is not None:
             self.optimisers.append(torch.optim.Adam(road_map.elevation.parameters(), lr=lr.elevation_mlp))
@@ -83,7 +84,7 @@ class FaithfulOptimisation:
     # -- one optimisation step ------------------------------------------------------------------
     def step(self, batch: list[Keyframe], s_center: float) -> dict[str, float]:
         cfg = self.config
-        s_lo, s_hi = s_center - cfg.window_before_m, s_center + cfg.window_after_m
+        s_lo, s_hi = s_center - cfg.windows.before_m, s_center + cfg.windows.after_m
         window = self.windows.vertices(s_lo, s_hi)
         z = self.map.elevation_of(window)
         self.map.z_now[window] = z.detach().numpy()
@@ -102,7 +103,7 @@ class FaithfulOptimisation:
         return result
 
     def _losses(self, sup, ids, touched, lidar_ids, lidar_z, z=None) -> dict[str, float]:
-        rm, w_cfg = self.map, self.config.loss_weights
+        rm, w_cfg = self.map, self.config.faithful_fit.loss_weights
         z = rm.elevation_of(ids) if z is None else z
         codes = rm.colour_params[ids].clone().requires_grad_(True)
         logits_v = None
@@ -167,8 +168,8 @@ class FaithfulOptimisation:
         return torch.from_numpy(np.stack([own[keep], nb_local[keep]], 1))
 
 
-def _batches(keyframes: list[Keyframe], trajectory: Trajectory, size: int) -> list[tuple[list[Keyframe], float]]:
-    s = np.array([float(trajectory.along_track_at(k.timestamp)) for k in keyframes])
+def _batches(keyframes: list[Keyframe], trajectory: HorizontalTrack, size: int) -> list[tuple[list[Keyframe], float]]:
+    s = np.array([float(trajectory.horizontal_distance_at(k.timestamp)) for k in keyframes])
     order = np.argsort(s, kind="stable")
     out = []
     for lo in range(0, len(order), size):
@@ -177,17 +178,18 @@ def _batches(keyframes: list[Keyframe], trajectory: Trajectory, size: int) -> li
     return out
 
 
-def fit_faithful(road_map: RoadMap, cameras: dict[str, CameraModel], train: list[Keyframe], trajectory: Trajectory,
+def fit_faithful(road_map: RoadMap, cameras: dict[str, CameraModel], train: list[Keyframe], trajectory: HorizontalTrack,
                  supervision: np.ndarray | None, lidar_at: Located | None, config: MapperConfig,
                  rng: np.random.Generator, progress: bool) -> tuple[list[float], int]:
     """Fit `road_map` to the training keyframes' pixels: `epochs` passes over the trajectory batches in a random
     order. The total loss of every step, and the number of steps of the last epoch."""
     lidar_ids, lidar_z = lidar_vertex_targets(road_map.mesh, supervision, lidar_at)
     opt = FaithfulOptimisation(road_map, cameras, config, lidar_ids, lidar_z)
-    batches = _batches(train, trajectory, config.batch_size)
+    epochs = config.faithful_fit.epochs
+    batches = _batches(train, trajectory, config.faithful_fit.batch_size)
     history: list[float] = []
-    with tqdm(total=config.epochs * len(batches), desc="emie-map", disable=not progress, unit="step") as bar:
-        for _ in range(config.epochs):
+    with tqdm(total=epochs * len(batches), desc="emie-map", disable=not progress, unit="step") as bar:
+        for _ in range(epochs):
             road_map.refresh_elevation()
             for b in rng.permutation(len(batches)):
                 terms = opt.step(*batches[b])

@@ -18,17 +18,16 @@ import numpy as np
 
 from mapping.method.mesh_location import Located
 
-THREADS = 2  # each pass's sums are split over the points: numpy's gathers and bincount run partly without
-# the GIL (city31's 3.4 M points: 0.51 -> 0.41 s a pass on a quiet machine, 1.15 -> 0.44 s on a busy one)
 
-
-def fit_lidar_detail(z: np.ndarray, located: Located, heights: np.ndarray, passes: int, prior: float) -> np.ndarray:
+def fit_lidar_detail(z: np.ndarray, located: Located, heights: np.ndarray, passes: int, prior: float,
+                     threads: int) -> np.ndarray:
     """Add the detail to the vertex elevations `z` (N,) in place, for the Lidar ground points placed by
-    `located` with heights `heights` (M,); returns the detail (N,)."""
+    `located` with heights `heights` (M,); returns the detail (N,). Each pass's sums are split over the points
+    into `threads` parts (numpy's gathers and bincount run partly without the GIL), added in a fixed order."""
     n = len(z)
     inside = np.flatnonzero(located.inside)
     parts = [(located.ids[part], located.weights[part], heights[part].astype(np.float32))
-             for part in np.array_split(inside, THREADS)]
+             for part in np.array_split(inside, threads)]
 
     def support(part) -> np.ndarray:
         ids, w, _ = part
@@ -40,7 +39,7 @@ def fit_lidar_detail(z: np.ndarray, located: Located, heights: np.ndarray, passe
         return np.bincount(ids.ravel(), (w * residual[:, None]).ravel(), minlength=n)
 
     detail = np.zeros(n, np.float32)
-    with ThreadPoolExecutor(THREADS, thread_name_prefix="lidar-detail") as pool:
+    with ThreadPoolExecutor(threads, thread_name_prefix="lidar-detail") as pool:
         total = (sum(pool.map(support, parts)) + prior).astype(np.float32)
         for _ in range(passes):
             step = ((sum(pool.map(pull, parts)) - prior * detail) / total).astype(np.float32)

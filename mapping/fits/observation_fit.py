@@ -11,8 +11,8 @@ rendered pixels, with the paper's losses taken per vertex.
 - Colour: the per-vertex codes and the per-camera decoders are fitted with the L1 colour loss to the
   mean colour each camera saw at each vertex. The codes come from a small encoder of those colours,
   trained jointly with the decoders on samples of vertices, then applied to every vertex. (Refining every
-  code afterwards with full-batch steps at the paper's code learning rate moved held-out PSNR by at most
-  0.01 dB for 2.3 s a step on city31; at 4-10x that rate it lost 0.1-0.2 dB: it was removed.)
+  code afterwards with full-batch steps at the paper's code learning rate barely moved held-out PSNR at a
+  high cost a step, and lost PSNR at higher rates: it was removed.)
 """
 
 from __future__ import annotations

@@ -1,15 +1,11 @@
-"""EMIE-MAP optimisation: trajectory-based batches of adjacent keyframes, one Adam per parameter group,
-the four losses, then evaluation and export. `reconstruct` is the public entry point.
+"""The reconstruction's common entry, `reconstruct`: the mesh and the model, the keyframe split (training /
+held out), one of the two fits of the same EMIE-MAP model, then evaluation and export.
 
-Two paths compute the same model:
-- faithful: each step takes the whole 160 m window: every window vertex goes through the elevation MLP
-  and the colour decoders, every pixel of every batch image is rasterised exactly against the full mesh.
-- fast (default): the same model fitted to what the keyframes saw at each vertex (each vertex in reach
-  of a keyframe projected into it: mapping.fits.vertex_observations) with the paper's losses taken per
-  vertex: the elevation MLP on a `elevation_lattice_m` lattice against the Lidar ground points, the
-  semantic logits from label frequencies, the colour codes and per-camera decoders against each
-  camera's mean colour (mapping.fits.observation_fit). One pass over the keyframes instead of 5 epochs of
-  rendering; evaluation renders pixels exactly as for the faithful path.
+- fast (default, mapping.fits.fast_fit): the model fitted to what the keyframes saw at each vertex, with the
+  paper's losses taken per vertex; one pass over the keyframes.
+- faithful (mapping.fits.faithful_fit): the paper's computation, every pixel of every batch image rendered
+  against the whole window, each step, for `faithful_fit.epochs` epochs.
+The evaluation renders pixels exactly, the same for both.
 """
 
 from __future__ import annotations
@@ -25,11 +21,12 @@ import torch
 
 from daemon.spine.config import MapperConfig
 from mapping.fits import faithful_fit, fast_fit
-from mapping.fits.fast_fit import FastPathSettings
+from mapping.localization.keyframe_spacing import spaced_by_distance
+from mapping.localization.trajectory import HorizontalTrack
 from mapping.method.mesh_location import Located
 from mapping.method.road_map import RoadMap, new_road_map, variant_for
 from mapping.method.road_mesh import build_road_mesh
-from mapping.method.scene_data import CameraModel, GroundTruth, Keyframe, Trajectory
+from mapping.method.scene_data import CameraModel, GroundTruth, Keyframe
 from mapping.outputs.map_export import export_map
 from mapping.outputs.map_metrics import (
     MetricPoints,
@@ -47,15 +44,19 @@ class ReconstructionResult:
     files: dict[str, Path] = field(default_factory=dict)
 
 
-def select_keyframes(keyframes: list[Keyframe], trajectory: Trajectory, spacing_m: float) -> list[Keyframe]:
-    """Per camera, keep a frame each time the vehicle has moved `spacing_m` since the last kept one."""
-    kept, last = [], {}
-    for kf in sorted(keyframes, key=lambda k: k.timestamp):
-        s = float(trajectory.along_track_at(kf.timestamp))
-        if kf.camera not in last or s - last[kf.camera] >= spacing_m:
-            kept.append(kf)
-            last[kf.camera] = s
-    return kept
+def select_keyframes(keyframes: list[Keyframe], trajectory: HorizontalTrack, spacing_m: float) -> list[Keyframe]:
+    """Per camera, a frame each time the vehicle has moved `spacing_m` (horizontally) since the last kept one;
+    in time order."""
+    in_time = sorted(keyframes, key=lambda k: k.timestamp)
+
+    def travelled(kf: Keyframe) -> float:
+        return float(trajectory.horizontal_distance_at(kf.timestamp))
+
+    kept = set()
+    for camera in dict.fromkeys(kf.camera for kf in in_time):
+        mine = [kf for kf in in_time if kf.camera == camera]
+        kept.update(id(kf) for kf in spaced_by_distance(mine, travelled, spacing_m))
+    return [kf for kf in in_time if id(kf) in kept]
 
 
 def _waited_for(value, timings: dict[str, float], key: str):
@@ -72,7 +73,7 @@ def _waited_for(value, timings: dict[str, float], key: str):
 def reconstruct(
     keyframes: list[Keyframe] | Future[list[Keyframe]],
     cameras: dict[str, CameraModel],
-    trajectory: Trajectory,
+    trajectory: HorizontalTrack,
     lidar_ground_points: np.ndarray | None | Future[np.ndarray | None],
     config: MapperConfig,
     reference_height_m: float,
@@ -81,24 +82,24 @@ def reconstruct(
     gt: GroundTruth | None = None,
     faithful: bool = False,
     holdout_every: int = 10,
-    fast: FastPathSettings = FastPathSettings(),
     progress: bool = True,
 ) -> ReconstructionResult:
     """Reconstruct the road surface seen by `keyframes` along `trajectory`; evaluate; export if out_dir.
     `keyframes` and `lidar_ground_points` may be Futures (inputs still loading): the mesh is built first,
     the Lidar waited for by the elevation fit, the keyframes after it."""
     start = time.perf_counter()
-    torch.set_num_threads(config.threads if faithful else fast.threads)
-    torch.manual_seed(config.seed)
-    rng = np.random.default_rng(config.seed)
+    runtime, model, windows = config.runtime, config.model, config.windows
+    torch.set_num_threads(runtime.torch_threads_faithful_fit if faithful else runtime.torch_threads_fast_fit)
+    torch.manual_seed(model.seed)
+    rng = np.random.default_rng(model.seed)
     variant = variant_for(ablation)
-    mesh = build_road_mesh(trajectory, config.corridor_half_width_m, config.mesh_side_m, reference_height_m,
+    mesh = build_road_mesh(trajectory, config.mesh.corridor_half_width_m, config.mesh.side_m, reference_height_m,
                            flat=variant.flat_init)
-    generator = torch.Generator().manual_seed(config.seed)
+    generator = torch.Generator().manual_seed(model.seed)
     road_map = new_road_map(
-        mesh, variant, sorted(cameras), config.colour_code_dim, config.colour_mlp_layers, config.colour_mlp_width,
-        config.positional_encoding_dim, config.elevation_mlp_layers, config.elevation_mlp_width,
-        config.window_before_m + config.window_after_m, 0.0 if faithful else fast.elevation_lattice_m, generator,
+        mesh, variant, sorted(cameras), model.colour_code_dim, model.colour_mlp_layers, model.colour_mlp_width,
+        model.positional_encoding_dim, model.elevation_mlp_layers, model.elevation_mlp_width,
+        windows.before_m + windows.after_m, 0.0 if faithful else config.fast_fit.elevation_lattice_m, generator,
     )
     history = []
     timings: dict[str, float] = {"setup_wall_s": time.perf_counter() - start}
@@ -113,33 +114,33 @@ def reconstruct(
         have_lidar = lidar_ground_points is not None and len(lidar_ground_points) > 0
         lidar_at = Located.of(mesh, lidar_ground_points[:, :2]) if have_lidar else None
         if not faithful:  # the elevation needs the Lidar only: it is fitted while the images may still be decoding
-            elevation_first_last = fast_fit.fit_surface(road_map, supervision, lidar_at, config, fast, rng, timings)
+            elevation_first_last = fast_fit.fit_surface(road_map, supervision, lidar_at, config, rng, timings)
         selected = select_keyframes(_waited_for(keyframes, timings, "keyframes_wait_s"), trajectory,
-                                    config.keyframe_spacing_m)
+                                    config.inputs.keyframe_spacing_m)
         holdout = [k for i, k in enumerate(selected) if holdout_every > 0 and i % holdout_every == holdout_every // 2]
         held = {id(k) for k in holdout}
         train = [k for k in selected if id(k) not in held]
         if not train:
             raise ValueError("no training keyframes after selection")
-        evaluation_args = (cameras, holdout, train, trajectory, lidar_ground_points, gt, config.window_before_m,
-                           config.window_after_m)
+        evaluation_args = (cameras, holdout, train, trajectory, lidar_ground_points, gt, windows.before_m,
+                           windows.after_m, runtime.evaluation_threads)
         metric_points = MetricPoints(lidar_at, truth_at.result() if truth_at is not None else None)
         if faithful:
             history, last_epoch_steps = faithful_fit.fit_faithful(road_map, cameras, train, trajectory, supervision,
                                                                   lidar_at, config, rng, progress)
             evaluation = start_evaluation(road_map, *evaluation_args, metric_points)
         else:
-            obs = fast_fit.observe(road_map, train, cameras, trajectory, fast, progress, timings)
+            obs = fast_fit.observe(road_map, train, cameras, trajectory, config, progress, timings)
             # surface and semantics are final: the evaluation renders its views beside the colour fit
             evaluation = start_evaluation(road_map, *evaluation_args, metric_points)
-            colour_first, colour_last = fast_fit.fit_colour(road_map, obs, config, fast, rng, timings)
-            w_rgb = config.loss_weights.rgb
-            history = [elevation_first_last[0] + w_rgb * colour_first, elevation_first_last[1] + w_rgb * colour_last]
-            last_epoch_steps = max(1, len(history) // config.epochs)
+            colour_first, colour_last = fast_fit.fit_colour(road_map, obs, config, rng, timings)
+            history = [elevation_first_last[0] + colour_first, elevation_first_last[1] + colour_last]
+            last_epoch_steps = 1
         train_s = time.perf_counter() - start
         drive_s = trajectory.duration_s
         # the export runs beside the evaluation's remaining work: both only read the finished map
-        exported = side.submit(export_map, road_map, Path(out_dir), sorted(cameras)) if out_dir is not None else None
+        exported = (side.submit(export_map, road_map, Path(out_dir), sorted(cameras), runtime.raster_threads)
+                    if out_dir is not None else None)
         side.shutdown(wait=False)
         metrics = finish_evaluation(evaluation)
         evaluate_s = time.perf_counter() - start - train_s

@@ -38,22 +38,15 @@ from mapping.inputs.lidar_ground import (
     LidarDecoding,
     TrajectoryGround,
     ground_points,
+    keeps_scan,
     lidar_world_points,
 )
 from mapping.inputs.segmentation import OnnxSegmenter
 from mapping.localization import pose_fusion
+from mapping.localization.keyframe_spacing import spaced_by_distance
 from mapping.localization.sensor_time import ClockMap, fit_clock
-from mapping.localization.trajectory import Trajectory
+from mapping.localization.trajectory import HorizontalTrack, Trajectory
 from mapping.method.scene_data import CameraModel, Keyframe
-from mapping.method.scene_data import Trajectory as PathTrajectory
-
-LIDAR_GROUND_THREADS = 2  # city31: the ground of 155 scans, standalone, 5.3 / 5.6 s on one thread, 3.2 / 2.8 s on two
-
-
-def reconstruction_path(trajectory: Trajectory) -> PathTrajectory:
-    """The trajectory as the reconstruction takes it (seconds from the drive start, positions)."""
-    t0 = trajectory.times_ns[0]
-    return PathTrajectory((trajectory.times_ns - t0) / 1e9, trajectory.positions)
 
 
 @dataclass
@@ -67,8 +60,8 @@ class DriveInputs:
     report: ReadReport | None = None
 
     @property
-    def path(self) -> PathTrajectory:
-        return reconstruction_path(self.trajectory)
+    def path(self) -> HorizontalTrack:
+        return self.trajectory.horizontal_track()
 
     @property
     def drive_s(self) -> float:
@@ -90,8 +83,8 @@ class LoadingDrive:
     report: ReadReport
 
     @property
-    def path(self) -> PathTrajectory:
-        return reconstruction_path(self.trajectory)
+    def path(self) -> HorizontalTrack:
+        return self.trajectory.horizontal_track()
 
     def result(self) -> DriveInputs:
         """The finished inputs (waits for the background work; its errors are raised here)."""
@@ -199,11 +192,10 @@ def load_drive(paths: list[str | Path], config: CarConfig, config_path: str | Pa
 
 
 def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path: str | Path | None = None, *,
-                        origin: LocalFrame | None = None, use_lidar: bool = True,
-                        keyframe_spacing_m: float | None = None, lidar_every_n_scans: int = 2,
-                        ground_filter: GroundFilter | None = None) -> LoadingDrive:
-    """Read the log segments and fuse the trajectory; start extracting the Lidar ground and decoding the
-    keyframes in the background."""
+                        origin: LocalFrame | None = None, use_lidar: bool = True) -> LoadingDrive:
+    """Read the log segments and fuse the trajectory; start extracting the Lidar ground (every
+    `mapper.inputs.lidar_every_n_scans`-th scan) and decoding the keyframes (every
+    `mapper.inputs.keyframe_spacing_m`) in the background."""
     report = ReadReport()
     segmenter = segmenter_for(config, config_path)  # a bad model fails here, before the log is read
     cams = [c.name for c in config.sensors.cameras]
@@ -241,9 +233,8 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
         trajectory = _pose_trajectory(poses, clocks[POSE], origin)
     else:
         trajectory = fuse_log_trajectory(gnss, imu, wheels, config, origin, clocks)
-    spacing = config.mapper.keyframe_spacing_m if keyframe_spacing_m is None else keyframe_spacing_m
     chosen, counts = _keyframe_messages(config, frames, masks if segmenter is None else None, clocks, trajectory,
-                                        spacing)
+                                        config.mapper.inputs.keyframe_spacing_m)
     # one background thread, the Lidar first: the reconstruction needs it first (its elevation fit), and the
     # decoding then runs beside that single-threaded fit. The pool lets its thread finish after shutdown.
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="load-drive")
@@ -251,8 +242,8 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
         meta_path = resolve_path(config_path or ".", config.sensors.lidar.metadata_file)
         metadata = parse_metadata(meta_path)  # a bad metadata file fails here, before the background work
         ground = pool.submit(lidar_ground_from_packets, lidar, clocks[LIDAR_PACKETS], metadata, config, trajectory,
-                             lidar_every_n_scans, ground_filter or GroundFilter(
-                                 corridor_half_width_m=config.mapper.corridor_half_width_m))
+                             config.mapper.inputs.lidar_every_n_scans,
+                             GroundFilter(corridor_half_width_m=config.mapper.mesh.corridor_half_width_m))
         counts["lidar_packets"] = len(lidar)
     else:
         ground = Future()
@@ -282,23 +273,27 @@ def _keyframe_messages(config: CarConfig, frames: dict[str, list[CameraFrame]],
     t0 = trajectory.times_ns[0]
     for cam in config.sensors.cameras:
         T_vc = cam.extrinsics.matrix()
-        last_s = -np.inf
+        inside = []  # (frame, host time)
         for f in frames.get(cam.name, []):
             counts["frames"] += 1
             t = int(clocks[camera_topic(cam.name)].to_host([f.sensor_time_ns])[0])
             if not trajectory.times_ns[0] <= t <= trajectory.times_ns[-1]:
                 counts["frames_outside_trajectory"] += 1
                 continue
-            s = float(trajectory.distance_at(np.array([t], np.int64))[0])
-            if s - last_s < spacing_m:
-                continue
-            mask = None
-            if masks is not None:
-                mask = masks.get(cam.name, {}).get(f.sensor_time_ns)
-                if mask is None:
-                    counts["frames_without_mask"] += 1
-                    continue
-            last_s = s
+            inside.append((f, t))
+        cam_masks = masks.get(cam.name, {}) if masks is not None else None
+
+        def has_mask(frame_time: tuple[CameraFrame, int], cam_masks=cam_masks) -> bool:
+            if cam_masks is None or frame_time[0].sensor_time_ns in cam_masks:
+                return True
+            counts["frames_without_mask"] += 1
+            return False
+
+        def travelled(frame_time: tuple[CameraFrame, int]) -> float:
+            return float(trajectory.distance_3d_at(np.array([frame_time[1]], np.int64))[0])
+
+        for f, t in spaced_by_distance(inside, travelled, spacing_m, has_mask):
+            mask = cam_masks[f.sensor_time_ns] if cam_masks is not None else None
             chosen.append(_KeyframeMessages(cam.name, (t - t0) / 1e9, camera_pose(trajectory, t, T_vc), f, mask))
     chosen.sort(key=lambda k: k.timestamp)
     return chosen, counts
@@ -325,10 +320,10 @@ def _decode_keyframes(chosen: list[_KeyframeMessages], segmenter: OnnxSegmenter 
 
 
 def lidar_ground_from_packets(packets: list[LidarPacket], clock: ClockMap, metadata, config: CarConfig,
-                              trajectory: Trajectory, every_n_scans: int, settings: GroundFilter,
-                              threads: int = LIDAR_GROUND_THREADS) -> np.ndarray:
+                              trajectory: Trajectory, every_n_scans: int, settings: GroundFilter) -> np.ndarray:
     """Ground points of every n-th Lidar scan (a scan = the packets of one frame id), in scan order; the scans
-    are shared out over `threads` threads (numpy releases the GIL in its array work)."""
+    are shared out over `mapper.runtime.lidar_ground_threads` threads (numpy releases the GIL in its array
+    work)."""
     per_scan = metadata.packets_per_frame
     T_vl = config.sensors.lidar.extrinsics.matrix()
     road = TrajectoryGround.of(trajectory, config.vehicle.reference_height_m, settings.corridor_half_width_m,
@@ -339,6 +334,7 @@ def lidar_ground_from_packets(packets: list[LidarPacket], clock: ClockMap, metad
         chunk = [bytes(p.data) for p in packets[start:start + per_scan]]
         return ground_points(lidar_world_points(chunk, clock, decoding, T_vl, trajectory, settings), road, settings)
 
-    with ThreadPoolExecutor(threads, thread_name_prefix="lidar-ground") as pool:
-        out = list(pool.map(scan_ground, range(0, len(packets), per_scan * every_n_scans)))
+    with ThreadPoolExecutor(config.mapper.runtime.lidar_ground_threads, thread_name_prefix="lidar-ground") as pool:
+        starts = [start for start in range(0, len(packets), per_scan) if keeps_scan(start, per_scan, every_n_scans)]
+        out = list(pool.map(scan_ground, starts))
     return np.concatenate(out) if out else np.zeros((0, 3))

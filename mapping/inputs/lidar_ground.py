@@ -7,7 +7,7 @@ or on a flat patch at most a curb's height above it: points on cars and other th
 road are dropped. The trajectory's ground height is rasterised once per drive (TrajectoryGround): each
 `ground_cell_m` cell within the corridor holds the height of the trajectory point nearest to the cell's
 centre, so that the filter looks each point up in its cell instead of searching for its nearest
-trajectory point (a k-d tree query per point cost 10 of the 24 s of loading a 31 s drive).
+trajectory point (a k-d tree query per point was a large part of loading a drive).
 """
 
 from __future__ import annotations
@@ -28,6 +28,12 @@ from mapping.localization.trajectory import Trajectory
 
 TILE_CELLS = 64  # the ground raster is stored as square tiles of this many cells a side, only near the trajectory
 TILES_PER_QUERY = 256  # tiles whose cell centres are looked up in the trajectory k-d tree at once
+
+
+def keeps_scan(packet_index: int, packets_per_scan: int, every_n_scans: int) -> bool:
+    """Whether the Lidar scan holding the `packet_index`-th packet (counted from the first, `packets_per_scan`
+    to a scan) is used: every n-th scan (`mapper.inputs.lidar_every_n_scans`), the first one included."""
+    return (packet_index // packets_per_scan) % every_n_scans == 0
 
 
 @dataclass(frozen=True)

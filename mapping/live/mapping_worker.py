@@ -3,10 +3,10 @@
 A bus thread subscribes (lossless) to the cameras, masks, Lidar, GNSS, IMU, wheel speeds and time
 anchors and appends everything to the disk spool (`mapping.live.keyframe_spool`; Lidar every n-th scan);
 GNSS/IMU/wheels/anchors are also kept in memory from the oldest unfinished window on. The main thread
-integrates the wheel speeds into the distance travelled (`Odometry`), and as soon as `window_after_m` of
+integrates the wheel speeds into the distance travelled (`Odometry`), and as soon as `windows.after_m` of
 road lie beyond a window centre and every topic has delivered its data that far (plus the 2 s the
-window's inputs reach beyond), it optimises that window ([centre - window_before_m, centre +
-window_after_m]; centres every half window, so the windows overlap by half) with
+window's inputs reach beyond), it optimises that window ([centre - windows.before_m, centre +
+windows.after_m]; centres every half window, so the windows overlap by half) with
 `reconstruction.reconstruct` on the window's keyframes, fused trajectory (`drive_inputs.fuse_log_trajectory`)
 and Lidar ground points. What a window sees depends on the log's content only, never on arrival timing,
 so replaying a log twice gives the same map (tests/test_replay_determinism.py).
@@ -71,16 +71,16 @@ from mapping.inputs.drive_inputs import (
     lidar_ground_from_packets,
     segmenter_for,
 )
-from mapping.inputs.lidar_ground import GroundFilter
+from mapping.inputs.lidar_ground import GroundFilter, keeps_scan
 from mapping.live import live_view, map_tiles
 from mapping.live.keyframe_spool import KeyframeSpool
 from mapping.live.worker_journal import VERSION as JOURNAL_VERSION
 from mapping.live.worker_journal import append_line, new_state, progress_line, read_journal
+from mapping.localization.keyframe_spacing import spaced_by_distance
 from mapping.localization.sensor_time import ClockMap, fit_clock
-from mapping.localization.trajectory import Trajectory
+from mapping.localization.trajectory import HorizontalTrack, Trajectory
 from mapping.method.road_map import NO_LABEL
 from mapping.method.scene_data import Keyframe
-from mapping.method.scene_data import Trajectory as PathTrajectory
 from mapping.outputs.map_export import bev_rasters, elevation_image
 
 PROCESS = "mapper"
@@ -92,7 +92,6 @@ STALLED_TOPIC_NS = 30_000_000_000  # a topic this far behind the newest message 
 FREE_CLOCK_RATE_FIT_MIN_S = 600.0  # shorter spans: a free-running clock is taken at rate 1
 TILE_M = 40.0
 OVERVIEW_MAX_CELLS = 4_000_000  # the final map's PNGs: an overview, coarser past 4 M cells of bounding box
-LIDAR_EVERY_N_SCANS = 2
 WINDOW_ATTEMPTS = 2
 DRAIN_QUIET_S = 1.0  # at shutdown: the bus counts as drained after this long without a message
 SMALL_TOPICS = (GNSS_FIX, IMU, WHEEL_SPEEDS, TIME_ANCHOR)
@@ -258,7 +257,7 @@ class BusReader(threading.Thread):
         if topic == LIDAR_PACKETS:
             n = self.lidar_count
             self.lidar_count += 1
-            if (n // self.packets_per_scan) % LIDAR_EVERY_N_SCANS:
+            if not keeps_scan(n, self.packets_per_scan, self.config.mapper.inputs.lidar_every_n_scans):
                 return
         with self.lock:
             self.spool.append(topic, msg, arrival)
@@ -362,7 +361,7 @@ class MappingWorker:
         self.cameras = camera_models(config)
         self.cam_names = sorted(self.cameras)
         self.segmenter = segmenter_for(config, config_path)  # None: the masks on the bus
-        self.res = self.mapper.mesh_side_m
+        self.res = self.mapper.mesh.side_m
         self.tile_cells = max(1, int(round(TILE_M / self.res)))
         self.health = HealthCounters(PROCESS)
         self.state = WorkerState()
@@ -472,10 +471,10 @@ class MappingWorker:
 
     # ---- windows -----------------------------------------------------------------------------------------
     def _window_ready(self, k: int, end_of_drive: bool) -> bool:
-        _, _, s_hi = window_span(k, self.mapper.window_before_m, self.mapper.window_after_m)
+        _, _, s_hi = window_span(k, self.mapper.windows.before_m, self.mapper.windows.after_m)
         if end_of_drive:
-            return k < windows_for_drive(self.state.distance_m, self.mapper.window_before_m,
-                                         self.mapper.window_after_m)
+            return k < windows_for_drive(self.state.distance_m, self.mapper.windows.before_m,
+                                         self.mapper.windows.after_m)
         # the road reaches the window's end, and every input it reads has arrived: its map is then the same
         # whenever the worker gets to it
         return (bool(self.odometry.knots_s) and self.state.distance_m >= s_hi
@@ -483,7 +482,7 @@ class MappingWorker:
 
     def _window_inputs(self, k: int) -> tuple:
         m = self.mapper
-        centre, s_lo, s_hi = window_span(k, m.window_before_m, m.window_after_m)
+        centre, s_lo, s_hi = window_span(k, m.windows.before_m, m.windows.after_m)
         s_hi = min(s_hi, self.state.distance_m)
         t_lo, t_hi = self.odometry.time_at(s_lo), self.odometry.time_at(s_hi)
         small = self.reader.small_copy()
@@ -510,23 +509,18 @@ class MappingWorker:
         inside = (traj.times_ns > t_lo) & (traj.times_ns < t_hi)
         times = np.concatenate([[t_lo], traj.times_ns[inside], [t_hi]]).astype(np.int64)
         pos, _ = traj.interpolate(times)
-        path = PathTrajectory((times - t_lo) / 1e9, pos)
+        path = HorizontalTrack((times - t_lo) / 1e9, pos)
         keyframes = []
-        spacing = m.keyframe_spacing_m
+        spacing = m.inputs.keyframe_spacing_m
         for cam in self.config.sensors.cameras:
             masks = {x.sensor_time_ns: x for x in by_topic.get(mask_topic(cam.name), [])}
             frames = sorted(by_topic.get(camera_topic(cam.name), []), key=lambda f: f.sensor_time_ns)
             if not frames:
                 continue
             host = clocks[camera_topic(cam.name)].to_host([f.sensor_time_ns for f in frames])
-            last_s = -np.inf
-            for f, t in zip(frames, host, strict=True):
-                if not t_lo <= t <= t_hi or (self.segmenter is None and f.sensor_time_ns not in masks):
-                    continue
-                s = float(traj.distance_at(int(t))[0])
-                if s - last_s < spacing:
-                    continue
-                last_s = s
+            candidates = [(f, t) for f, t in zip(frames, host, strict=True)
+                          if t_lo <= t <= t_hi and (self.segmenter is not None or f.sensor_time_ns in masks)]
+            for f, t in spaced_by_distance(candidates, lambda ft: float(traj.distance_3d_at(int(ft[1]))[0]), spacing):
                 image = decode_image(f)
                 keyframes.append(Keyframe(cam.name, (int(t) - t_lo) / 1e9,
                                           camera_pose(traj, int(t), cam.extrinsics.matrix()), image,
@@ -536,7 +530,7 @@ class MappingWorker:
         packets = by_topic.get(LIDAR_PACKETS, [])
         if packets:
             ground = lidar_ground_from_packets(packets, clocks[LIDAR_PACKETS], self.lidar_meta, self.config, traj, 1,
-                                               GroundFilter(corridor_half_width_m=m.corridor_half_width_m))
+                                               GroundFilter(corridor_half_width_m=m.mesh.corridor_half_width_m))
         fed = dict(by_topic)
         for t in (GNSS_FIX, IMU, WHEEL_SPEEDS):
             fed[t] = [x for x in small[t] if t_lo <= x.host_mono_ns <= t_hi]
@@ -553,15 +547,15 @@ class MappingWorker:
         centre, s_lo, s_hi, t_lo, t_hi, traj, path, keyframes, ground, provenance = self._window_inputs(k)
         if not keyframes:
             raise ValueError(f"window {k}: no keyframes in [{s_lo:.1f}, {s_hi:.1f}] m")
-        seed = m.seed * 1_000_003 + k
+        seed = m.model.seed * 1_000_003 + k
         np.random.seed(seed % 2**32)
         torch.manual_seed(seed)
-        cfg = m.model_copy(update={"seed": seed})
+        cfg = m.model_copy(update={"model": m.model.model_copy(update={"seed": seed})})
         result = reconstruct(keyframes, self.cameras, path, ground, cfg, self.config.vehicle.reference_height_m,
                              holdout_every=0, progress=False)
-        bev = bev_rasters(result.road_map, self.cam_names, self.res)
+        bev = bev_rasters(result.road_map, self.cam_names, self.res, m.runtime.raster_threads)
         j0, i0 = (int(round(v / self.res)) for v in bev["origin_xy"])
-        half = (m.window_before_m + m.window_after_m) / 4.0
+        half = (m.windows.before_m + m.windows.after_m) / 4.0
         c_lo = -np.inf if k == 0 else (self.odometry.time_at(centre - half) - t_lo) / 1e9
         c_hi = (self.odometry.time_at(centre + half) - t_lo) / 1e9
         h, w = bev["elevation"].shape
@@ -617,7 +611,7 @@ class MappingWorker:
             except Exception as exc:  # counted, reported, retried, then recorded as failed
                 self._error(f"window {k} attempt {attempts}: {type(exc).__name__}: {exc}")
                 if attempts >= WINDOW_ATTEMPTS:
-                    centre, s_lo, s_hi = window_span(k, self.mapper.window_before_m, self.mapper.window_after_m)
+                    centre, s_lo, s_hi = window_span(k, self.mapper.windows.before_m, self.mapper.windows.after_m)
                     entry = {"index": k, "status": "failed", "centre_m": centre, "start_m": s_lo, "end_m": s_hi,
                              "error": self.health.last_error, "finished_mono_ns": time.monotonic_ns()}
                     self.state.windows_failed += 1
@@ -630,7 +624,7 @@ class MappingWorker:
             self.state.last_window_wall_s = entry["wall_s"]
         self.state.mapped_until_m = max(self.state.mapped_until_m, min(entry["end_m"], self.state.distance_m))
         self._save_journal(entry)
-        _, next_lo, _ = window_span(k + 1, self.mapper.window_before_m, self.mapper.window_after_m)
+        _, next_lo, _ = window_span(k + 1, self.mapper.windows.before_m, self.mapper.windows.after_m)
         self.reader.prune(self.odometry.time_at(next_lo) - int(FUSION_MARGIN_S * 1e9))
         return True
 
@@ -640,7 +634,7 @@ class MappingWorker:
         m = self.mapper
         ready = 0
         k = self.journal["next_window"]
-        while window_span(k + ready, m.window_before_m, m.window_after_m)[2] <= st.distance_m:
+        while window_span(k + ready, m.windows.before_m, m.windows.after_m)[2] <= st.distance_m:
             ready += 1
         st.windows_pending = ready
         msg = self.health.snapshot()
@@ -712,7 +706,7 @@ class MappingWorker:
 
     # ---- main loop ---------------------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> int:
-        torch.set_num_threads(self.mapper.threads)
+        torch.set_num_threads(self.mapper.runtime.torch_threads_fast_fit)
         pub = pubsub.open_publisher(self.config, health_topic(PROCESS))
         health_stop = threading.Event()
 

@@ -1,4 +1,14 @@
-"""A 6-DoF vehicle trajectory in a local ENU frame: poses at any time (linear + SLERP) and by distance."""
+"""The vehicle's trajectory, one concept with two views:
+
+- `Trajectory`: 6-DoF poses in a local ENU frame on the host clock (int64 ns): poses at any time (linear +
+  SLERP) and by distance travelled, measured in 3-D along the path (`distance_3d_at`, ...). Pose fusion makes
+  it; the inputs interpolate camera poses and Lidar scans on it and space keyframes by its distance.
+- `HorizontalTrack`: the reference point's positions over seconds from a start, with distances measured
+  horizontally (x, y) (`horizontal_distance_at`): what the road mesh, the fits and the evaluation take
+  (`Trajectory.horizontal_track()`).
+"""
+
+from __future__ import annotations
 
 from dataclasses import dataclass, field
 
@@ -22,7 +32,7 @@ class Trajectory:
     origin_lat_deg: float
     origin_lon_deg: float
     origin_alt_m: float
-    cumulative_distance: np.ndarray = field(init=False, repr=False, compare=False)
+    cumulative_distance_3d: np.ndarray = field(init=False, repr=False, compare=False)  # (N,) m at each pose
     _slerp: Slerp = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -41,7 +51,7 @@ class Trajectory:
         object.__setattr__(self, "positions", positions)
         object.__setattr__(self, "quaternions", rotations.as_quat())
         steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
-        object.__setattr__(self, "cumulative_distance", np.concatenate([[0.0], np.cumsum(steps)]))
+        object.__setattr__(self, "cumulative_distance_3d", np.concatenate([[0.0], np.cumsum(steps)]))
         object.__setattr__(self, "_slerp", Slerp(self._seconds(times), rotations))
 
     @property
@@ -69,18 +79,18 @@ class Trajectory:
         positions = np.stack([np.interp(seconds, knots, self.positions[:, k]) for k in range(3)], axis=1)
         return positions, self._slerp(seconds).as_quat()
 
-    def distance_at(self, times_ns) -> np.ndarray:
-        """Distance travelled along the path from the first pose, at each time (metres)."""
+    def distance_3d_at(self, times_ns) -> np.ndarray:
+        """Distance travelled along the path (3-D) from the first pose, at each time (metres)."""
         times = np.atleast_1d(np.asarray(times_ns, dtype=np.int64))
         self._check_covered(times)
-        return np.interp(self._seconds(times), self._seconds(self.times_ns), self.cumulative_distance)
+        return np.interp(self._seconds(times), self._seconds(self.times_ns), self.cumulative_distance_3d)
 
-    def time_at_distance(self, distances) -> np.ndarray:
-        """First time (int64 ns) at which each distance along the path is reached."""
+    def time_at_distance_3d(self, distances) -> np.ndarray:
+        """First time (int64 ns) at which each distance along the path (3-D) is reached."""
         distances = np.atleast_1d(np.asarray(distances, dtype=np.float64))
-        if np.any((distances < 0.0) | (distances > self.cumulative_distance[-1])):
-            raise ValueError(f"distances must lie in [0, {self.cumulative_distance[-1]:.3f}] m")
-        cumulative = self.cumulative_distance
+        if np.any((distances < 0.0) | (distances > self.cumulative_distance_3d[-1])):
+            raise ValueError(f"distances must lie in [0, {self.cumulative_distance_3d[-1]:.3f}] m")
+        cumulative = self.cumulative_distance_3d
         after = np.clip(np.searchsorted(cumulative, distances, side="left"), 1, len(cumulative) - 1)
         before = after - 1  # the last pose short of the distance: the departure point after a stop
         span = cumulative[after] - cumulative[before]
@@ -88,6 +98,32 @@ class Trajectory:
         steps_ns = self.times_ns[after] - self.times_ns[before]
         return self.times_ns[before] + np.round(fraction * steps_ns).astype(np.int64)
 
-    def pose_at_distance(self, distances) -> tuple[np.ndarray, np.ndarray]:
-        """Poses where each distance along the path is first reached: (positions (M,3), quaternions (M,4))."""
-        return self.interpolate(self.time_at_distance(distances))
+    def pose_at_distance_3d(self, distances) -> tuple[np.ndarray, np.ndarray]:
+        """Poses where each distance along the path (3-D) is first reached: (positions (M,3), quaternions (M,4))."""
+        return self.interpolate(self.time_at_distance_3d(distances))
+
+    def horizontal_track(self) -> HorizontalTrack:
+        """The trajectory as the reconstruction takes it: seconds from the first pose, positions."""
+        t0 = self.times_ns[0]
+        return HorizontalTrack((self.times_ns - t0) / 1e9, self.positions)
+
+
+@dataclass(frozen=True)
+class HorizontalTrack:
+    """The vehicle reference point over time (world frame), distances measured horizontally (x, y)."""
+
+    times: np.ndarray  # (N,) seconds, increasing
+    positions: np.ndarray  # (N, 3) metres
+
+    def horizontal_distance(self) -> np.ndarray:
+        """Distance travelled (m) at each sample, horizontal."""
+        step = np.linalg.norm(np.diff(self.positions[:, :2], axis=0), axis=1)
+        return np.concatenate([[0.0], np.cumsum(step)])
+
+    def horizontal_distance_at(self, t: np.ndarray | float) -> np.ndarray:
+        """Distance travelled (m, horizontal) at times `t` (seconds, the clock of `times`)."""
+        return np.interp(t, self.times, self.horizontal_distance())
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.times[-1] - self.times[0])

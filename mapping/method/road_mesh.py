@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mapping.method.scene_data import Trajectory
+from mapping.localization.trajectory import HorizontalTrack
 
 _ROW_CHUNK = 256  # lattice rows per corridor query (bounds the temporary memory)
 _RESAMPLE_M = 0.25  # trajectory resampling step for distance queries
@@ -55,8 +55,8 @@ def node_xy(rc: np.ndarray, origin: tuple[float, float], side_m: float) -> np.nd
     return np.stack([x, y], -1)
 
 
-def _resampled_track(trajectory: Trajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    s_traj = trajectory.along_track()
+def _resampled_track(trajectory: HorizontalTrack) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    s_traj = trajectory.horizontal_distance()
     s = np.append(np.arange(0.0, s_traj[-1], _RESAMPLE_M), s_traj[-1])
     xy = np.stack([np.interp(s, s_traj, trajectory.positions[:, k]) for k in range(2)], 1)
     tangent = np.gradient(xy, axis=0)
@@ -67,8 +67,8 @@ def _resampled_track(trajectory: Trajectory) -> tuple[np.ndarray, np.ndarray, np
 def _blocks_near_track(tree: cKDTree, lo: np.ndarray, hi: np.ndarray, half_width_m: float) -> np.ndarray:
     """(X, Y) bool over _BLOCK_M squares from `lo` covering `hi`: the squares that may hold a point within
     `half_width_m` of the track (their centre within that plus half their diagonal). Only the nodes in them
-    are looked up in the tree: a drive's bounding box is mostly far from its track (city31: a third of the
-    box's 3.1 M lattice nodes are in the corridor, the lookups were 3 s)."""
+    are looked up in the tree: a drive's bounding box is mostly far from its track, and most of its lattice
+    nodes need no lookup."""
     shape = np.floor((hi - lo) / _BLOCK_M).astype(np.int64) + 1
     ix, iy = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
     centres = lo + (np.stack([ix.ravel(), iy.ravel()], 1) + 0.5) * _BLOCK_M
@@ -78,7 +78,7 @@ def _blocks_near_track(tree: cKDTree, lo: np.ndarray, hi: np.ndarray, half_width
 
 
 def build_road_mesh(
-    trajectory: Trajectory,
+    trajectory: HorizontalTrack,
     half_width_m: float,
     side_m: float,
     reference_height_m: float,
@@ -120,7 +120,7 @@ def build_road_mesh(
         s_parts.append(np.clip(s, 0.0, s_dense[-1]))
     rc = np.concatenate(rc_parts)
     s = np.concatenate(s_parts).astype(np.float32)
-    s_traj = trajectory.along_track()
+    s_traj = trajectory.horizontal_distance()
     z_traj = trajectory.positions[:, 2]
     if flat:
         z0 = np.full(len(rc), np.mean(z_traj) - reference_height_m, np.float32)

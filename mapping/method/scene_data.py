@@ -1,4 +1,5 @@
-"""In-memory inputs of the road-surface reconstruction: cameras, keyframes, trajectory, ground truth.
+"""In-memory inputs of the road-surface reconstruction: cameras, keyframes, ground truth (the trajectory they go
+with: mapping.localization.trajectory.HorizontalTrack).
 
 Frames: world is metric with z up; camera axes follow OpenCV (x right, y down, z forward).
 """
@@ -30,30 +31,10 @@ class Keyframe:
     """One camera image with its pose and segmentation."""
 
     camera: str  # CameraModel.name
-    timestamp: float  # seconds, same clock as Trajectory.times
+    timestamp: float  # seconds, same clock as HorizontalTrack.times
     T_world_camera: np.ndarray  # 4x4, camera (OpenCV axes) to world
     image: np.ndarray  # HxWx3 uint8 RGB
     semantics: np.ndarray  # HxW uint8 ids of daemon.spine.semantic_classes.SemanticClass
-
-
-@dataclass(frozen=True)
-class Trajectory:
-    """The vehicle reference point over time (world frame)."""
-
-    times: np.ndarray  # (N,) seconds, increasing
-    positions: np.ndarray  # (N, 3) metres
-
-    def along_track(self) -> np.ndarray:
-        """Distance travelled (m) at each trajectory sample, horizontal."""
-        step = np.linalg.norm(np.diff(self.positions[:, :2], axis=0), axis=1)
-        return np.concatenate([[0.0], np.cumsum(step)])
-
-    def along_track_at(self, t: np.ndarray | float) -> np.ndarray:
-        return np.interp(t, self.times, self.along_track())
-
-    @property
-    def duration_s(self) -> float:
-        return float(self.times[-1] - self.times[0])
 
 
 @dataclass(frozen=True)

@@ -110,14 +110,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-lidar", action="store_true", help="no Lidar elevation supervision")
     parser.add_argument("--ablation", choices=sorted(ABLATIONS), help="switch off one part of EMIE-MAP")
     parser.add_argument("--faithful", action="store_true", help="the paper's full computation (slow)")
-    parser.add_argument("--epochs", type=int, help="optimisation epochs (default: the config's mapper.epochs)")
+    parser.add_argument("--epochs", type=int,
+                        help="epochs of the faithful fit (default: the config's mapper.faithful_fit.epochs)")
     args = parser.parse_args(argv)
     if args.config:
         config, config_path = load_config(args.config), Path(args.config)
     else:
         config, config_path = config_from_logs(args.logs)
     if args.epochs is not None:
-        config = config.model_copy(update={"mapper": config.mapper.model_copy(update={"epochs": args.epochs})})
+        faithful_fit = config.mapper.faithful_fit.model_copy(update={"epochs": args.epochs})
+        config = config.model_copy(update={"mapper": config.mapper.model_copy(update={"faithful_fit": faithful_fit})})
     truth = DriveTruth.load(args.gt) if args.gt else None
     result, _ = run_reconstruction(args.logs, args.out, config, config_path, truth=truth,  # ConfigError: exit 2
                                    use_lidar=not args.no_lidar, ablation=args.ablation, faithful=args.faithful)

@@ -19,7 +19,6 @@ from mapping.method.road_mesh import used_vertices
 from mapping.outputs.map_metrics import observed_triangles
 
 _ROWS_PER_CHUNK = 256
-RASTER_THREADS = 2  # numpy and torch release the GIL in the blocks' array work
 
 
 def vertex_labels(road_map: RoadMap) -> np.ndarray:
@@ -28,8 +27,9 @@ def vertex_labels(road_map: RoadMap) -> np.ndarray:
     return road_map.semantic_logits.argmax(1).numpy().astype(np.uint8)
 
 
-def bev_rasters(road_map: RoadMap, cameras: list[str], resolution_m: float) -> dict:
-    """Rasters over the observed area; cell (i, j) is centred at (x0 + j*res, y0 + i*res)."""
+def bev_rasters(road_map: RoadMap, cameras: list[str], resolution_m: float, threads: int) -> dict:
+    """Rasters over the observed area; cell (i, j) is centred at (x0 + j*res, y0 + i*res). Blocks of rows are
+    filled on `threads` threads (numpy and torch release the GIL in the blocks' array work)."""
     seen = road_map.observed > 0
     xy = road_map.mesh.xy[seen] if seen.any() else road_map.mesh.xy
     lo, hi = np.floor(xy.min(0) / resolution_m) * resolution_m, xy.max(0)
@@ -56,7 +56,7 @@ def bev_rasters(road_map: RoadMap, cameras: list[str], resolution_m: float) -> d
         for c in cameras:
             rgb[c][flat] = np.clip((colours[c][ids] * wt[..., None]).sum(1) * 255 + 0.5, 0, 255).astype(np.uint8)
 
-    with ThreadPoolExecutor(RASTER_THREADS, thread_name_prefix="export-raster") as pool:
+    with ThreadPoolExecutor(threads, thread_name_prefix="export-raster") as pool:
         list(pool.map(fill, range(0, h, _ROWS_PER_CHUNK)))
     return {"origin_xy": (float(lo[0]), float(lo[1])), "elevation": elevation, "labels": labels, "rgb": rgb}
 
@@ -72,17 +72,17 @@ def elevation_image(elevation: np.ndarray) -> np.ndarray:
     return out
 
 
-def export_map(road_map: RoadMap, out_dir: Path, cameras: list[str]) -> dict[str, Path]:
+def export_map(road_map: RoadMap, out_dir: Path, cameras: list[str], raster_threads: int) -> dict[str, Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     with ThreadPoolExecutor(1, thread_name_prefix="export-mesh") as pool:  # the mesh beside the rasters
         mesh_files = pool.submit(_export_mesh, road_map, out_dir, cameras[0])
-        return _export_rasters(road_map, out_dir, cameras) | mesh_files.result()
+        return _export_rasters(road_map, out_dir, cameras, raster_threads) | mesh_files.result()
 
 
-def _export_rasters(road_map: RoadMap, out_dir: Path, cameras: list[str]) -> dict[str, Path]:
+def _export_rasters(road_map: RoadMap, out_dir: Path, cameras: list[str], raster_threads: int) -> dict[str, Path]:
     """The bird's-eye rasters: RGB per camera, semantics and elevation as PNGs, the grids as .npy, bev.json."""
     res = road_map.mesh.side_m
-    bev = bev_rasters(road_map, cameras, res)
+    bev = bev_rasters(road_map, cameras, res, raster_threads)
     files: dict[str, Path] = {}
 
     def save_png(name: str, rgb: np.ndarray) -> None:

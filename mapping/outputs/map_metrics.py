@@ -11,15 +11,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from daemon.spine.semantic_classes import NUM_MAP_CLASSES, ROAD_SURFACE_CLASSES, SemanticClass
+from mapping.localization.trajectory import HorizontalTrack
 from mapping.method.mesh_location import Located, all_observed
 from mapping.method.mesh_renderer import sampled_pixels
 from mapping.method.road_map import NO_LABEL, RoadMap, ViewGeometry, WindowIndex, view_geometry, view_labels, view_rgb
 from mapping.method.road_mesh import locate
-from mapping.method.scene_data import CameraModel, GroundTruth, Keyframe, Trajectory
+from mapping.method.scene_data import CameraModel, GroundTruth, Keyframe
 
 TRAIN_VIEWS_EVALUATED = 12
 HOLDOUT_VIEWS_EVALUATED = 36  # evenly spaced along the drive: evaluation costs the same on long drives
-EVAL_THREADS = 2
 EVAL_STRIDE = 2  # views are rendered and compared at every 2nd pixel row and column
 BEHIND_CAMERA_M = 10.0  # the cameras look forward: faces further behind the view's trajectory point are not drawn
 
@@ -170,11 +170,11 @@ class _ViewSeen:
     confusion: np.ndarray  # (C, C) rendered semantics against the view's segmentation mask
 
 
-def _view_seen(road_map: RoadMap, cameras: dict[str, CameraModel], kf: Keyframe, trajectory: Trajectory,
+def _view_seen(road_map: RoadMap, cameras: dict[str, CameraModel], kf: Keyframe, trajectory: HorizontalTrack,
                window_before_m: float, window_after_m: float, windows: WindowIndex, mapped: np.ndarray,
                stride: int = EVAL_STRIDE) -> _ViewSeen:
     """One view over the pixels that see the mapped surface (faces whose vertices were all supervised)."""
-    s = float(trajectory.along_track_at(kf.timestamp))
+    s = float(trajectory.horizontal_distance_at(kf.timestamp))
     faces = windows.faces(s - min(window_before_m, BEHIND_CAMERA_M), s + window_after_m)
     camera = cameras[kf.camera]
     geometry = view_geometry(road_map, faces[mapped[faces]], kf, camera, stride)
@@ -216,22 +216,23 @@ def start_evaluation(
     cameras: dict[str, CameraModel],
     holdout: list[Keyframe],
     train: list[Keyframe],
-    trajectory: Trajectory,
+    trajectory: HorizontalTrack,
     lidar_points: np.ndarray | None,
     gt: GroundTruth | None,
     window_before_m: float,
     window_after_m: float,
+    threads: int,
     points: MetricPoints | None = None,
 ) -> PendingEvaluation:
     """Start every part of the evaluation that needs only the final surface and semantics (the elevation
     figures, the bird's-eye mIoU, each view's render and semantic confusion) as tasks on a pool of
-    EVAL_THREADS threads, the longest first: numpy and torch release the GIL in their array work (torch keeps
+    `threads` threads, the longest first: numpy and torch release the GIL in their array work (torch keeps
     one intra-op thread: two spun against each other on this 2-core machine). `points`: the Lidar points and
     truth cells placed on the mesh, if placed ahead of time (reconstruct does before the fits)."""
     windows = WindowIndex.of(road_map.mesh)
     mapped = (road_map.observed[road_map.mesh.faces] > 0).all(1)
     lidar_at, truth_at = (points.lidar, points.truth) if points is not None else (None, None)
-    pool = ThreadPoolExecutor(EVAL_THREADS, thread_name_prefix="evaluate")
+    pool = ThreadPoolExecutor(threads, thread_name_prefix="evaluate")
     elev_error = pool.submit(elev_error_cm, road_map, lidar_points, lidar_at)
     elev_mae = pool.submit(elev_mae_gt_cm, road_map, gt, truth_at)
     bev = pool.submit(bev_confusion, road_map, gt, truth_at)

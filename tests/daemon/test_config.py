@@ -6,7 +6,7 @@ import pytest
 import yaml
 
 from daemon.commands.check_config import main as check_config_main
-from daemon.spine.config import ConfigError, load_config
+from daemon.spine.config import ConfigError, MapperConfig, load_config
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -15,7 +15,14 @@ CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 def test_shipped_configs_load(name):
     config = load_config(CONFIGS / name)
     assert [c.name for c in config.sensors.cameras] == ["front_wide", "front_left", "front_right"]
-    assert config.mapper.learning_rates.elevation_mlp == 0.01
+    assert config.mapper.faithful_fit.learning_rates.elevation_mlp == 0.01
+
+
+def test_mapper_sections_default_to_what_the_fits_used_and_are_set_from_yaml(tmp_path):
+    """configs/sim.yaml states the defaults; a fast-fit key in the YAML reaches the config."""
+    assert load_config(CONFIGS / "sim.yaml").mapper == MapperConfig()
+    path = _write_bad(tmp_path, lambda d: d["mapper"]["fast_fit"].update(lidar_detail_passes=0))
+    assert load_config(path).mapper.fast_fit.lidar_detail_passes == 0
 
 
 def test_car_config_matches_the_paper_car():
@@ -40,7 +47,9 @@ def _write_bad(tmp_path, mutate) -> Path:
         (lambda d: d["sensors"]["cameras"][0].update(width=-5), "sensors.cameras.0.width", "greater than 0"),
         (lambda d: d["sensors"]["cameras"][1].pop("intrinsics"), "sensors.cameras.1.intrinsics", "missing"),
         (lambda d: d["sensors"]["lidar"].update(port=70000), "sensors.lidar.port", "less than or equal"),
-        (lambda d: d["mapper"].update(epochs="many"), "mapper.epochs", "valid integer"),
+        (lambda d: d["mapper"]["faithful_fit"].update(epochs="many"), "mapper.faithful_fit.epochs", "valid integer"),
+        (lambda d: d["mapper"].update(window_before_m=80.0), "mapper.window_before_m", "unknown key"),
+        (lambda d: d["mapper"]["fast_fit"].update(ahead_m=0), "mapper.fast_fit.ahead_m", "greater than 0"),
         (lambda d: d["recorder"].update(segment_secnds=5), "recorder.segment_secnds", "unknown key"),
         (lambda d: d["sensors"]["can"]["signals"].update(wheel_speed_fl="NOSIGNAL"),
          "sensors.can.signals.wheel_speed_fl", "MESSAGE.SIGNAL"),
@@ -74,6 +83,6 @@ def test_not_yaml_and_missing_file(tmp_path):
 
 def test_check_config_command_exit_codes(tmp_path, capsys):
     assert check_config_main([str(CONFIGS / "sim.yaml"), "--quiet"]) == 0
-    bad = _write_bad(tmp_path, lambda d: d["mapper"].update(batch_size=0))
+    bad = _write_bad(tmp_path, lambda d: d["mapper"]["faithful_fit"].update(batch_size=0))
     assert check_config_main([str(bad)]) == 2
-    assert "mapper.batch_size" in capsys.readouterr().err
+    assert "mapper.faithful_fit.batch_size" in capsys.readouterr().err

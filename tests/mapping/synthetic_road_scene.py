@@ -10,7 +10,8 @@ import numpy as np
 
 from daemon.spine.config import Extrinsics
 from daemon.spine.semantic_classes import SemanticClass
-from mapping.method.scene_data import CameraModel, GroundTruth, Keyframe, Trajectory
+from mapping.localization.trajectory import HorizontalTrack
+from mapping.method.scene_data import CameraModel, GroundTruth, Keyframe
 
 ROAD_HALF_WIDTH_M = 4.0
 
@@ -76,7 +77,7 @@ def camera_rig(width: int = 160, height: int = 90) -> dict[str, tuple[CameraMode
 class Scene:
     keyframes: list[Keyframe]
     cameras: dict[str, CameraModel]
-    trajectory: Trajectory
+    trajectory: HorizontalTrack
     lidar: np.ndarray
     gt: GroundTruth
     surface: Surface
@@ -98,7 +99,7 @@ def make_scene(
     duration = length_m / speed_mps
     times = np.arange(0.0, duration + 1e-9, 0.05)
     x = speed_mps * times
-    traj = Trajectory(times, np.stack([x, 0 * x, surface.height(x, 0 * x) + ref], 1))
+    traj = HorizontalTrack(times, np.stack([x, 0 * x, surface.height(x, 0 * x) + ref], 1))
     rig = camera_rig(width, height)
     keyframes = []
     for t in np.arange(0.0, duration - 1e-9, 1.0 / rate_hz):

@@ -2,15 +2,15 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from mapping.localization.trajectory import HorizontalTrack
 from mapping.method.road_mesh import build_road_mesh, locate, node_xy, used_vertices
-from mapping.method.scene_data import Trajectory
 
 
 @pytest.fixture(scope="module")
 def curve():
     t = np.linspace(0, 10, 101)
     pos = np.stack([4 * t, 6 * np.sin(t / 3), 0.3 * t], 1)
-    return Trajectory(t, pos), build_road_mesh(Trajectory(t, pos), 5.0, 0.2, 0.5)
+    return HorizontalTrack(t, pos), build_road_mesh(HorizontalTrack(t, pos), 5.0, 0.2, 0.5)
 
 
 def test_faces_are_equilateral_and_counter_clockwise(curve):
@@ -44,7 +44,7 @@ def test_mesh_covers_the_corridor_and_nothing_beyond(curve):
 def test_the_lattice_past_the_corridor_bounds_is_left_out_whatever_the_drive_length(length_m):
     """The lattice reaches past the bounding box the corridor test divides into squares (a 10.725 m drive
     once indexed a square beyond the last)."""
-    track = Trajectory(np.array([0.0, 10.0]), np.array([[0.0, 0.0, 1.5], [length_m, 0.0, 1.5]]))
+    track = HorizontalTrack(np.array([0.0, 10.0]), np.array([[0.0, 0.0, 1.5], [length_m, 0.0, 1.5]]))
     mesh = build_road_mesh(track, 2.0, 0.1, 1.5)
     x, y = mesh.xy[:, 0], mesh.xy[:, 1]
     d = np.hypot(np.maximum(0.0, np.maximum(-x, x - length_m)), y)
@@ -68,7 +68,7 @@ def test_neighbours_are_one_side_apart_and_z0_follows_the_trajectory(curve):
     assert np.allclose(np.linalg.norm(mesh.xy[i] - mesh.xy[nb[i, j]], axis=1), 0.2)
     assert (nb >= 0).sum(1).max() == 6
     # z0 = trajectory height at the vertex's along-track position minus the reference height
-    s_traj = traj.along_track()
+    s_traj = traj.horizontal_distance()
     assert np.allclose(mesh.z0, np.interp(mesh.s, s_traj, traj.positions[:, 2]) - 0.5, atol=1e-5)
     flat = build_road_mesh(traj, 5.0, 0.2, 0.5, flat=True)
     assert np.ptp(flat.z0) == 0

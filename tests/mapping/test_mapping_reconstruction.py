@@ -8,7 +8,14 @@ import trimesh
 
 import mapping.fits.fast_fit as fast_fit
 import mapping.outputs.map_metrics as map_metrics
-from daemon.spine.config import MapperConfig
+from daemon.spine.config import (
+    FaithfulFitConfig,
+    InputsConfig,
+    MapperConfig,
+    MeshConfig,
+    RuntimeConfig,
+    WindowsConfig,
+)
 from daemon.spine.semantic_classes import SemanticClass
 from mapping.fits.lidar_detail import fit_lidar_detail
 from mapping.fits.observation_fit import fit_elevation, semantic_logits_from_counts
@@ -20,16 +27,19 @@ from mapping.fits.vertex_observations import (
     pixel_ground_length_m,
     project_points,
 )
+from mapping.localization.trajectory import HorizontalTrack
 from mapping.method.mesh_location import Located
 from mapping.method.road_map import ABLATIONS, new_road_map, variant_for
 from mapping.method.road_mesh import build_road_mesh, locate
 from mapping.method.row_sparse_adam import RowSparseAdam
-from mapping.method.scene_data import CameraModel, Keyframe, Trajectory
+from mapping.method.scene_data import CameraModel, Keyframe
 from mapping.outputs.map_metrics import MetricPoints, elev_error_cm, elev_mae_gt_cm, truth_cells
 from tests.mapping.synthetic_road_scene import make_scene, texture
 
-CONFIG = MapperConfig(mesh_side_m=0.2, corridor_half_width_m=5.0, keyframe_spacing_m=0.0, threads=1,
-                      window_before_m=20.0, window_after_m=20.0)
+CONFIG = MapperConfig(mesh=MeshConfig(side_m=0.2, corridor_half_width_m=5.0),
+                      inputs=InputsConfig(keyframe_spacing_m=0.0), runtime=RuntimeConfig(torch_threads_faithful_fit=1),
+                      windows=WindowsConfig(before_m=20.0, after_m=20.0))
+
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +51,7 @@ def scene():
 def fast_run(scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("map")
     result = reconstruct(scene.keyframes, scene.cameras, scene.trajectory, scene.lidar,
-                         CONFIG.model_copy(update={"epochs": 10}), scene.reference_height_m, out, gt=scene.gt,
+                         CONFIG, scene.reference_height_m, out, gt=scene.gt,
                          holdout_every=5, progress=False)
     return result, out
 
@@ -72,7 +82,8 @@ def test_faithful_path_loss_falls_and_elevation_error_shrinks(scene):
     """The paper's computation (every window vertex through the MLPs, differentiable rendering of pixels):
     3 epochs on the tiny scene take the loss from ~1.9 to ~0.7 and the elevation error from ~11 to ~6 cm."""
     result = reconstruct(scene.keyframes, scene.cameras, scene.trajectory, scene.lidar,
-                         CONFIG.model_copy(update={"epochs": 3}), scene.reference_height_m, gt=scene.gt,
+                         CONFIG.model_copy(update={"faithful_fit": FaithfulFitConfig(epochs=3)}),
+                         scene.reference_height_m, gt=scene.gt,
                          faithful=True, holdout_every=5, progress=False)
     m = result.metrics
     assert m["loss_last"] < 0.5 * m["loss_first"]
@@ -94,7 +105,7 @@ def test_export_writes_readable_rasters_and_meshes(fast_run):
     mesh = trimesh.load(files["mesh.ply"], process=False)
     assert len(mesh.faces) > 1000 and mesh.visual.vertex_colors.shape[1] == 4
     state = torch.load(files["checkpoint.pt"])
-    assert state["colour_params"].shape[1] == CONFIG.colour_code_dim and "elevation_mlp" in state
+    assert state["colour_params"].shape[1] == CONFIG.model.colour_code_dim and "elevation_mlp" in state
 
 
 @pytest.mark.parametrize("ablation", sorted(ABLATIONS))
@@ -122,7 +133,7 @@ def test_ablation_switches_change_the_parameter_sets(scene, ablation):
 
 
 def test_ablation_runs_report_what_they_lack(scene):
-    cfg = CONFIG.model_copy(update={"epochs": 1})
+    cfg = CONFIG
     r = reconstruct(scene.keyframes[:24], scene.cameras, scene.trajectory, None, cfg, scene.reference_height_m,
                     None, ablation="no-semantics", progress=False)
     assert r.metrics["miou_pct"] is None and r.metrics["iou_pct"] is None and r.metrics["elev_error_cm"] is None
@@ -187,7 +198,7 @@ def test_labels_read_over_the_vertex_footprint_place_edges_between_vertices():
     """A camera looking straight down (1 cm pixels) at 15 cm stripes on a 0.1 m mesh: the class interpolated
     between vertices is right more often when each vertex reads its whole footprint than its centre only
     (the centre alone puts every edge half-way between two vertices)."""
-    mesh = build_road_mesh(Trajectory(np.array([0.0, 10.0]), np.array([[-3.0, 0.0, 1.5], [3.0, 0.0, 1.5]])),
+    mesh = build_road_mesh(HorizontalTrack(np.array([0.0, 10.0]), np.array([[-3.0, 0.0, 1.5], [3.0, 0.0, 1.5]])),
                            2.0, 0.1, 1.5)
     camera = CameraModel("down", np.array([[1000.0, 0, 200], [0, 1000.0, 200], [0, 0, 1]]), (0.0,) * 5, 401, 401)
     pose = _looking_down(10.0)
@@ -237,7 +248,7 @@ def test_labels_from_sharp_views_outweigh_more_numerous_coarse_ones():
     """One view from 2 m (2 mm pixels) sees lane marking, two from 60 m (6 cm pixels) see road: counted
     equally the road wins; weighted by what a pixel covers (label_sharp_m 2 cm: the far views count 1/3
     each) the sharp view does."""
-    mesh = build_road_mesh(Trajectory(np.array([0.0, 10.0]), np.array([[-1.0, 0.0, 1.5], [1.0, 0.0, 1.5]])),
+    mesh = build_road_mesh(HorizontalTrack(np.array([0.0, 10.0]), np.array([[-1.0, 0.0, 1.5], [1.0, 0.0, 1.5]])),
                            0.5, 0.1, 1.5)
     camera = CameraModel("down", np.array([[1000.0, 0, 200], [0, 1000.0, 200], [0, 0, 1]]), (0.0,) * 5, 401, 401)
     points = np.concatenate([mesh.xy, np.zeros((mesh.num_vertices, 1))], 1)
@@ -262,14 +273,14 @@ def test_labels_from_sharp_views_outweigh_more_numerous_coarse_ones():
 def test_lidar_detail_puts_a_curb_step_into_the_smooth_surface():
     """A flat surface under Lidar points of a road with a 15 cm curb: the detail raises the vertices on the
     curb and leaves the road where it is, within a vertex of the step."""
-    mesh = build_road_mesh(Trajectory(np.array([0.0, 10.0]), np.array([[0.0, 0.0, 1.5], [20.0, 0.0, 1.5]])),
+    mesh = build_road_mesh(HorizontalTrack(np.array([0.0, 10.0]), np.array([[0.0, 0.0, 1.5], [20.0, 0.0, 1.5]])),
                            4.0, 0.1, 1.5)
     rng = np.random.default_rng(0)
     xy = np.column_stack([rng.uniform(0, 20, 100_000), rng.uniform(-4, 4, 100_000)])
     height = np.where(xy[:, 1] > 2.0, 0.15, 0.0) + rng.normal(0.0, 0.005, len(xy))
     z = mesh.z0.copy()
     assert np.abs(z).max() < 1e-6
-    detail = fit_lidar_detail(z, Located.of(mesh, xy), height, 8, 0.03)
+    detail = fit_lidar_detail(z, Located.of(mesh, xy), height, 8, 0.03, 2)
     assert np.array_equal(z, detail)
     inner = (mesh.xy[:, 0] > 1) & (mesh.xy[:, 0] < 19)
     road = inner & (mesh.xy[:, 1] > -3.8) & (mesh.xy[:, 1] < 1.9)
@@ -288,7 +299,7 @@ def _observed_map(scene):
 
 
 def test_elevation_fit_to_the_lidar_lattice_recovers_the_crossfall(scene):
-    torch.set_num_threads(1)  # as the fast path runs it (see FastPathSettings.threads)
+    torch.set_num_threads(1)  # as the fast path runs it (see mapper.runtime.torch_threads_fast_fit)
     torch.manual_seed(0)
     rm = _observed_map(scene)
     mesh = rm.mesh
@@ -301,7 +312,7 @@ def test_elevation_fit_to_the_lidar_lattice_recovers_the_crossfall(scene):
 
 
 def test_rome_is_camera_only_but_its_elevation_is_still_measured_against_the_lidar(scene):
-    cfg = CONFIG.model_copy(update={"epochs": 1})
+    cfg = CONFIG
     runs = [reconstruct(scene.keyframes[:24], scene.cameras, scene.trajectory, lidar, cfg, scene.reference_height_m,
                         None, ablation="rome", progress=False) for lidar in (scene.lidar, None)]
     with_points, without = runs
@@ -310,7 +321,7 @@ def test_rome_is_camera_only_but_its_elevation_is_still_measured_against_the_lid
 
 
 def test_inputs_still_loading_give_the_same_map_as_loaded_ones(scene):
-    cfg = CONFIG.model_copy(update={"epochs": 1})
+    cfg = CONFIG
     loaded = reconstruct(scene.keyframes[:24], scene.cameras, scene.trajectory, scene.lidar, cfg,
                          scene.reference_height_m, None, progress=False)
     with ThreadPoolExecutor(1) as pool:  # as mapping.inputs.drive_inputs.LoadingDrive hands them over
@@ -363,6 +374,6 @@ def test_a_failing_reconstruction_cancels_its_background_work(scene, monkeypatch
     monkeypatch.setattr(fast_fit, "fit_colour", broken)
     with pytest.raises(RuntimeError, match="colour fit failed"):
         reconstruct(scene.keyframes[:24], scene.cameras, scene.trajectory, scene.lidar,
-                    CONFIG.model_copy(update={"epochs": 1}), scene.reference_height_m, None, progress=False)
+                    CONFIG, scene.reference_height_m, None, progress=False)
     time.sleep(1.5)  # long enough for every queued view to have rendered, had they not been cancelled
-    assert 0 < len(rendered) <= 2 * map_metrics.EVAL_THREADS
+    assert 0 < len(rendered) <= 2 * CONFIG.runtime.evaluation_threads

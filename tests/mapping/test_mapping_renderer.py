@@ -4,12 +4,13 @@ import pytest
 import torch
 
 from daemon.spine.config import Extrinsics
+from mapping.localization.trajectory import HorizontalTrack
 from mapping.method.colour_mlps import ColourDecoder
 from mapping.method.losses import colour_l1
 from mapping.method.mesh_renderer import pixel_rays, project, rasterise, ray_triangle_weights, to_camera, world_rays
 from mapping.method.road_map import RoadMap, Variant, pixel_weights
 from mapping.method.road_mesh import build_road_mesh
-from mapping.method.scene_data import CameraModel, Keyframe, Trajectory
+from mapping.method.scene_data import CameraModel, Keyframe
 
 K = np.array([[120.0, 0, 80], [0, 120.0, 45], [0, 0, 1]])
 CAM = CameraModel("front", K, (-0.08, 0.02, 0.001, -0.002, -0.004), 160, 90)
@@ -17,7 +18,7 @@ CAM = CameraModel("front", K, (-0.08, 0.02, 0.001, -0.002, -0.004), 160, 90)
 
 def straight_mesh(length=40.0, side=0.2, half_width=6.0):
     t = np.linspace(0, length, 41)
-    return build_road_mesh(Trajectory(t, np.stack([t, 0 * t, 0 * t], 1)), half_width, side, 0.0)
+    return build_road_mesh(HorizontalTrack(t, np.stack([t, 0 * t, 0 * t], 1)), half_width, side, 0.0)
 
 
 def pose(x=0.0, height=1.5, pitch_down_deg=10.0):

@@ -29,8 +29,8 @@ from mapping.live.worker_journal import JOURNAL_NAME, read_journal
 from sim.drive_log import simulate_drive
 from tests.daemon_fixtures import REPO, private_config
 
-SMALL_WINDOWS = {"window_before_m": 10.0, "window_after_m": 10.0, "epochs": 1, "corridor_half_width_m": 6.0,
-                 "mesh_side_m": 0.25, "keyframe_spacing_m": 2.0}
+SMALL_WINDOWS = {"windows": {"before_m": 10.0, "after_m": 10.0}, "mesh": {"side_m": 0.25, "corridor_half_width_m": 6.0},
+                 "inputs": {"keyframe_spacing_m": 2.0}}
 
 
 # ---- spool, tiles, schedule (odometry: test_replay_determinism.py) ------------------------------------

@@ -53,7 +53,7 @@ def test_interpolation_outside_the_trajectory_is_refused():
     with pytest.raises(ValueError, match="1 of 2 times lie outside"):
         trajectory.interpolate([trajectory.times_ns[0], trajectory.times_ns[-1] + 1])
     with pytest.raises(ValueError, match="outside"):
-        trajectory.distance_at(trajectory.times_ns[0] - 1)
+        trajectory.distance_3d_at(trajectory.times_ns[0] - 1)
 
 
 def test_construction_checks_shapes_and_time_order():
@@ -75,35 +75,35 @@ def test_quaternions_are_normalised():
 def test_cumulative_distance_follows_the_path():
     trajectory = circle_trajectory(rate_hz=100.0)
     path_length = 10.0 * 20.0 * np.hypot(1.0, 0.05)
-    assert trajectory.cumulative_distance[-1] == pytest.approx(path_length, rel=1e-5)
+    assert trajectory.cumulative_distance_3d[-1] == pytest.approx(path_length, rel=1e-5)
     halfway = T0 + 10_000_000_000
-    assert trajectory.distance_at(halfway)[0] == pytest.approx(path_length / 2, rel=1e-5)
+    assert trajectory.distance_3d_at(halfway)[0] == pytest.approx(path_length / 2, rel=1e-5)
 
 
 def test_time_at_distance_inverts_distance_at():
     trajectory = circle_trajectory()
     span = trajectory.times_ns[-1] - trajectory.times_ns[0]
     times = trajectory.times_ns[0] + np.linspace(0, span, 37).astype(np.int64)
-    back = trajectory.time_at_distance(trajectory.distance_at(times))
+    back = trajectory.time_at_distance_3d(trajectory.distance_3d_at(times))
     np.testing.assert_allclose(back, times, atol=2)  # nanoseconds
     with pytest.raises(ValueError, match="distances must lie"):
-        trajectory.time_at_distance([-1.0])
+        trajectory.time_at_distance_3d([-1.0])
 
 
 def test_a_stop_maps_its_distance_to_the_arrival_time():
     times = T0 + np.arange(6) * 1_000_000_000
     positions = np.array([[0, 0, 0], [1, 0, 0], [1, 0, 0], [1, 0, 0], [3, 0, 0], [4, 0, 0]], dtype=float)
     trajectory = Trajectory(times, positions, np.tile([0.0, 0.0, 0.0, 1.0], (6, 1)), 0.0, 0.0, 0.0)
-    found = trajectory.time_at_distance([0.0, 0.5, 1.0, 1.5, 4.0])
+    found = trajectory.time_at_distance_3d([0.0, 0.5, 1.0, 1.5, 4.0])
     np.testing.assert_array_equal(found - T0, np.array([0.0, 0.5, 1.0, 3.25, 5.0]) * 1e9)
-    positions_at, _ = trajectory.pose_at_distance([1.5, 2.5])
+    positions_at, _ = trajectory.pose_at_distance_3d([1.5, 2.5])
     np.testing.assert_allclose(positions_at[:, 0], [1.5, 2.5])
 
 
 def test_pose_at_distance_on_a_circle():
     trajectory = circle_trajectory(rate_hz=100.0)
-    length = trajectory.cumulative_distance[-1]
-    positions, quaternions = trajectory.pose_at_distance([length / 4])
+    length = trajectory.cumulative_distance_3d[-1]
+    positions, quaternions = trajectory.pose_at_distance_3d([length / 4])
     angle = (length / 4) / np.hypot(1.0, 0.05) / 50.0
     np.testing.assert_allclose(positions[0, :2], [50 * np.sin(angle), 50 * (1 - np.cos(angle))], atol=1e-4)
     assert Rotation.from_quat(quaternions[0]).as_euler("ZYX")[0] == pytest.approx(angle, abs=1e-5)
@@ -157,3 +157,14 @@ def test_trajectory_records_its_origin():
     trajectory = circle_trajectory()
     frame = trajectory.local_frame
     assert (frame.lat_deg, frame.lon_deg, frame.alt_m) == (48.1, 11.5, 520.0)
+
+
+def test_the_horizontal_track_measures_distance_horizontally_the_trajectory_in_3d():
+    """A straight 10 % ramp: 100 m ahead, 10 m up."""
+    times = np.array([0, 10_000_000_000], np.int64)
+    positions = np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 10.0]])
+    trajectory = Trajectory(times, positions, np.tile([0.0, 0.0, 0.0, 1.0], (2, 1)), 0.0, 0.0, 0.0)
+    track = trajectory.horizontal_track()
+    assert trajectory.distance_3d_at(times[-1:])[0] == pytest.approx(np.hypot(100.0, 10.0))
+    assert track.horizontal_distance_at(10.0) == pytest.approx(100.0)
+    assert track.duration_s == 10.0 and np.array_equal(track.positions, positions)
