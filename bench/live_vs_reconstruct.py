@@ -25,7 +25,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import cv2
@@ -40,6 +40,7 @@ from daemon.spine.config import load_config  # noqa: E402
 from daemon.spine.local_frame import LocalFrame  # noqa: E402
 from daemon.spine.semantic_classes import NUM_MAP_CLASSES, ROAD_SURFACE_CLASSES  # noqa: E402
 from mapping.fits.reconstruction import select_keyframes  # noqa: E402
+from mapping.live.final_map import FinalMapMetadata  # noqa: E402
 from mapping.method.mesh_renderer import pixel_rays, rasterise, ray_triangle_weights, sampled_pixels, world_rays  # noqa: E402
 from mapping.method.road_map import NO_LABEL  # noqa: E402
 from mapping.method.scene_data import CameraModel, Keyframe  # noqa: E402
@@ -231,7 +232,7 @@ def main() -> int:
                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         live_wall = time.monotonic() - started
         final = work / "data" / "map" / "final"
-        live_meta = json.loads((final / "metadata.json").read_text())
+        live_meta = FinalMapMetadata.read(final)
         recorded = sorted(str(p) for p in (work / "data").glob("*.mcap"))
 
         started = time.monotonic()
@@ -240,7 +241,7 @@ def main() -> int:
         reconstruct_wall = time.monotonic() - started
         rec_meta = json.loads((work / "reconstruct" / "bev.json").read_text())
 
-        maps = {"live": RasterMap.load(final, live_meta, LocalFrame(*live_meta["origin_lat_lon_alt"])),
+        maps = {"live": RasterMap.load(final, asdict(live_meta), LocalFrame(*live_meta.origin_lat_lon_alt)),
                 "reconstruct": RasterMap.load(work / "reconstruct", rec_meta, truth.origin)}
         selected = select_keyframes(drive.keyframes, drive.path, config.mapper.inputs.keyframe_spacing_m)
         held = [i % HOLDOUT_EVERY == HOLDOUT_EVERY // 2 for i in range(len(selected))]
@@ -261,7 +262,7 @@ def main() -> int:
     for name, f in [*figures.items(), ("reconstruct*", native)]:
         print(f"{name:<14}" + "".join(f"{f[k] if f[k] is not None else float('nan'):>16.2f}" for k in keys))
     print("(* the reconstruction's own metrics: its renderer, its coverage)")
-    print(json.dumps({"drive": log.name, "drive_s": drive.drive_s, "windows": len(live_meta["windows"]),
+    print(json.dumps({"drive": log.name, "drive_s": drive.drive_s, "windows": len(live_meta.windows),
                       "live": live, "reconstruct": rec, "reconstruct_native": native, **gaps,
                       "within_tolerance": within, "live_wall_s": live_wall,
                       "reconstruct_wall_s": reconstruct_wall}))

@@ -39,22 +39,22 @@ def map_truth_metrics(map_dir: Path, gt_path: Path) -> dict:
     """Elevation error and semantic mIoU of the final map's rasters against the simulator's truth grids."""
     from daemon.spine.local_frame import LocalFrame
     from daemon.spine.semantic_classes import NUM_MAP_CLASSES
+    from mapping.live.final_map import METADATA_NAME, FinalMapMetadata
     from mapping.outputs.map_metrics import confusion, miou_pct
 
-    meta_path = map_dir / "metadata.json"
-    if not meta_path.exists() or not (map_dir / "bev_elevation.npy").exists():
+    if not (map_dir / METADATA_NAME).exists() or not (map_dir / "bev_elevation.npy").exists():
         return {}
-    meta = json.loads(meta_path.read_text())
+    meta = FinalMapMetadata.read(map_dir)
     elevation = np.load(map_dir / "bev_elevation.npy")
     labels = np.load(map_dir / "bev_semantics.npy")
     gt = np.load(gt_path)
     h, w = elevation.shape
     ii, jj = np.mgrid[0:h, 0:w]
-    res_map, (x0, y0) = meta["resolution_m"], meta["origin_xy"]
+    res_map, (x0, y0) = meta.resolution_m, meta.origin_xy
     enu = np.stack([x0 + jj.ravel() * res_map, y0 + ii.ravel() * res_map, np.nan_to_num(elevation.ravel())], 1)
-    if meta.get("origin_lat_lon_alt"):  # the map's ENU frame is the worker's: move into the truth's frame
+    if meta.origin_lat_lon_alt:  # the map's ENU frame is the worker's: move into the truth's frame
         enu = LocalFrame(*gt["enu_origin_lat_lon_alt"]).geodetic_to_enu(
-            *LocalFrame(*meta["origin_lat_lon_alt"]).enu_to_geodetic(enu))
+            *LocalFrame(*meta.origin_lat_lon_alt).enu_to_geodetic(enu))
     res, (ox, oy) = float(gt["grid_resolution_m"]), gt["grid_origin_xy"]
     gi = np.floor((enu[:, 1] - oy) / res).astype(int)  # the truth's origin is a cell corner
     gj = np.floor((enu[:, 0] - ox) / res).astype(int)
@@ -72,7 +72,7 @@ def map_truth_metrics(map_dir: Path, gt_path: Path) -> dict:
     valid = true_l < NUM_MAP_CLASSES
     if valid.any():
         out["miou_pct_bev"] = miou_pct(confusion(lab[ok][valid], true_l[valid], np.ones(valid.sum(), bool)))
-    windows = [wi.get("metrics", {}) for wi in meta.get("windows", [])]
+    windows = [wi.get("metrics", {}) for wi in meta.windows]
     for key in ("psnr_db", "elev_error_cm"):
         values = [m[key] for m in windows if m.get(key) is not None]
         if values:

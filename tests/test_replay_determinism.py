@@ -7,9 +7,9 @@ orders, and compares window 0; the slow one replays a drive twice through the re
 (`roadlog replay --rate max`) and compares the final maps.
 """
 
-import json
 import subprocess
 import sys
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +17,10 @@ import pytest
 
 from daemon.log_format.reader import read_log
 from mapping.live import map_tiles
-from mapping.live.mapping_worker import MappingWorker, Odometry, span_clock
+from mapping.live.final_map import FinalMapMetadata
+from mapping.live.mapping_worker import MappingWorker
+from mapping.live.odometry import Odometry
+from mapping.localization.sensor_time import span_clock
 from tests.daemon_fixtures import REPO, private_config
 
 SMALL_WINDOWS = {"windows": {"before_m": 10.0, "after_m": 10.0}, "mesh": {"side_m": 0.25, "corridor_half_width_m": 6.0},
@@ -111,7 +114,7 @@ def _figures(metrics: dict) -> dict:
 @pytest.mark.timeout(2400)
 def test_replaying_a_log_twice_through_the_daemon_gives_the_same_map(city_drive, tmp_path):
     maps = [_replay_through_the_daemon(city_drive, tmp_path / f"run{n}") for n in range(2)]
-    metas = [json.loads((m / "final" / "metadata.json").read_text()) for m in maps]
+    metas = [asdict(FinalMapMetadata.read(m / "final")) for m in maps]
     a, b = metas
     assert len(a["windows"]) == len(b["windows"]) >= 4 and a["distance_m"] == b["distance_m"]
     for wa, wb in zip(a["windows"], b["windows"], strict=True):

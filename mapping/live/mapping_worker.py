@@ -28,19 +28,16 @@ import argparse
 import hashlib
 import json
 import logging
-import os
 import shutil
 import signal
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
-import trimesh
 from scipy.spatial import cKDTree
 
 from daemon.bus import pubsub
@@ -48,7 +45,6 @@ from daemon.spine.config import CarConfig, data_dir, load_config, reports_config
 from daemon.spine.data_layout import preview_dir
 from daemon.spine.health import HealthCounters, process_memory_mb
 from daemon.spine.local_frame import LocalFrame
-from daemon.spine.semantic_classes import CLASS_COLOURS
 from daemon.spine.topics import (
     GNSS_FIX,
     IMU,
@@ -71,264 +67,45 @@ from mapping.inputs.drive_inputs import (
     lidar_ground_from_packets,
     segmenter_for,
 )
-from mapping.inputs.lidar_ground import GroundFilter, keeps_scan
+from mapping.inputs.lidar_ground import GroundFilter
 from mapping.live import live_view, map_tiles
+from mapping.live.bus_reader import SMALL_TOPICS, BusReader
+from mapping.live.final_map import FinalMapMetadata, TileStore, write_final_map
 from mapping.live.keyframe_spool import KeyframeSpool
+from mapping.live.map_images import atomic_png, semantic_image
+from mapping.live.odometry import Odometry, wheel_speed_mps
+from mapping.live.window_schedule import window_span, windows_ended, windows_for_drive
 from mapping.live.worker_journal import VERSION as JOURNAL_VERSION
 from mapping.live.worker_journal import append_line, new_state, progress_line, read_journal
 from mapping.localization.keyframe_spacing import spaced_by_distance
-from mapping.localization.sensor_time import ClockMap, fit_clock
+from mapping.localization.sensor_time import span_clock
 from mapping.localization.trajectory import HorizontalTrack, Trajectory
-from mapping.method.road_map import NO_LABEL
 from mapping.method.scene_data import Keyframe
 from mapping.outputs.map_export import bev_rasters, elevation_image
 
 PROCESS = "mapper"
 FUSION_MARGIN_S = 20.0  # data kept (and fused) before the oldest unfinished window starts
 ODOMETRY_PERIOD_S = 1.0
-KNOT_NS = 500_000_000
 INPUT_HORIZON_NS = 2_000_000_000  # a window's inputs reach this far past its end (fusion; clocks 1 s)
-STALLED_TOPIC_NS = 30_000_000_000  # a topic this far behind the newest message is not waited for
-FREE_CLOCK_RATE_FIT_MIN_S = 600.0  # shorter spans: a free-running clock is taken at rate 1
 TILE_M = 40.0
-OVERVIEW_MAX_CELLS = 4_000_000  # the final map's PNGs: an overview, coarser past 4 M cells of bounding box
 WINDOW_ATTEMPTS = 2
-DRAIN_QUIET_S = 1.0  # at shutdown: the bus counts as drained after this long without a message
-SMALL_TOPICS = (GNSS_FIX, IMU, WHEEL_SPEEDS, TIME_ANCHOR)
-SEGMENT_SOURCES = (health_topic("recorder"), health_topic("replay"))
 log = logging.getLogger(__name__)
 
 
-def window_span(index: int, before_m: float, after_m: float) -> tuple[float, float, float]:
-    """(centre, start, end) in metres along the drive of window `index` (centres every half window)."""
-    centre = index * (before_m + after_m) / 2.0
-    return centre, max(0.0, centre - before_m), centre + after_m
-
-
-def windows_for_drive(total_m: float, before_m: float, after_m: float) -> int:
-    """How many windows a finished drive of `total_m` needs: every centre whose central stretch has road."""
-    half = (before_m + after_m) / 4.0
-    k = 0
-    while window_span(k, before_m, after_m)[0] - half < total_m:
-        k += 1
-    return max(k, 1)
-
-
 @dataclass
-class Odometry:
-    """Distance along the drive at host times, integrated from the wheel speeds message by message.
+class WindowInputs:
+    """What one window is optimised from, gathered from the spool and the small streams."""
 
-    It depends only on the messages, never on when the worker looks at them, so the windows' time
-    ranges are the same in every replay of a log (a distance read off successive pose fusions depended
-    on how much data each fusion happened to have). Knots at least `KNOT_NS` apart, the newest message
-    always the last knot; the integration state is kept so a restart goes on where the journal left off."""
-
-    knots_t: list[int] = field(default_factory=list)
-    knots_s: list[float] = field(default_factory=list)
-    last_speed_mps: float = 0.0
-
-    def add(self, host_ns: int, speed_mps: float) -> bool:
-        """Integrate one wheel-speed message (trapezoids); False for one not after the last."""
-        if not self.knots_t:
-            self.knots_t, self.knots_s, self.last_speed_mps = [host_ns], [0.0], speed_mps
-            return True
-        last_t = self.knots_t[-1]
-        if host_ns <= last_t:
-            return False
-        s = self.knots_s[-1] + 0.5 * (speed_mps + self.last_speed_mps) * (host_ns - last_t) / 1e9
-        if len(self.knots_t) >= 2 and last_t - self.knots_t[-2] < KNOT_NS:
-            self.knots_t[-1], self.knots_s[-1] = host_ns, s  # the tip moves on
-        else:
-            self.knots_t.append(host_ns)
-            self.knots_s.append(s)
-        self.last_speed_mps = speed_mps
-        return True
-
-    @property
-    def distance_m(self) -> float:
-        return self.knots_s[-1] if self.knots_s else 0.0
-
-    def time_at(self, s: float) -> int:
-        """First host time at which the drive reached distance s (clamped to the known span)."""
-        arr = np.asarray(self.knots_s)
-        i = int(np.searchsorted(arr, s, side="left"))
-        if i <= 0:
-            return self.knots_t[0]
-        if i >= len(arr):
-            return self.knots_t[-1]
-        span = arr[i] - arr[i - 1]
-        f = 0.0 if span <= 0 else (s - arr[i - 1]) / span
-        return int(self.knots_t[i - 1] + f * (self.knots_t[i] - self.knots_t[i - 1]))
-
-
-def wheel_speed_mps(msg: object) -> float | None:
-    """The vehicle's speed from one WheelSpeeds message: the mean of the wheels that report one."""
-    speeds = [abs(v) for v in (msg.front_left_mps, msg.front_right_mps, msg.rear_left_mps, msg.rear_right_mps)
-              if np.isfinite(v)]
-    return float(np.mean(speeds)) if speeds else None
-
-
-def span_clock(stamps_ns: list[int], host_ns: list[int], anchors: list[tuple[int, int]]) -> ClockMap:
-    """`fit_clock` for the few seconds or minutes the worker holds, in exact arithmetic where it matters.
-
-    Over a short span the fitted rate of a free-running clock is arrival jitter, not drift (a crystal
-    drifts < 100 ppm: 6 ms a minute), and a rate error stretches that sensor's time axis, so wheel
-    speeds integrate to a wrong distance. The offset is refitted with rate 1 (shortest latency), in
-    integers."""
-    clock = fit_clock(stamps_ns, host_ns, anchors)
-    if clock.kind != "free" or len(stamps_ns) == 0:
-        return clock
-    stamps, host = np.asarray(stamps_ns, np.int64), np.asarray(host_ns, np.int64)
-    if (stamps.max() - stamps.min()) > FREE_CLOCK_RATE_FIT_MIN_S * 1e9:
-        return clock
-    offset = float(np.min(host - host[0] - (stamps - stamps[0]))) + float(host[0])
-    return ClockMap("free", 1.0, offset, int(stamps[0]))
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
-def _atomic_png(path: Path, rgb: np.ndarray) -> None:
-    ok, data = cv2.imencode(".png", cv2.cvtColor(np.flipud(rgb), cv2.COLOR_RGB2BGR))  # north up
-    if not ok:
-        raise ValueError(f"cannot encode {path.name}")
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data.tobytes())
-    os.replace(tmp, path)
-
-
-def semantic_image(labels: np.ndarray) -> np.ndarray:
-    return CLASS_COLOURS[np.minimum(labels, len(CLASS_COLOURS) - 1)] * (labels != NO_LABEL)[..., None].astype(np.uint8)
-
-
-class BusReader(threading.Thread):
-    """Reads every topic the mapper needs into the spool (and the small streams into memory)."""
-
-    def __init__(self, config: CarConfig, spool: KeyframeSpool, lock: threading.Lock, health: HealthCounters,
-                 last_seq: dict[str, int], packets_per_scan: int):
-        super().__init__(name="mapper-bus", daemon=True)
-        self.config = config
-        self.spool = spool
-        self.lock = lock
-        self.health = health
-        self.last_seq = last_seq
-        self.small: dict[str, list] = {t: [] for t in SMALL_TOPICS}
-        self.segments: dict[str, list[int]] = {}  # segment name -> [first, last] host ns seen open
-        self.stop_requested = threading.Event()
-        self.drained = threading.Event()
-        cams = [c.name for c in config.sensors.cameras]
-        table = topic_table(config)
-        self.topics = [t for t in [camera_topic(c) for c in cams] + [mask_topic(c) for c in cams]
-                       + [LIDAR_PACKETS, GNSS_FIX, IMU, WHEEL_SPEEDS, TIME_ANCHOR] if t in table]
-        self.subs: dict[str, pubsub.Subscriber] = {}
-        self.side: dict[str, pubsub.Subscriber] = {}
-        self.lidar_count = 0
-        self.packets_per_scan = packets_per_scan
-        self.last_message_ns = time.monotonic_ns()
-        self.lost = 0
-        self.newest: dict[str, int] = {}  # topic -> newest host time received
-
-    def attach(self) -> None:
-        """Subscribe to every topic whose ring exists (again later for the others)."""
-        for topic in self.topics:
-            if topic not in self.subs:
-                try:
-                    self.subs[topic] = pubsub.open_subscriber(self.config, topic, start="oldest", lossless=True)
-                except FileNotFoundError:
-                    pass
-        for topic in SEGMENT_SOURCES:
-            if topic not in self.side:
-                try:
-                    self.side[topic] = pubsub.open_subscriber(self.config, topic, start="oldest")
-                except FileNotFoundError:
-                    pass
-
-    def take(self, topic: str, msg: object) -> None:
-        """Spool one message (and keep it in memory if it is a small stream)."""
-        if msg.seq <= self.last_seq.get(topic, -1):
-            return  # spooled before a restart
-        self.last_seq[topic] = msg.seq
-        self.health.received += 1
-        arrival = msg.host_mono_ns
-        self.newest[topic] = max(arrival, self.newest.get(topic, arrival))
-        if topic == LIDAR_PACKETS:
-            n = self.lidar_count
-            self.lidar_count += 1
-            if not keeps_scan(n, self.packets_per_scan, self.config.mapper.inputs.lidar_every_n_scans):
-                return
-        with self.lock:
-            self.spool.append(topic, msg, arrival)
-            if topic in self.small:
-                self.small[topic].append(msg)
-
-    def _side(self, topic: str, msg: object) -> None:
-        try:
-            detail = json.loads(msg.detail or "{}")
-        except json.JSONDecodeError:
-            return
-        names = [detail.get("segment")] if isinstance(detail.get("segment"), str) else []
-        names += [str(p) for p in detail.get("files", []) if isinstance(p, str)]
-        for name in names:
-            span = self.segments.setdefault(name, [msg.host_mono_ns, msg.host_mono_ns])
-            span[1] = msg.host_mono_ns
-
-    def run(self) -> None:
-        next_attach = 0.0
-        while True:
-            if time.monotonic() >= next_attach:
-                self.attach()
-                next_attach = time.monotonic() + 0.5
-            got = 0
-            for topic, sub in self.subs.items():
-                for _ in range(64):
-                    msg = sub.read(0, copy=True)
-                    if msg is None:
-                        break
-                    got += 1
-                    self.take(topic, msg)
-            for topic, sub in self.side.items():
-                msg = sub.read(0, copy=True)
-                while msg is not None:
-                    self._side(topic, msg)
-                    msg = sub.read(0, copy=True)
-            self.lost = sum(s.lost for s in self.subs.values())
-            now = time.monotonic_ns()
-            if got:
-                self.last_message_ns = now
-                with self.lock:
-                    self.spool.flush()
-            elif self.stop_requested.is_set() and now - self.last_message_ns > DRAIN_QUIET_S * 1e9:
-                break
-            else:
-                time.sleep(0.01)
-        with self.lock:
-            self.spool.flush_close()
-        for sub in list(self.subs.values()) + list(self.side.values()):
-            sub.close()
-        self.drained.set()
-
-    def prune(self, before_ns: int) -> None:
-        with self.lock:
-            for topic, msgs in self.small.items():
-                if topic != TIME_ANCHOR:
-                    self.small[topic] = [m for m in msgs if m.host_mono_ns >= before_ns]
-            self.spool.prune_before(before_ns)
-
-    def complete_until(self, host_ns: int) -> bool:
-        """Whether every topic heard from has delivered its messages up to `host_ns` (each topic arrives in
-        host-time order); a topic stalled far behind the others is not waited for."""
-        newest = dict(self.newest)
-        if not newest:
-            return False
-        top = max(newest.values())
-        return all(t >= host_ns or t < top - STALLED_TOPIC_NS for t in newest.values())
-
-    def small_copy(self) -> dict[str, list]:
-        with self.lock:
-            return {t: list(v) for t, v in self.small.items()}
+    centre_m: float  # the window's centre, start and end along the drive (end clipped to the distance driven)
+    start_m: float
+    end_m: float
+    t_lo_ns: int  # the host time span the window covers (within the fused trajectory)
+    t_hi_ns: int
+    trajectory: Trajectory  # fused over the small streams held, up to t_hi_ns + INPUT_HORIZON_NS
+    path: HorizontalTrack  # the window's track: times in seconds from t_lo_ns
+    keyframes: list[Keyframe]
+    ground: np.ndarray | None  # Lidar ground points, None without a Lidar
+    provenance: dict  # host time range, per-topic seq ranges, log segments, input counts (into the journal)
 
 
 @dataclass
@@ -363,6 +140,7 @@ class MappingWorker:
         self.segmenter = segmenter_for(config, config_path)  # None: the masks on the bus
         self.res = self.mapper.mesh.side_m
         self.tile_cells = max(1, int(round(TILE_M / self.res)))
+        self.tile_store = TileStore(self.tiles_dir, self.tile_cells, self.res, self.cam_names)
         self.health = HealthCounters(PROCESS)
         self.state = WorkerState()
         self.lock = threading.Lock()
@@ -480,7 +258,7 @@ class MappingWorker:
         return (bool(self.odometry.knots_s) and self.state.distance_m >= s_hi
                 and self.reader.complete_until(self.odometry.time_at(s_hi) + INPUT_HORIZON_NS))
 
-    def _window_inputs(self, k: int) -> tuple:
+    def _window_inputs(self, k: int) -> WindowInputs:
         m = self.mapper
         centre, s_lo, s_hi = window_span(k, m.windows.before_m, m.windows.after_m)
         s_hi = min(s_hi, self.state.distance_m)
@@ -539,20 +317,21 @@ class MappingWorker:
                       "segments": sorted(n for n, (a, b) in self.reader.segments.items() if a <= t_hi and b >= t_lo),
                       "keyframes": len(keyframes), "lidar_packets": len(packets),
                       "lidar_ground_points": 0 if ground is None else len(ground)}
-        return centre, s_lo, s_hi, t_lo, t_hi, traj, path, keyframes, ground, provenance
+        return WindowInputs(centre, s_lo, s_hi, t_lo, t_hi, traj, path, keyframes, ground, provenance)
 
     def run_window(self, k: int) -> dict:
         started = time.perf_counter()
         m = self.mapper
-        centre, s_lo, s_hi, t_lo, t_hi, traj, path, keyframes, ground, provenance = self._window_inputs(k)
-        if not keyframes:
+        inputs = self._window_inputs(k)
+        centre, s_lo, s_hi, t_lo, path = inputs.centre_m, inputs.start_m, inputs.end_m, inputs.t_lo_ns, inputs.path
+        if not inputs.keyframes:
             raise ValueError(f"window {k}: no keyframes in [{s_lo:.1f}, {s_hi:.1f}] m")
         seed = m.model.seed * 1_000_003 + k
         np.random.seed(seed % 2**32)
         torch.manual_seed(seed)
         cfg = m.model_copy(update={"model": m.model.model_copy(update={"seed": seed})})
-        result = reconstruct(keyframes, self.cameras, path, ground, cfg, self.config.vehicle.reference_height_m,
-                             holdout_every=0, progress=False)
+        result = reconstruct(inputs.keyframes, self.cameras, path, inputs.ground, cfg,
+                             self.config.vehicle.reference_height_m, holdout_every=0, progress=False)
         bev = bev_rasters(result.road_map, self.cam_names, self.res, m.runtime.raster_threads)
         j0, i0 = (int(round(v / self.res)) for v in bev["origin_xy"])
         half = (m.windows.before_m + m.windows.after_m) / 4.0
@@ -572,7 +351,7 @@ class MappingWorker:
         self._write_previews(bev)
         if self.live_view is not None:
             try:
-                live_view.publish_window(self.live_view, t_hi, self._preview_images(bev), bev["elevation"],
+                live_view.publish_window(self.live_view, inputs.t_hi_ns, self._preview_images(bev), bev["elevation"],
                                          bev["origin_xy"], self.res, path.positions)
             except Exception as exc:  # the live view never costs a window: counted and reported
                 self._error(f"live view, window {k}: {type(exc).__name__}: {exc}")
@@ -582,7 +361,7 @@ class MappingWorker:
         extent = ([float(x) for x in path.positions[:, :2].min(0)] + [float(x) for x in path.positions[:, :2].max(0)])
         return {"index": k, "status": "done", "centre_m": centre, "start_m": s_lo, "end_m": s_hi, "seed": seed,
                 "wall_s": wall, "finished_mono_ns": time.monotonic_ns(), "tiles": tiles, "trajectory_xy_box": extent,
-                "metrics": {x: result.metrics.get(x) for x in keep}, **provenance,
+                "metrics": {x: result.metrics.get(x) for x in keep}, **inputs.provenance,
                 "config": {"path": self.config_path, "sha256": self.config_sha256}}
 
     def _preview_images(self, bev: dict) -> dict[str, np.ndarray]:
@@ -591,7 +370,7 @@ class MappingWorker:
 
     def _write_previews(self, bev: dict) -> None:
         for name, image in self._preview_images(bev).items():
-            _atomic_png(self.previews / f"{name}.png", image)
+            atomic_png(self.previews / f"{name}.png", image)
 
     def _error(self, what: str) -> None:
         self.health.count_error(what)
@@ -632,10 +411,7 @@ class MappingWorker:
     def health_message(self):
         st = self.state
         m = self.mapper
-        ready = 0
-        k = self.journal["next_window"]
-        while window_span(k + ready, m.windows.before_m, m.windows.after_m)[2] <= st.distance_m:
-            ready += 1
+        ready = windows_ended(self.journal["next_window"], st.distance_m, m.windows.before_m, m.windows.after_m)
         st.windows_pending = ready
         msg = self.health.snapshot()
         msg.state = "degraded" if self.health.errors else "ok"
@@ -653,56 +429,6 @@ class MappingWorker:
             "peak_rss_mb": round(process_memory_mb()["VmHWM"], 1),
         })
         return msg
-
-    # ---- final map ---------------------------------------------------------------------------------------
-    def write_final_map(self) -> Path:
-        out = self.folder / "final"
-        out.mkdir(parents=True, exist_ok=True)
-        meta = {"windows": self.journal["windows"], "config": {"path": self.config_path,
-                                                                "sha256": self.config_sha256},
-                "distance_m": self.state.distance_m, "origin_lat_lon_alt": self.journal["origin"]}
-        if map_tiles.tile_indices(self.tiles_dir):
-            grid = map_tiles.write_mosaic_npy(self.tiles_dir, self.tile_cells, self.res,
-                                              {"elevation": out / "bev_elevation.npy",
-                                               "labels": out / "bev_semantics.npy"})
-            mos = map_tiles.mosaic(self.tiles_dir, self.tile_cells, self.res, self.cam_names,
-                                   max_cells=OVERVIEW_MAX_CELLS)
-            for c in self.cam_names:
-                _atomic_png(out / f"bev_rgb_{c}.png", mos.rgb[c])
-            _atomic_png(out / "bev_semantics.png", semantic_image(mos.labels))
-            _atomic_png(out / "bev_elevation.png", elevation_image(mos.elevation))
-            meta.update(origin_xy=grid.origin_xy, resolution_m=grid.resolution_m, shape=list(grid.shape),
-                        png_resolution_m=mos.resolution_m,
-                        cell="cell (i, j) of the .npy rasters is centred at (x0 + j*res, y0 + i*res); "
-                             "PNGs (at png_resolution_m) are flipped north-up", semantics_no_label=NO_LABEL,
-                        cameras=self.cam_names)
-            meta["mesh"] = self._write_mesh(out)
-        _atomic_write_text(out / "metadata.json", json.dumps(meta, indent=1, default=str))
-        return out
-
-    def _write_mesh(self, out: Path, max_vertices: int = 2_000_000) -> dict:
-        """A grid mesh of the mapped cells (cells as vertices, two triangles per fully mapped 2x2 block),
-        built from the tiles' mapped cells only."""
-        cells = map_tiles.mapped_cells(self.tiles_dir, self.tile_cells, self.res, self.cam_names[0], max_vertices)
-        key = cells.i * (1 << 32) + (cells.j + (1 << 31))  # sorted, as the cells are
-
-        def neighbour(di: int, dj: int) -> np.ndarray:
-            """Index of the cell (i + di, j + dj) of every cell, -1 where it is not mapped."""
-            k = key + di * (1 << 32) + dj
-            pos = np.minimum(np.searchsorted(key, k), len(key) - 1)
-            return np.where(key[pos] == k, pos, -1)
-
-        a = np.arange(len(key))
-        b, c, d = neighbour(0, 1), neighbour(1, 0), neighbour(1, 1)
-        full = (b >= 0) & (c >= 0) & (d >= 0)
-        faces = np.concatenate([np.stack([a[full], b[full], d[full]], 1), np.stack([a[full], d[full], c[full]], 1)])
-        res = cells.resolution_m
-        vertices = np.stack([cells.j * res, cells.i * res, cells.elevation], 1)
-        mesh = trimesh.Trimesh(vertices, faces, vertex_colors=cells.rgb, process=False)
-        for name in ("mesh.ply", "mesh.glb"):
-            mesh.export(out / name)
-        return {"files": ["mesh.ply", "mesh.glb"], "vertices": len(vertices), "faces": len(faces),
-                "resolution_m": res}
 
     # ---- main loop ---------------------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> int:
@@ -731,7 +457,9 @@ class MappingWorker:
         self.update_distance()
         while self.step(end_of_drive=True):
             pass
-        out = self.write_final_map()
+        out = write_final_map(self.folder / "final", self.tile_store, FinalMapMetadata(
+            windows=self.journal["windows"], config={"path": self.config_path, "sha256": self.config_sha256},
+            distance_m=self.state.distance_m, origin_lat_lon_alt=self.journal["origin"]))
         self.state.finished = True
         self.journal["finished"] = True
         self._save_journal()

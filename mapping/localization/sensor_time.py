@@ -66,3 +66,23 @@ def fit_clock(stamps_ns: np.ndarray, host_ns: np.ndarray, anchors: list[tuple[in
     scale = float(np.polyfit(rel, arrivals, 1)[0]) if len(stamps) > 1 and np.ptp(rel) > 0 else 1.0
     offset = float(np.min(arrivals - scale * rel)) + float(host[0])
     return ClockMap("free", scale, offset, int(stamps[0]))
+
+
+FREE_CLOCK_RATE_FIT_MIN_S = 600.0  # shorter spans: a free-running clock is taken at rate 1
+
+
+def span_clock(stamps_ns: list[int], host_ns: list[int], anchors: list[tuple[int, int]]) -> ClockMap:
+    """`fit_clock` for the few seconds or minutes the worker holds, in exact arithmetic where it matters.
+
+    Over a short span the fitted rate of a free-running clock is arrival jitter, not drift (a crystal
+    drifts < 100 ppm: 6 ms a minute), and a rate error stretches that sensor's time axis, so wheel
+    speeds integrate to a wrong distance. The offset is refitted with rate 1 (shortest latency), in
+    integers."""
+    clock = fit_clock(stamps_ns, host_ns, anchors)
+    if clock.kind != "free" or len(stamps_ns) == 0:
+        return clock
+    stamps, host = np.asarray(stamps_ns, np.int64), np.asarray(host_ns, np.int64)
+    if (stamps.max() - stamps.min()) > FREE_CLOCK_RATE_FIT_MIN_S * 1e9:
+        return clock
+    offset = float(np.min(host - host[0] - (stamps - stamps[0]))) + float(host[0])
+    return ClockMap("free", 1.0, offset, int(stamps[0]))

@@ -13,6 +13,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -23,8 +24,9 @@ from daemon.processes.replay import replay
 from daemon.spine.messages import CameraFrame, GnssFix
 from daemon.spine.topics import GNSS_FIX, camera_topic, health_topic, topic_table
 from mapping.live import map_tiles
+from mapping.live.final_map import FinalMapMetadata
 from mapping.live.keyframe_spool import KeyframeSpool
-from mapping.live.mapping_worker import window_span, windows_for_drive
+from mapping.live.window_schedule import window_span, windows_ended, windows_for_drive
 from mapping.live.worker_journal import JOURNAL_NAME, read_journal
 from sim.drive_log import simulate_drive
 from tests.daemon_fixtures import REPO, private_config
@@ -93,6 +95,9 @@ def test_window_schedule_overlaps_by_half_and_covers_the_drive():
     assert window_span(3, 80, 80) == (240.0, 160.0, 320.0)
     assert windows_for_drive(50.0, 10, 10) == 6  # centres 0..50 m, each owning +-5 m
     assert windows_for_drive(1.0, 80, 80) == 1
+    # windows end at 80, 160, 240, ... m: at 239 m windows 0 and 1 have ended, 2 has not
+    assert windows_ended(0, 239.0, 80, 80) == 2 and windows_ended(0, 240.0, 80, 80) == 3
+    assert windows_ended(1, 239.0, 80, 80) == 1 and windows_ended(5, 239.0, 80, 80) == 0
 
 
 # ---- the real worker process on a replayed drive ---------------------------------------------------------
@@ -191,7 +196,7 @@ def test_worker_maps_as_data_arrives_survives_kill_9_and_writes_the_final_map(ci
     from_start = np.linalg.norm(centres - centres[0], axis=1)
     assert np.all(np.diff(from_start) > 0) and from_start[-1] > 30
     final = data / "map" / "final"
-    meta = json.loads((final / "metadata.json").read_text())
+    meta = asdict(FinalMapMetadata.read(final))
     elevation = np.load(final / "bev_elevation.npy")
     res, (x0, y0) = meta["resolution_m"], meta["origin_xy"]
     for k, (cx, cy) in enumerate(centres):  # the road within ~4 m of each window's middle is mapped

@@ -3,7 +3,7 @@ and loses nothing after it, an old single-document journal is converted."""
 
 import json
 
-from mapping.live.mapping_worker import Odometry
+from mapping.live.odometry import Odometry
 from mapping.live.worker_journal import JOURNAL_NAME, append_line, new_state, progress_line, read_journal
 
 HEADER = {"version": 2, "config_sha256": "abc", "grid_resolution_m": 0.1, "cameras": ["front"]}

@@ -1,0 +1,108 @@
+"""The live worker's final map, `<data>/map/final`: the tiles' mosaic as rasters (.npy), overview PNGs, a grid
+mesh (PLY, GLB) and `metadata.json` (FinalMapMetadata: the one definition its writers and readers share)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from mapping.live import map_tiles
+from mapping.live.map_images import atomic_png, atomic_write_text, semantic_image
+from mapping.method.road_map import NO_LABEL
+from mapping.outputs.map_export import elevation_image
+
+METADATA_NAME = "metadata.json"
+OVERVIEW_MAX_CELLS = 4_000_000  # the final map's PNGs: an overview, coarser past 4 M cells of bounding box
+CELL_CONVENTION = ("cell (i, j) of the .npy rasters is centred at (x0 + j*res, y0 + i*res); "
+                   "PNGs (at png_resolution_m) are flipped north-up")
+
+
+@dataclass(frozen=True)
+class TileStore:
+    """Where the worker's finished windows are: its tile folder, tile size in cells, grid resolution, cameras."""
+
+    folder: Path
+    tile_cells: int
+    resolution_m: float
+    cameras: list[str]
+
+
+@dataclass
+class FinalMapMetadata:
+    """`metadata.json` of a final map. The raster fields are absent (None) when no window was mapped."""
+
+    windows: list[dict]  # the journal's window entries (mapping.live.worker_journal.WindowEntry as JSON)
+    config: dict  # {"path": the config file, "sha256": its hash}
+    distance_m: float  # the drive's length by wheel odometry
+    origin_lat_lon_alt: list[float] | None  # the local ENU frame's origin (WGS84 deg, deg, m)
+    origin_xy: list[float] | None = None  # ENU centre of raster cell (0, 0), m
+    resolution_m: float | None = None  # raster cell size, m
+    shape: list[int] | None = None  # raster (rows, columns)
+    png_resolution_m: float | None = None  # the PNG overviews' cell size (coarser for a large map)
+    cell: str | None = None  # the cell convention, in words
+    semantics_no_label: int | None = None  # the class id of unmapped cells in bev_semantics.npy
+    cameras: list[str] | None = None  # one bev_rgb_<camera>.png each
+    mesh: dict | None = None  # the mesh files and sizes
+
+    def write(self, folder: Path) -> None:
+        fields = {k: v for k, v in asdict(self).items() if v is not None or k == "origin_lat_lon_alt"}
+        atomic_write_text(folder / METADATA_NAME, json.dumps(fields, indent=1, default=str))
+
+    @staticmethod
+    def read(folder: Path) -> FinalMapMetadata:
+        """The metadata of the final map in `folder` (OSError if it has none, ValueError if unreadable)."""
+        data = json.loads((folder / METADATA_NAME).read_text())
+        if "origin_xy" in data:
+            data["origin_xy"] = list(data["origin_xy"])
+        return FinalMapMetadata(**data)
+
+
+def write_final_map(out: Path, tiles: TileStore, meta: FinalMapMetadata) -> Path:
+    """Mosaic the tiles into `out` (rasters, PNGs, mesh) and write `meta`, completed with the rasters' grid."""
+    out.mkdir(parents=True, exist_ok=True)
+    if map_tiles.tile_indices(tiles.folder):
+        grid = map_tiles.write_mosaic_npy(tiles.folder, tiles.tile_cells, tiles.resolution_m,
+                                          {"elevation": out / "bev_elevation.npy",
+                                           "labels": out / "bev_semantics.npy"})
+        mos = map_tiles.mosaic(tiles.folder, tiles.tile_cells, tiles.resolution_m, tiles.cameras,
+                               max_cells=OVERVIEW_MAX_CELLS)
+        for c in tiles.cameras:
+            atomic_png(out / f"bev_rgb_{c}.png", mos.rgb[c])
+        atomic_png(out / "bev_semantics.png", semantic_image(mos.labels))
+        atomic_png(out / "bev_elevation.png", elevation_image(mos.elevation))
+        meta.origin_xy, meta.resolution_m, meta.shape = grid.origin_xy, grid.resolution_m, list(grid.shape)
+        meta.png_resolution_m, meta.cell, meta.semantics_no_label = mos.resolution_m, CELL_CONVENTION, NO_LABEL
+        meta.cameras = tiles.cameras
+        meta.mesh = write_mesh(out, tiles)
+    meta.write(out)
+    return out
+
+
+def write_mesh(out: Path, tiles: TileStore, max_vertices: int = 2_000_000) -> dict:
+    """A grid mesh of the mapped cells (cells as vertices, two triangles per fully mapped 2x2 block),
+    built from the tiles' mapped cells only."""
+    cells = map_tiles.mapped_cells(tiles.folder, tiles.tile_cells, tiles.resolution_m, tiles.cameras[0],
+                                  max_vertices)
+    key = cells.i * (1 << 32) + (cells.j + (1 << 31))  # sorted, as the cells are
+
+    def neighbour(di: int, dj: int) -> np.ndarray:
+        """Index of the cell (i + di, j + dj) of every cell, -1 where it is not mapped."""
+        k = key + di * (1 << 32) + dj
+        pos = np.minimum(np.searchsorted(key, k), len(key) - 1)
+        return np.where(key[pos] == k, pos, -1)
+
+    a = np.arange(len(key))
+    b, c, d = neighbour(0, 1), neighbour(1, 0), neighbour(1, 1)
+    full = (b >= 0) & (c >= 0) & (d >= 0)
+    faces = np.concatenate([np.stack([a[full], b[full], d[full]], 1), np.stack([a[full], d[full], c[full]], 1)])
+    res = cells.resolution_m
+    vertices = np.stack([cells.j * res, cells.i * res, cells.elevation], 1)
+    mesh = trimesh.Trimesh(vertices, faces, vertex_colors=cells.rgb, process=False)
+    for name in ("mesh.ply", "mesh.glb"):
+        mesh.export(out / name)
+    return {"files": ["mesh.ply", "mesh.glb"], "vertices": len(vertices), "faces": len(faces),
+            "resolution_m": res}
