@@ -247,12 +247,12 @@ def run_drive(km: float, pairs: Future, lead_m: float, keep: bool) -> dict:
             raise RuntimeError(f"worker exited {rc}: {(folder / 'worker.log').read_text()[-2000:]}")
         last = json.loads(health.latest().detail)
         journal = read_journal(folder / "data" / "map")
-        walls = [w["wall_s"] for w in journal["windows"] if "wall_s" in w]
+        walls = [w.wall_s for w in journal.windows if w.wall_s is not None]
         (folder / "rss_samples.json").write_text(json.dumps(sampler.samples))
         return {"km": km, "peak_rss_mb": round(sampler.peak_mb, 1), "peak_rss_mb_driving": round(driving_mb, 1),
                 "rss_slope_mb_per_km": rss_slope_mb_per_km(driving, km * 500.0),
-                "windows": len(journal["windows"]),
-                "windows_failed": sum(w["status"] != "done" for w in journal["windows"]),
+                "windows": len(journal.windows),
+                "windows_failed": sum(w.status != "done" for w in journal.windows),
                 "distance_m": last["distance_m"], "bus_lost": last["bus_lost"], "errors": last["errors"],
                 "startup_s": round(up_s, 1), "feed_s": round(fed_s - up_s, 1),
                 "finish_s": round(time.monotonic() - started - fed_s, 1),

@@ -80,7 +80,7 @@ def test_a_window_is_the_same_whatever_the_host_clock_offset_and_arrival_order(c
     entries, tiles = [], []
     for n, shift in enumerate(shifts):
         worker = _worker_fed(tmp_path / f"run{n}", city_drive, shift, topic_by_topic=n == 1)
-        entries.append(worker.run_window(0))
+        entries.append(worker.run_window(0).to_json())
         tiles.append({name: map_tiles.load_tile(worker.tiles_dir / name, worker.tile_cells, worker.cam_names)
                       for name in entries[-1]["tiles"]})
     a, b = entries

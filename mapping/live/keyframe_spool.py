@@ -112,6 +112,17 @@ class KeyframeSpool:
                 if topic in topics and first_ns <= arrival <= last_ns:
                     yield arrival, topic, message_codec.decode_split(self.topics[topic].message_type, meta, bulk)
 
+    def last_seq_and_newest(self) -> tuple[dict[str, int], dict[str, int]]:
+        """Last seq and newest host time per topic already spooled (a restart skips those when the bus still
+        holds them, and knows how far each topic's data reaches)."""
+        last: dict[str, int] = {}
+        newest: dict[str, int] = {}
+        for chunk in self.chunks:
+            for arrival, topic, msg in self.read(chunk.first_ns, chunk.last_ns, set(self.topics)):
+                last[topic] = max(last.get(topic, -1), msg.seq)
+                newest[topic] = max(newest.get(topic, arrival), arrival)
+        return last, newest
+
     def prune_before(self, ns: int) -> int:
         """Delete the closed chunks that end before `ns`; returns the bytes freed."""
         freed = 0

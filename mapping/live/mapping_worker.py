@@ -76,7 +76,15 @@ from mapping.live.map_images import atomic_png, semantic_image
 from mapping.live.odometry import Odometry, wheel_speed_mps
 from mapping.live.window_schedule import window_span, windows_ended, windows_for_drive
 from mapping.live.worker_journal import VERSION as JOURNAL_VERSION
-from mapping.live.worker_journal import append_line, new_state, progress_line, read_journal
+from mapping.live.worker_journal import (
+    JournalHeader,
+    JournalState,
+    WindowEntry,
+    append_line,
+    header_line,
+    progress_line,
+    read_journal,
+)
 from mapping.localization.keyframe_spacing import spaced_by_distance
 from mapping.localization.sensor_time import span_clock
 from mapping.localization.trajectory import HorizontalTrack, Trajectory
@@ -146,20 +154,20 @@ class MappingWorker:
         self.lock = threading.Lock()
         self.spool = KeyframeSpool(self.folder / "spool", topic_table(config), chunk_s=2.0)
         self.journal = self._load_journal()
-        self.odometry_saved = len(self.journal["odometry_t"])  # knots already in the journal
-        self.odometry = Odometry(list(self.journal["odometry_t"]), list(self.journal["odometry_s"]),
-                                 self.journal["odometry_last_speed_mps"])
-        self.origin = LocalFrame(*self.journal["origin"]) if self.journal["origin"] else None
+        self.odometry_saved = len(self.journal.odometry_t)  # knots already in the journal
+        self.odometry = Odometry(list(self.journal.odometry_t), list(self.journal.odometry_s),
+                                 self.journal.odometry_last_speed_mps)
+        self.origin = LocalFrame(*self.journal.origin) if self.journal.origin else None
         self.lidar_meta = (parse_metadata(resolve_path(config_path, config.sensors.lidar.metadata_file))
                            if config.sensors.lidar is not None else None)
-        last_seq, newest = self._restore_from_spool()
+        last_seq, newest = self.spool.last_seq_and_newest()
         self.reader = BusReader(config, self.spool, self.lock, self.health, last_seq,
                                 self.lidar_meta.packets_per_frame if self.lidar_meta else 1)
         self.reader.newest.update(newest)
         self._refill_small()
-        self.state.windows_done = sum(1 for w in self.journal["windows"] if w["status"] == "done")
-        self.state.windows_failed = sum(1 for w in self.journal["windows"] if w["status"] == "failed")
-        self.state.mapped_until_m = self.journal["mapped_until_m"]
+        self.state.windows_done = sum(1 for w in self.journal.windows if w.status == "done")
+        self.state.windows_failed = sum(1 for w in self.journal.windows if w.status == "failed")
+        self.state.mapped_until_m = self.journal.mapped_until_m
         self.live_view = None
         if self.mapper.live_view.enabled:
             try:
@@ -170,41 +178,29 @@ class MappingWorker:
     # ---- persistence -------------------------------------------------------------------------------------
     def _archive_finished_map(self) -> None:
         journal = read_journal(self.folder)
-        if journal is not None and journal["finished"]:
+        if journal is not None and journal.finished:
             shutil.move(str(self.folder), str(self.folder.with_name(f"map-{time.strftime('%Y%m%d-%H%M%S')}")))
 
-    def _load_journal(self) -> dict:
+    def _load_journal(self) -> JournalState:
         journal = read_journal(self.folder)
         if journal is None:
-            header = {"version": JOURNAL_VERSION, "config_path": self.config_path,
-                      "config_sha256": self.config_sha256, "grid_resolution_m": self.res,
-                      "tile_cells": self.tile_cells, "cameras": self.cam_names}
-            append_line(self.folder, header)
-            return new_state(header)
-        if journal["skipped_lines"]:
-            self._error(f"journal: {journal['skipped_lines']} unreadable line(s) skipped (torn by a crash?)")
+            header = JournalHeader(JOURNAL_VERSION, self.config_path, self.config_sha256, self.res, self.tile_cells,
+                                   self.cam_names)
+            append_line(self.folder, header_line(header))
+            return JournalState(header)
+        if journal.skipped_lines:
+            self._error(f"journal: {journal.skipped_lines} unreadable line(s) skipped (torn by a crash?)")
         return journal
 
-    def _save_journal(self, window: dict | None = None) -> None:
+    def _save_journal(self, window: WindowEntry | None = None) -> None:
         """One line: `window` (if any) and the progress since the last line."""
-        self.journal.update(odometry_last_speed_mps=self.odometry.last_speed_mps,
-                            mapped_until_m=self.state.mapped_until_m,
-                            origin=None if self.origin is None else [self.origin.lat_deg, self.origin.lon_deg,
-                                                                     self.origin.alt_m])
+        self.journal.odometry_last_speed_mps = self.odometry.last_speed_mps
+        self.journal.mapped_until_m = self.state.mapped_until_m
+        self.journal.origin = (None if self.origin is None
+                               else [self.origin.lat_deg, self.origin.lon_deg, self.origin.alt_m])
         append_line(self.folder, progress_line(self.journal, self.odometry.knots_t, self.odometry.knots_s,
                                                self.odometry_saved, window))
         self.odometry_saved = len(self.odometry.knots_t)
-
-    def _restore_from_spool(self) -> tuple[dict[str, int], dict[str, int]]:
-        """Last seq and newest host time per topic already spooled (a restart skips those when the bus still
-        holds them, and knows how far each topic's data reaches)."""
-        last: dict[str, int] = {}
-        newest: dict[str, int] = {}
-        for chunk in self.spool.chunks:
-            for arrival, topic, msg in self.spool.read(chunk.first_ns, chunk.last_ns, set(self.spool.topics)):
-                last[topic] = max(last.get(topic, -1), msg.seq)
-                newest[topic] = max(newest.get(topic, arrival), arrival)
-        return last, newest
 
     def _refill_small(self) -> None:
         if not self.spool.chunks:
@@ -319,7 +315,7 @@ class MappingWorker:
                       "lidar_ground_points": 0 if ground is None else len(ground)}
         return WindowInputs(centre, s_lo, s_hi, t_lo, t_hi, traj, path, keyframes, ground, provenance)
 
-    def run_window(self, k: int) -> dict:
+    def run_window(self, k: int) -> WindowEntry:
         started = time.perf_counter()
         m = self.mapper
         inputs = self._window_inputs(k)
@@ -359,10 +355,10 @@ class MappingWorker:
         keep = ("psnr_train_db", "elev_error_cm", "miou_pct", "steps", "vertices", "vertices_observed",
                 "optimise_wall_s", "loss_last")
         extent = ([float(x) for x in path.positions[:, :2].min(0)] + [float(x) for x in path.positions[:, :2].max(0)])
-        return {"index": k, "status": "done", "centre_m": centre, "start_m": s_lo, "end_m": s_hi, "seed": seed,
-                "wall_s": wall, "finished_mono_ns": time.monotonic_ns(), "tiles": tiles, "trajectory_xy_box": extent,
-                "metrics": {x: result.metrics.get(x) for x in keep}, **inputs.provenance,
-                "config": {"path": self.config_path, "sha256": self.config_sha256}}
+        return WindowEntry(k, "done", centre_m=centre, start_m=s_lo, end_m=s_hi, seed=seed, wall_s=wall,
+                           finished_mono_ns=time.monotonic_ns(), tiles=tiles, trajectory_xy_box=extent,
+                           metrics={x: result.metrics.get(x) for x in keep}, **inputs.provenance,
+                           config={"path": self.config_path, "sha256": self.config_sha256})
 
     def _preview_images(self, bev: dict) -> dict[str, np.ndarray]:
         return {"rgb": bev["rgb"][self.cam_names[0]], "semantics": semantic_image(bev["labels"]),
@@ -378,7 +374,7 @@ class MappingWorker:
 
     def step(self, end_of_drive: bool) -> bool:
         """Optimise the next window if it is ready; False when there is nothing to do now."""
-        k = self.journal["next_window"]
+        k = self.journal.next_window
         if not self._window_ready(k, end_of_drive):
             return False
         attempts = 0
@@ -391,17 +387,17 @@ class MappingWorker:
                 self._error(f"window {k} attempt {attempts}: {type(exc).__name__}: {exc}")
                 if attempts >= WINDOW_ATTEMPTS:
                     centre, s_lo, s_hi = window_span(k, self.mapper.windows.before_m, self.mapper.windows.after_m)
-                    entry = {"index": k, "status": "failed", "centre_m": centre, "start_m": s_lo, "end_m": s_hi,
-                             "error": self.health.last_error, "finished_mono_ns": time.monotonic_ns()}
+                    entry = WindowEntry(k, "failed", centre_m=centre, start_m=s_lo, end_m=s_hi,
+                                        error=self.health.last_error, finished_mono_ns=time.monotonic_ns())
                     self.state.windows_failed += 1
                     break
-        entry["attempts"] = attempts
-        self.journal["windows"].append(entry)
-        self.journal["next_window"] = k + 1
-        if entry["status"] == "done":
+        entry.attempts = attempts
+        self.journal.windows.append(entry)
+        self.journal.next_window = k + 1
+        if entry.status == "done":
             self.state.windows_done += 1
-            self.state.last_window_wall_s = entry["wall_s"]
-        self.state.mapped_until_m = max(self.state.mapped_until_m, min(entry["end_m"], self.state.distance_m))
+            self.state.last_window_wall_s = entry.wall_s
+        self.state.mapped_until_m = max(self.state.mapped_until_m, min(entry.end_m, self.state.distance_m))
         self._save_journal(entry)
         _, next_lo, _ = window_span(k + 1, self.mapper.windows.before_m, self.mapper.windows.after_m)
         self.reader.prune(self.odometry.time_at(next_lo) - int(FUSION_MARGIN_S * 1e9))
@@ -411,7 +407,7 @@ class MappingWorker:
     def health_message(self):
         st = self.state
         m = self.mapper
-        ready = windows_ended(self.journal["next_window"], st.distance_m, m.windows.before_m, m.windows.after_m)
+        ready = windows_ended(self.journal.next_window, st.distance_m, m.windows.before_m, m.windows.after_m)
         st.windows_pending = ready
         msg = self.health.snapshot()
         msg.state = "degraded" if self.health.errors else "ok"
@@ -458,10 +454,11 @@ class MappingWorker:
         while self.step(end_of_drive=True):
             pass
         out = write_final_map(self.folder / "final", self.tile_store, FinalMapMetadata(
-            windows=self.journal["windows"], config={"path": self.config_path, "sha256": self.config_sha256},
-            distance_m=self.state.distance_m, origin_lat_lon_alt=self.journal["origin"]))
+            windows=[w.to_json() for w in self.journal.windows],
+            config={"path": self.config_path, "sha256": self.config_sha256}, distance_m=self.state.distance_m,
+            origin_lat_lon_alt=self.journal.origin))
         self.state.finished = True
-        self.journal["finished"] = True
+        self.journal.finished = True
         self._save_journal()
         shutil.rmtree(self.spool.folder)  # every window is in the tiles and the final map
         self.spool.chunks = []

@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import json
 import os
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
+from typing import Literal
 
 JOURNAL_NAME = "journal.jsonl"
 LEGACY_JOURNAL_NAME = "journal.json"
@@ -23,16 +25,75 @@ VERSION = 2
 _STATE_KEYS = ("next_window", "mapped_until_m", "origin", "odometry_last_speed_mps", "finished")
 
 
-def new_state(header: dict) -> dict:
-    """The state of a journal holding only `header`."""
-    return dict(header, windows=[], next_window=0, odometry_t=[], odometry_s=[], odometry_last_speed_mps=0.0,
-                mapped_until_m=0.0, origin=None, finished=False, skipped_lines=0)
+@dataclass
+class JournalHeader:
+    """The journal's first line: what the map folder was made with."""
+
+    version: int = VERSION
+    config_path: str | None = None
+    config_sha256: str | None = None
+    grid_resolution_m: float | None = None
+    tile_cells: int | None = None
+    cameras: list[str] = field(default_factory=list)
 
 
-def read_journal(folder: Path) -> dict | None:
-    """The journal's state in `folder` (header fields, `windows`, `next_window`, `odometry_t`, `odometry_s`,
-    `odometry_last_speed_mps`, `mapped_until_m`, `origin`, `finished`, `skipped_lines`: unreadable lines
-    passed over), or None if there is none."""
+@dataclass
+class WindowEntry:
+    """One window's outcome. A failed window has `error`; a done one its seed, wall time, tiles, metrics and
+    provenance (host time range, per-topic seq ranges, log segments, input counts, the config)."""
+
+    index: int
+    status: Literal["done", "failed"]
+    centre_m: float | None = None  # place on the drive, m
+    start_m: float | None = None
+    end_m: float | None = None
+    attempts: int | None = None
+    finished_mono_ns: int | None = None
+    error: str | None = None
+    seed: int | None = None
+    wall_s: float | None = None
+    tiles: list[str] | None = None  # the tile files it wrote
+    trajectory_xy_box: list[float] | None = None  # [x_min, y_min, x_max, y_max] of its track, ENU m
+    metrics: dict[str, float | int | None] | None = None
+    host_time_ns: list[int] | None = None
+    seq: dict[str, list[int]] | None = None
+    segments: list[str] | None = None
+    keyframes: int | None = None
+    lidar_packets: int | None = None
+    lidar_ground_points: int | None = None
+    config: dict[str, str] | None = None  # {"path", "sha256"}
+
+    def to_json(self) -> dict:
+        return {k: v for k, v in asdict(self).items() if v is not None}
+
+    @staticmethod
+    def from_json(data: dict) -> WindowEntry:
+        return WindowEntry(**data)
+
+
+@dataclass
+class JournalState:
+    """The journal's lines folded into one state."""
+
+    header: JournalHeader
+    windows: list[WindowEntry] = field(default_factory=list)
+    next_window: int = 0
+    odometry_t: list[int] = field(default_factory=list)  # wheel-odometry knots: host ns and metres
+    odometry_s: list[float] = field(default_factory=list)
+    odometry_last_speed_mps: float = 0.0
+    mapped_until_m: float = 0.0
+    origin: list[float] | None = None  # the local ENU frame's WGS84 origin (lat, lon, alt)
+    finished: bool = False
+    skipped_lines: int = 0  # unreadable (torn) lines passed over
+
+
+def _header(line: dict) -> JournalHeader:
+    known = {f.name for f in fields(JournalHeader)}
+    return JournalHeader(**{k: v for k, v in line.items() if k in known})
+
+
+def read_journal(folder: Path) -> JournalState | None:
+    """The journal's state in `folder`, or None if there is none."""
     path = folder / JOURNAL_NAME
     if not path.exists():
         legacy = folder / LEGACY_JOURNAL_NAME
@@ -48,17 +109,19 @@ def read_journal(folder: Path) -> dict | None:
                 skipped += 1
                 continue
             if state is None:
-                state = new_state(line)
+                state = JournalState(_header(line))
                 continue
             if "window" in line:
-                state["windows"].append(line["window"])
+                state.windows.append(WindowEntry.from_json(line["window"]))
             if "odometry_from" in line:
                 start = line["odometry_from"]
-                state["odometry_t"][start:] = line["odometry_t"]
-                state["odometry_s"][start:] = line["odometry_s"]
-            state.update({k: line[k] for k in _STATE_KEYS if k in line})
+                state.odometry_t[start:] = line["odometry_t"]
+                state.odometry_s[start:] = line["odometry_s"]
+            for k in _STATE_KEYS:
+                if k in line:
+                    setattr(state, k, line[k])
     if state is not None:
-        state["skipped_lines"] = skipped
+        state.skipped_lines = skipped
     return state
 
 
@@ -74,27 +137,33 @@ def append_line(folder: Path, line: dict) -> None:
         os.fsync(f.fileno())
 
 
-def progress_line(state: dict, odometry_t: list[int], odometry_s: list[float], odometry_saved: int,
-                  window: dict | None = None) -> dict:
+def header_line(header: JournalHeader) -> dict:
+    return asdict(header)
+
+
+def progress_line(state: JournalState, odometry_t: list[int], odometry_s: list[float], odometry_saved: int,
+                  window: WindowEntry | None = None) -> dict:
     """The line recording `window` (if any) and the progress in `state`, with the odometry knots from the
     last one already saved (it may have moved) on."""
     start = max(0, odometry_saved - 1)
-    line = {k: state[k] for k in _STATE_KEYS}
+    line = {k: getattr(state, k) for k in _STATE_KEYS}
     line.update(odometry_from=start, odometry_t=odometry_t[start:], odometry_s=odometry_s[start:])
     if window is not None:
-        line["window"] = window
+        line["window"] = window.to_json()
     return line
 
 
 def _convert_legacy(legacy: Path, path: Path) -> None:
     old = json.loads(legacy.read_text())
-    header = {k: v for k, v in old.items() if k not in _STATE_KEYS + ("windows", "odometry_t", "odometry_s")}
-    header["version"] = VERSION
+    header = _header(old)
+    header.version = VERSION
     folder = path.parent
-    append_line(folder, header)
+    append_line(folder, header_line(header))
     for window in old.get("windows", []):
         append_line(folder, {"window": window})
-    state = new_state(header)
-    state.update({k: old[k] for k in _STATE_KEYS if k in old})
+    state = JournalState(header)
+    for k in _STATE_KEYS:
+        if k in old:
+            setattr(state, k, old[k])
     append_line(folder, progress_line(state, old.get("odometry_t", []), old.get("odometry_s", []), 0))
     legacy.rename(legacy.with_suffix(".json.converted"))

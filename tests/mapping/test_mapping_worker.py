@@ -115,8 +115,9 @@ def _start_worker(config_path: Path, log: Path) -> subprocess.Popen:
                             cwd=REPO, env=env, stdout=open(log, "ab"), stderr=subprocess.STDOUT)
 
 
-def _journal(folder: Path) -> dict:
-    return read_journal(folder) or {"windows": []}
+def _windows(folder: Path) -> list[dict]:
+    journal = read_journal(folder)
+    return [] if journal is None else [w.to_json() for w in journal.windows]
 
 
 def _wait_for(predicate, timeout_s: float, what: str, proc: subprocess.Popen | None = None):
@@ -145,8 +146,8 @@ def test_worker_maps_as_data_arrives_survives_kill_9_and_writes_the_final_map(ci
         player.start()
         health = pubsub.open_subscriber(config, health_topic("mapper"), wait_s=60)
         # windows are optimised while the drive's data arrives, with no end-of-drive signal
-        _wait_for(lambda: len(_journal(journal_path)["windows"]) >= 1, 600, "a window", procs[0])
-        before_kill = _journal(journal_path)["windows"]
+        _wait_for(lambda: len(_windows(journal_path)) >= 1, 600, "a window", procs[0])
+        before_kill = _windows(journal_path)
         assert all(w["status"] == "done" for w in before_kill)
         _wait_for(lambda: health.latest() is not None and json.loads(health.latest().detail)["windows_done"] >= 1,
                   60, "health after the first window", procs[0])
@@ -160,7 +161,7 @@ def test_worker_maps_as_data_arrives_survives_kill_9_and_writes_the_final_map(ci
         procs[0].kill()
         procs[0].wait()
         killed_ns = time.monotonic_ns()
-        kept = _journal(journal_path)["windows"]
+        kept = _windows(journal_path)
         with open(journal_path / JOURNAL_NAME, "ab") as f:  # as if the kill had torn a line mid-write
             f.write(b'{"window": {"index": 99, "sta')
         procs.append(_start_worker(config_path, log))
@@ -179,16 +180,16 @@ def test_worker_maps_as_data_arrives_survives_kill_9_and_writes_the_final_map(ci
                 p.kill()
                 p.wait()
         pubsub.unlink_all(config)
-    journal = _journal(journal_path)
-    windows = journal["windows"]
-    assert journal["finished"] and windows[:len(kept)] == kept and len(windows) > len(kept)
-    assert journal["skipped_lines"] == 1
+    journal = read_journal(journal_path)
+    windows = [w.to_json() for w in journal.windows]
+    assert journal.finished and windows[:len(kept)] == kept and len(windows) > len(kept)
+    assert journal.skipped_lines == 1
     assert [w["index"] for w in windows] == list(range(len(windows)))
     assert all(w["status"] == "done" for w in windows), [w.get("error") for w in windows]
-    distance = journal["odometry_s"][-1]
+    distance = journal.odometry_s[-1]
     assert 40 < distance < 60  # 5 s at 10 m/s
     assert len(windows) == windows_for_drive(distance, 10, 10)
-    assert all(w["config"]["sha256"] == journal["config_sha256"] for w in windows)
+    assert all(w["config"]["sha256"] == journal.header.config_sha256 for w in windows)
     assert all(w["seq"]["gnss/fix"][0] <= w["seq"]["gnss/fix"][1] and w["keyframes"] > 0 for w in windows)
     # the map grows along the trajectory: window boxes move away from the start, and the final map covers them
     centres = np.array([[(w["trajectory_xy_box"][0] + w["trajectory_xy_box"][2]) / 2,
