@@ -11,8 +11,9 @@ but every window is optimised on real keyframes. The feed stays at most `--lead-
 ahead of the worker's mapped distance, as with a worker that keeps up with the car.
 
 Cheap windows, the same for both drives and both modes, so that many fit in the time: 160 m windows
-(the default length), a 0.8 m mesh, 4 m corridor half-width, 6 m keyframe spacing, 1 epoch, one torch
-thread: about 2 s a window here, most of it fixed costs of the worker (the 200-step colour fit, the
+(the default length), a 0.8 m mesh, 4 m corridor half-width, 6 m keyframe spacing, one torch thread (the
+fast fit's default; the faithful fit's epochs and threads, set here before, never acted on the worker):
+about 2 s a window here, most of it fixed costs of the worker (the 200-step colour fit, the
 pose fusion over its 20 s margin), plus a one-off ~5 s per worker to import torch and its optimisers.
   --quick  0.2 km vs 1 km (4 vs 13 windows): 48-55 s wall here at a load of 2.5-6 from other sessions;
   full     1 km vs 10 km (13 vs 126 windows): about 5-6 minutes.
