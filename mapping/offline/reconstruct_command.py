@@ -19,7 +19,15 @@ from pathlib import Path
 import numpy as np
 
 from daemon.log_format.reader import read_metadata
-from daemon.spine.config import CarConfig, ConfigError, config_to_yaml, load_config, parse_config, reports_config_errors
+from daemon.spine.config import (
+    CarConfig,
+    ConfigError,
+    config_to_yaml,
+    load_config,
+    parse_config,
+    reports_config_errors,
+    sectioned_recorded_config,
+)
 from daemon.spine.health import process_memory_mb
 from daemon.spine.local_frame import LocalFrame
 from mapping.fits.reconstruction import ReconstructionResult, reconstruct
@@ -57,7 +65,8 @@ def config_from_logs(paths: list[str]) -> tuple[CarConfig, Path]:
         raise ConfigError(f"{paths[0]}: no recorded config in the log metadata; pass --config")
     import yaml
 
-    config = parse_config(yaml.safe_load(meta["config"]), f"{paths[0]} (recorded config)")
+    recorded = sectioned_recorded_config(yaml.safe_load(meta["config"]))
+    config = parse_config(recorded, f"{paths[0]} (recorded config)")
     folder = Path(tempfile.mkdtemp(prefix="roadlog-reconstruct-"))
     if config.sensors.lidar is not None and "lidar_metadata" not in meta:
         raise ConfigError(f"{paths[0]}: the recorded config has a Lidar but the log holds no Lidar metadata "

@@ -6,7 +6,7 @@ import pytest
 import yaml
 
 from daemon.commands.check_config import main as check_config_main
-from daemon.spine.config import ConfigError, MapperConfig, load_config
+from daemon.spine.config import ConfigError, MapperConfig, load_config, parse_config, sectioned_recorded_config
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -86,3 +86,21 @@ def test_check_config_command_exit_codes(tmp_path, capsys):
     bad = _write_bad(tmp_path, lambda d: d["mapper"]["faithful_fit"].update(batch_size=0))
     assert check_config_main([str(bad)]) == 2
     assert "mapper.faithful_fit.batch_size" in capsys.readouterr().err
+
+
+def test_a_config_recorded_before_the_mapper_was_sectioned_still_reads():
+    """Logs recorded before the re-layout hold a flat mapper section: reconstruct reads them as they were."""
+    data = yaml.safe_load((CONFIGS / "sim.yaml").read_text())
+    data["mapper"] = {"enabled": True, "mesh_side_m": 0.2, "corridor_half_width_m": 12.0, "window_before_m": 60.0,
+                      "window_after_m": 70.0, "colour_code_dim": 16, "seed": 4, "epochs": 3, "batch_size": 4,
+                      "learning_rates": {"semantics": 0.2}, "keyframe_spacing_m": 2.0, "threads": 1,
+                      "live_view": {"enabled": False}}
+    with pytest.raises(ConfigError, match="mesh_side_m"):
+        parse_config(data)
+    m = parse_config(sectioned_recorded_config(data)).mapper
+    assert (m.mesh.side_m, m.mesh.corridor_half_width_m, m.windows.before_m, m.windows.after_m) == (0.2, 12, 60, 70)
+    assert (m.model.colour_code_dim, m.model.seed, m.inputs.keyframe_spacing_m) == (16, 4, 2.0)
+    assert (m.faithful_fit.epochs, m.faithful_fit.batch_size, m.faithful_fit.learning_rates.semantics) == (3, 4, 0.2)
+    assert m.runtime.torch_threads_faithful_fit == 1 and m.fast_fit == MapperConfig().fast_fit
+    current = yaml.safe_load((CONFIGS / "sim.yaml").read_text())
+    assert sectioned_recorded_config(current) == current  # a sectioned config passes unchanged
