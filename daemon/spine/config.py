@@ -94,7 +94,7 @@ class CameraConfig(_Strict):
 
 
 class LidarConfig(_Strict):
-    model: Literal["ouster-os-128", "ouster-os-32", "hesai-pandar128", "velodyne-vls128"]
+    model: Literal["ouster-os-128", "ouster-os-32"]  # exactly the models the driver and the mapper decode
     bind_address: str = "0.0.0.0"
     port: int = Field(7502, ge=1, le=65535)
     imu_port: int | None = Field(None, ge=0, le=65535)  # None: the metadata's udp_port_imu; 0: IMU off

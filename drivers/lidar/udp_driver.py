@@ -362,9 +362,6 @@ def main(argv: list[str] | None = None) -> int:
         raise ConfigError(f"{args.config}: has no sensors.lidar section")
     overrides = {k: v for k, v in (("port", args.port), ("bind_address", args.bind)) if v is not None}
     config = car.sensors.lidar.model_copy(update=overrides)
-    if not config.model.startswith("ouster-"):
-        raise ConfigError(f"{args.config}: sensors.lidar.model {config.model!r} is not supported: only Ouster "
-                          f"sensors (ouster-os-128, ouster-os-32) have a packet decoder")
     metadata_path = resolve_path(args.config, config.metadata_file)
     try:
         metadata = parse_metadata(metadata_path)

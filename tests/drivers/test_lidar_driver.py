@@ -19,6 +19,7 @@ import pytest
 import yaml
 
 from daemon.bus import pubsub
+from daemon.commands.check_config import main as check_config_main
 from daemon.spine.config import EXIT_CONFIG_ERROR, load_config
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import DriverHealth, ImuSample, LidarPacket
@@ -299,12 +300,17 @@ def test_a_small_receive_buffer_shortens_the_batches_and_loses_nothing_at_the_se
     assert len(result.packets) == len(stream) and result.stats.missing_packets == result.stats.kernel_drops == 0
 
 
-def test_hesai_and_velodyne_configs_exit_with_a_clear_error(tmp_path, capsys):
+def test_a_lidar_model_without_a_decoder_is_a_config_error(tmp_path, capsys):
+    """The config accepts exactly the models that decode: another one is refused when the config is read, so
+    check-config refuses it too and the driver exits 2 (not retried) instead of dying later."""
     meta_json = metadata_to_json(simulated_os128_metadata(1024))
     for model in ("hesai-pandar128", "velodyne-vls128"):
         path = write_config(tmp_path, meta_json, model=model)
         assert udp_driver.main(["--config", str(path)]) == EXIT_CONFIG_ERROR
-        assert f"{model!r} is not supported: only Ouster sensors" in capsys.readouterr().err
+        err = capsys.readouterr().err
+        assert "sensors.lidar.model" in err and "ouster-os-128" in err and "Traceback" not in err
+        assert check_config_main([str(path)]) == EXIT_CONFIG_ERROR
+        assert "sensors.lidar.model" in capsys.readouterr().err
 
 
 def test_unusable_metadata_and_a_taken_port_are_clear_errors(tmp_path, capsys):
