@@ -73,7 +73,7 @@ def map_truth_metrics(map_dir: Path, gt_path: Path) -> dict:
     if valid.any():
         out["miou_pct_bev"] = miou_pct(confusion(lab[ok][valid], true_l[valid], np.ones(valid.sum(), bool)))
     windows = [wi.get("metrics", {}) for wi in meta.windows]
-    for key in ("psnr_db", "elev_error_cm"):
+    for key in ("psnr_train_db", "elev_error_cm"):  # a live window holds no views out: PSNR on its training views
         values = [m[key] for m in windows if m.get(key) is not None]
         if values:
             out[f"{key}_windows_mean"] = float(np.mean(values))

@@ -15,10 +15,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from daemon.spine.config import LiveViewConfig
+from mapping.live.map_images import north_up_png
 
 FRAME = "map"
 
@@ -49,13 +49,6 @@ def start_live_view(config: LiveViewConfig, name: str = "roadlog mapper") -> Liv
     return LiveView(context, server, channels)
 
 
-def _png(rgb: np.ndarray) -> bytes:
-    ok, data = cv2.imencode(".png", cv2.cvtColor(np.flipud(rgb), cv2.COLOR_RGB2BGR))  # north up
-    if not ok:
-        raise ValueError("cannot encode a live-view image")
-    return data.tobytes()
-
-
 def publish_window(view: LiveView, stamp_ns: int, images: dict[str, np.ndarray], elevation: np.ndarray,
                    origin_xy: tuple[float, float], resolution_m: float, trajectory_xyz: np.ndarray) -> None:
     """Publish one finished window: `images` maps "rgb"/"semantics"/"elevation" to (H, W, 3) uint8 BEVs;
@@ -75,7 +68,8 @@ def publish_window(view: LiveView, stamp_ns: int, images: dict[str, np.ndarray],
 
     stamp = Timestamp(stamp_ns // 1_000_000_000, stamp_ns % 1_000_000_000)
     for name, rgb in images.items():
-        view.channels[f"/map/bev_{name}"].log(CompressedImage(timestamp=stamp, frame_id=FRAME, data=_png(rgb),
+        png = north_up_png(rgb, "a live-view image")
+        view.channels[f"/map/bev_{name}"].log(CompressedImage(timestamp=stamp, frame_id=FRAME, data=png,
                                                               format="png"), log_time=stamp_ns)
     h, w = elevation.shape
     corner = Pose(position=Vector3(x=origin_xy[0] - resolution_m / 2, y=origin_xy[1] - resolution_m / 2, z=0.0),

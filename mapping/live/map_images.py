@@ -19,12 +19,17 @@ def atomic_write_text(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def atomic_png(path: Path, rgb: np.ndarray) -> None:
-    ok, data = cv2.imencode(".png", cv2.cvtColor(np.flipud(rgb), cv2.COLOR_RGB2BGR))  # north up
+def north_up_png(rgb: np.ndarray, what: str) -> bytes:
+    """A bird's-eye RGB raster (row 0 south) as PNG bytes, north up."""
+    ok, data = cv2.imencode(".png", cv2.cvtColor(np.flipud(rgb), cv2.COLOR_RGB2BGR))
     if not ok:
-        raise ValueError(f"cannot encode {path.name}")
+        raise ValueError(f"cannot encode {what}")
+    return data.tobytes()
+
+
+def atomic_png(path: Path, rgb: np.ndarray) -> None:
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data.tobytes())
+    tmp.write_bytes(north_up_png(rgb, path.name))
     os.replace(tmp, path)
 
 
