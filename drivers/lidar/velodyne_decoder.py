@@ -139,6 +139,11 @@ class VelodyneDecoder:
         self._sin_rot = np.sin(calibration.rot_correction_rad.astype(f32))
         self._cos_vert = np.cos(calibration.vert_correction_rad.astype(f32))
         self._sin_vert = np.sin(calibration.vert_correction_rad.astype(f32))
+        model = next((m for m in MODELS.values() if m.num_lasers == calibration.num_lasers), None)
+        self._slot_tables = _slot_tables(model, calibration) if model is not None else {}
+        # With no offsets the offset terms vanish: the formula velodyne-decoder uses for such files.
+        self._has_offsets = bool(np.any(calibration.vert_offset_m) or np.any(calibration.horiz_offset_m))
+        self._has_offsets |= calibration.two_point_correction
         self._prev_azimuth: int | None = None  # VLS-128: first block azimuth of the last packet
         self._prev_rate = np.float32(0.0)
 
@@ -213,6 +218,9 @@ class VelodyneDecoder:
         return rate
 
     def _decode_points(self, batch: np.ndarray, index: np.ndarray, model: VelodyneModel) -> VelodynePoints:
+        """All returns computed densely as (n, 384) slots, then the kept ones picked out. A slot is a
+        return in velodyne-decoder's order: block by block, a dual pair channel by channel (last,
+        strongest); what depends on the laser and firing only comes from per-slot tables."""
         n = batch.shape[0]
         f32 = np.float32
         blocks = batch[:, :_TIMESTAMP_OFFSET].reshape(n, BLOCKS_PER_PACKET, _BLOCK_BYTES)
@@ -221,74 +229,80 @@ class VelodyneDecoder:
         raw_distance = _u16(returns, 0)  # (n, 12, 32)
         raw_intensity = returns[:, :, :, 2]
         timestamp_us = batch[:, _TIMESTAMP_OFFSET : _TIMESTAMP_OFFSET + 4].copy().view("<u4")[:, 0]
-        dual = batch[:, _RETURN_MODE_OFFSET] == RETURN_DUAL
-        last_mode = batch[:, _RETURN_MODE_OFFSET] == RETURN_LAST
-        timing = model.firing_time_s
-        blk = np.arange(BLOCKS_PER_PACKET)
-        # Timing row of each block: in dual mode two blocks (last, strongest) share one firing.
-        if model.num_lasers == 128:
-            row = np.where(dual[:, None], blk // 2, blk)
-            t0 = timing[np.where(dual[:, None], 0, blk // 4 * 4), 0]
-            seq = timing[4, 0] - timing[0, 0]
-            rate = self._vls128_rate(block_azimuth[:, 0], np.where(dual, seq, f32(3) * seq).astype(f32))
-            used = np.where(dual[:, None], blk < 8, True)
-            bank = np.clip(3 - np.searchsorted(_BANK_FLAGS[::-1], _u16(blocks, 0)), 0, 3)  # unused blocks: any
-            laser = (32 * bank)[:, :, None] + np.arange(RETURNS_PER_BLOCK)
-        else:
-            row = np.where(dual[:, None], blk // 2, blk)
-            t0 = timing[row, 0]
-            last_row = np.where(dual, (BLOCKS_PER_PACKET - 1) // 2, BLOCKS_PER_PACKET - 1)
-            duration = timing[last_row, 0] - timing[0, 0]
-            diff = (block_azimuth[:, -1].astype(np.int64) - block_azimuth[:, 0] + 36000) % 36000
-            rate = diff.astype(f32) / duration
-            used = np.ones((n, BLOCKS_PER_PACKET), dtype=bool)
-            laser = np.broadcast_to(np.arange(RETURNS_PER_BLOCK) % model.num_lasers, (n, BLOCKS_PER_PACKET, 32))
-        time = timing[row]  # (n, 12, 32)
-        dt = time - t0[:, :, None]
-        azimuth_f = block_azimuth[:, :, None].astype(f32) + rate[:, None, None] * dt + f32(36000)
-        azimuth = (np.floor(azimuth_f + f32(0.5)).astype(np.int64) % 36000).astype(np.uint16)
-        return_type = self._return_types(raw_distance, raw_intensity, dual, last_mode)
+        mode = batch[:, _RETURN_MODE_OFFSET]
+        dual = mode == RETURN_DUAL
+        return_type = self._return_types(raw_distance, raw_intensity, dual, mode == RETURN_LAST)
+        tables = self._slot_tables
+        uniform = bool(dual.all() or not dual.any())
 
-        cal = self.calibration
-        distance = raw_distance.astype(f32) * f32(cal.distance_resolution_m)
-        distance = distance + cal.dist_correction_m.astype(f32)[laser]
-        keep = (
-            (return_type != 0)
-            & (raw_distance != 0)
-            & used[:, :, None]
-            & (distance >= self.min_range_m)
-            & (distance <= self.max_range_m)
-        )
-        # Points in velodyne-decoder's order: block by block; a dual pair channel by channel (last, strongest).
-        slot_to_return = _DUAL_ORDER[dual.astype(np.intp)]  # (n, 384) flat block*32 + channel of each slot
-        kept_packet, kept_slot = np.nonzero(np.take_along_axis(keep.reshape(n, -1), slot_to_return, axis=1))
-        flat = slot_to_return[kept_packet, kept_slot]
-        sel = (kept_packet, flat // RETURNS_PER_BLOCK, flat % RETURNS_PER_BLOCK)
-        laser_k = laser[sel]
-        az_k = azimuth[sel]
-        d = distance[sel]
+        def per_slot(table: np.ndarray) -> np.ndarray:
+            """(2, 384) table by dual mode -> (1 or n, 384) for the packets."""
+            return table[int(dual[0])][None, :] if uniform else table[dual.astype(np.intp)]
+
+        def in_slot_order(a: np.ndarray) -> np.ndarray:
+            flat = a.reshape(n, -1)
+            if not dual.any():
+                return flat
+            if dual.all():  # the same permutation for every packet, as a transpose
+                return a.reshape(n, 6, 2, RETURNS_PER_BLOCK).transpose(0, 1, 3, 2).reshape(n, -1)
+            return np.take_along_axis(flat, np.broadcast_to(per_slot(_DUAL_ORDER), flat.shape), axis=1)
+
+        if model.num_lasers == 128:
+            seq = model.firing_time_s[4, 0] - model.firing_time_s[0, 0]
+            rate = self._vls128_rate(block_azimuth[:, 0], np.where(dual, seq, f32(3) * seq).astype(f32))
+        else:
+            last_row = np.where(dual, (BLOCKS_PER_PACKET - 1) // 2, BLOCKS_PER_PACKET - 1)
+            duration = model.firing_time_s[last_row, 0] - model.firing_time_s[0, 0]
+            diff = (block_azimuth[:, -1].astype(np.int32) - block_azimuth[:, 0] + 36000) % 36000
+            rate = diff.astype(f32) / duration
+        slot_block_azimuth = np.take_along_axis(
+            block_azimuth, np.broadcast_to(per_slot(tables["block"]), (n, 384)), axis=1
+        ).astype(f32)
+        azimuth_f = slot_block_azimuth + rate[:, None] * per_slot(tables["dt"])
+        azimuth_f += f32(36000.5)
+        azimuth = np.floor(azimuth_f).astype(np.int32) % 36000
+
+        slot_raw_distance = in_slot_order(raw_distance)
+        slot_return_type = in_slot_order(return_type)
+        distance = slot_raw_distance.astype(f32) * f32(self.calibration.distance_resolution_m)
+        distance += per_slot(tables["dist_correction"])
+        keep = slot_return_type != 0
+        keep &= slot_raw_distance != 0
+        keep &= per_slot(tables["in_use"])
+        keep &= distance >= self.min_range_m
+        keep &= distance <= self.max_range_m
+        kept_packet, kept_slot = np.nonzero(keep)
+        az_k = azimuth[keep]
+        d = distance[keep]
+        laser_k = per_slot(tables["laser"])[0 if uniform else kept_packet, kept_slot]
+
         cos_az, sin_az = self._cos_table[az_k], self._sin_table[az_k]
         cos_rc, sin_rc = self._cos_rot[laser_k], self._sin_rot[laser_k]
         cos_rot = cos_az * cos_rc + sin_az * sin_rc  # cos(azimuth - rot_correction)
         sin_rot = sin_az * cos_rc - cos_az * sin_rc
         cos_v, sin_v = self._cos_vert[laser_k], self._sin_vert[laser_k]
-        v_off = cal.vert_offset_m.astype(f32)[laser_k]
-        h_off = cal.horiz_offset_m.astype(f32)[laser_k]
-        d_x, d_y = d, d
-        if cal.two_point_correction:
-            d_x, d_y = self._two_point_distances(d, laser_k, cos_v, sin_v, cos_rot, sin_rot, v_off, h_off)
-        xy_x = d_x * cos_v - v_off * sin_v
-        xy_y = d_y * cos_v - v_off * sin_v
         xyz = np.empty((d.shape[0], 3), dtype=f32)
-        xyz[:, 0] = xy_y * cos_rot + h_off * sin_rot
-        xyz[:, 1] = -(xy_x * sin_rot - h_off * cos_rot)
-        xyz[:, 2] = d_y * sin_v + v_off * cos_v
+        cal = self.calibration
+        if not self._has_offsets:
+            xy = d * cos_v
+            np.multiply(xy, cos_rot, out=xyz[:, 0])
+            np.multiply(xy, sin_rot, out=xyz[:, 1])
+            np.negative(xyz[:, 1], out=xyz[:, 1])
+            np.multiply(d, sin_v, out=xyz[:, 2])
+        else:
+            v_off = cal.vert_offset_m.astype(f32)[laser_k]
+            h_off = cal.horiz_offset_m.astype(f32)[laser_k]
+            d_x, d_y = d, d
+            if cal.two_point_correction:
+                d_x, d_y = self._two_point_distances(d, laser_k, cos_v, sin_v, cos_rot, sin_rot, v_off, h_off)
+            xy_x = d_x * cos_v - v_off * sin_v
+            xy_y = d_y * cos_v - v_off * sin_v
+            xyz[:, 0] = xy_y * cos_rot + h_off * sin_rot
+            xyz[:, 1] = -(xy_x * sin_rot - h_off * cos_rot)
+            xyz[:, 2] = d_y * sin_v + v_off * cos_v
 
-        intensity = self._intensity(raw_intensity[sel], raw_distance[sel], laser_k)
-        packet = sel[0]
-        t_ns = timestamp_us[packet].astype(np.int64) * 1000 + np.rint(time[sel].astype(np.float64) * 1e9).astype(
-            np.int64
-        )
+        intensity = self._intensity(in_slot_order(raw_intensity)[keep], slot_raw_distance[keep], laser_k)
+        time_ns = per_slot(tables["time_ns"])[0 if uniform else kept_packet, kept_slot]
         return VelodynePoints(
             model=model.name,
             xyz=xyz,
@@ -296,10 +310,10 @@ class VelodyneDecoder:
             intensity=intensity,
             laser_id=laser_k.astype(np.uint8),
             ring=cal.ring[laser_k],
-            azimuth_cdeg=az_k,
-            return_type=return_type[sel],
-            timestamp_ns=t_ns,
-            packet_index=index[packet],
+            azimuth_cdeg=az_k.astype(np.uint16),
+            return_type=slot_return_type[keep],
+            timestamp_ns=timestamp_us[kept_packet].astype(np.int64) * 1000 + time_ns,
+            packet_index=index[kept_packet],
         )
 
     @staticmethod
@@ -340,8 +354,39 @@ class VelodyneDecoder:
             focal_offset = (f32(1) - cal.focal_distance.astype(f32)[laser] / f32(13100)) ** 2
             falloff = (f32(1) - raw_distance.astype(f32) / f32(65535)) ** 2
             intensity = intensity + f32(256) * slope * np.abs(focal_offset - falloff)
+        elif np.all(cal.min_intensity <= 0) and np.all(cal.max_intensity >= 255):
+            return intensity  # a raw byte is always within the limits
         lo, hi = cal.min_intensity.astype(f32)[laser], cal.max_intensity.astype(f32)[laser]
         return np.minimum(np.maximum(intensity, lo), hi)
+
+
+def _slot_tables(model: VelodyneModel, calibration: VelodyneCalibration) -> dict[str, np.ndarray]:
+    """Per return slot (velodyne-decoder's order; see VelodyneDecoder._decode_points), for single
+    (row 0) and dual return (row 1) packets: its block, laser, firing time, the time since its block's
+    reference firing (azimuth interpolation) and the laser's distance correction."""
+    order = _DUAL_ORDER  # (2, 384) flat block * 32 + channel of each slot
+    block, channel = order // RETURNS_PER_BLOCK, order % RETURNS_PER_BLOCK
+    dual = np.array([[False], [True]])
+    timing = model.firing_time_s
+    row = np.where(dual, block // 2, block)  # dual: two blocks (last, strongest) share one firing
+    if model.num_lasers == 128:
+        bank = np.where(dual, block // 2, block) % 4
+        laser = 32 * bank + channel
+        t0 = timing[np.where(dual, 0, block // 4 * 4), 0]
+        in_use = ~dual | (block < 8)  # dual return: blocks 8-11 are empty
+    else:
+        laser = channel % model.num_lasers
+        t0 = timing[row, 0]
+        in_use = np.ones_like(block, dtype=bool)
+    time = timing[row, channel]
+    return {
+        "block": block,
+        "in_use": np.broadcast_to(in_use, block.shape),
+        "laser": laser,
+        "dt": (time - t0).astype(np.float32),
+        "time_ns": np.rint(time.astype(np.float64) * 1e9).astype(np.int64),
+        "dist_correction": calibration.dist_correction_m.astype(np.float32)[laser],
+    }
 
 
 def _u16(a: np.ndarray, offset: int) -> np.ndarray:

@@ -200,3 +200,34 @@ def test_calibration_reads_the_shared_files():
         assert calibration.num_lasers == lasers
         assert sorted(calibration.ring.tolist()) == list(range(lasers))
         assert np.all(np.abs(calibration.vert_correction_rad) < np.radians(30))
+
+
+def test_a_batch_mixing_dual_and_single_return_packets_decodes_like_its_parts():
+    dual = [p for _, p in _payloads("vlp16")[:6]]
+    single = [bytes(p[:1204]) + bytes([0x38]) + p[1205:] for p in dual[3:]]  # relabelled "last return"
+    calibration = load_velodyne_calibration(DATA / "calib" / "VLP16.yaml")
+    mixed = VelodyneDecoder(calibration).decode(dual[:3] + single)
+    first, second = VelodyneDecoder(calibration).decode(dual[:3]), VelodyneDecoder(calibration).decode(single)
+    np.testing.assert_array_equal(mixed.xyz, np.concatenate([first.xyz, second.xyz]))
+    np.testing.assert_array_equal(mixed.return_type, np.concatenate([first.return_type, second.return_type]))
+    np.testing.assert_array_equal(mixed.timestamp_ns, np.concatenate([first.timestamp_ns, second.timestamp_ns]))
+    assert set(second.return_type.tolist()) == {RETURN_TYPE_LAST}
+    assert len(second.xyz) > len(first.xyz) * 1.5  # single return: every block its own firing, none merged
+
+
+def test_vls128_dual_return_packets_ignore_their_four_empty_blocks():
+    """No dual-return VLS-128 capture is shared: this checks the layout rule only (blocks 8-11 unused)."""
+    packet = bytearray(_payloads("vls128")[5][1])
+    packet[1204] = 0x39
+    for block in range(8):  # dual layout: bank of block b is b // 2
+        packet[block * 100 : block * 100 + 2] = int([0xEEFF, 0xDDFF, 0xCCFF, 0xBBFF][block // 2]).to_bytes(2, "little")
+    calibration = load_velodyne_calibration(DATA / "calib" / "VLS128.yaml")
+    points = VelodyneDecoder(calibration).decode([bytes(packet)])
+    assert points.counts.packets_decoded == 1
+    assert len(points.xyz) > 0
+    assert set(points.laser_id.tolist()) <= set(range(128))
+    blank = bytearray(packet)
+    for block in range(8, 12):
+        blank[block * 100 + 4 : block * 100 + 100] = bytes(96)
+    again = VelodyneDecoder(calibration).decode([bytes(blank)])
+    np.testing.assert_array_equal(points.xyz, again.xyz)
