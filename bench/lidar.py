@@ -1,7 +1,9 @@
 """Ouster decode throughput on one core: packets -> XYZ with our batch decoder and with ouster-sdk
 (FrameBatcher + XYZLut) on the same OS-128 2048x10 LEGACY packets, made by our encoder.
 
-Run: .venv/bin/python bench/lidar.py [--quick]. Last line: JSON with points_per_s, ouster_sdk_ratio."""
+Under `vendors`, the other models decoded, on the shared real captures (bench/lidar_vendors.py).
+
+Run: .venv/bin/python bench/lidar.py [--quick]. Last line: JSON with points_per_s, ouster_sdk_ratio, vendors."""
 
 import os
 
@@ -14,6 +16,7 @@ import statistics  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
+from lidar_vendors import velodyne_figures  # noqa: E402
 
 from drivers.lidar.lidar_points import batch_xyz, scan_point_cloud  # noqa: E402
 from drivers.lidar.ouster_decoder import decode_packets, ouster_scan_assembler  # noqa: E402
@@ -130,6 +133,7 @@ def main() -> None:
         "points_per_s_to_point_clouds": points / t_clouds,
     }
     results["realtime_factor"] = results["points_per_s"] / SENSOR_POINTS_PER_S
+    vendors = velodyne_figures(time_medians, repeats)
     print(
         f"OS-128 2048x10 LEGACY, {n_frames} frames x 128 packets, median of {repeats}, core {args.core}, "
         "points/s per CPU-second of this thread unless wall_clock"
@@ -140,10 +144,17 @@ def main() -> None:
             if name.startswith("points") or "sdk_points" in name
             else f"  {name:32s} {value:10.2f}"
         )
+    print("vendors (real captures; reference: the model's reference decoder)")
+    for model, figures in vendors.items():
+        print(
+            f"  {model:8s} points_per_s {figures['points_per_s'] / 1e6:6.1f} M  max_abs_err_m "
+            f"{figures['max_abs_err_m']:.1e}  {figures['reference']} {figures['reference_points_per_s'] / 1e6:6.1f} M "
+            f"(ratio {figures['reference_ratio']:.2f})"
+        )
     print(
         json.dumps(
             {k: round(v, 3) if v < 1e3 else round(v) for k, v in results.items()}
-            | {"frames": n_frames, "repeats": repeats, "xyz_dtype": "float32 (sdk: float64)"}
+            | {"frames": n_frames, "repeats": repeats, "xyz_dtype": "float32 (sdk: float64)", "vendors": vendors}
         )
     )
 

@@ -1,0 +1,410 @@
+"""Velodyne data packets (1,206 bytes: 12 blocks of 32 returns, a timestamp, two factory bytes) decoded
+a batch at a time with numpy: model and return mode from the factory bytes, azimuth interpolated over
+each firing's time, range, intensity, laser id, ring, per-point time and xyz in the sensor frame
+(x forward, y left, z up, as velodyne-decoder gives them). Bad packets are counted and skipped."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+from drivers.lidar.lidar_points import LidarPointCloud
+from drivers.lidar.velodyne_calibration import VelodyneCalibration
+
+PACKET_SIZE = 1206
+BLOCKS_PER_PACKET = 12
+RETURNS_PER_BLOCK = 32
+_BLOCK_BYTES = 100
+_TIMESTAMP_OFFSET = 1200
+_RETURN_MODE_OFFSET = 1204
+_PRODUCT_ID_OFFSET = 1205
+
+RETURN_STRONGEST, RETURN_LAST, RETURN_DUAL = 0x37, 0x38, 0x39
+# Bits of VelodynePoints.return_type; a dual-return point whose two returns agree carries both.
+RETURN_TYPE_STRONGEST, RETURN_TYPE_LAST = 1, 2
+_BANK_FLAGS = np.array([0xEEFF, 0xDDFF, 0xCCFF, 0xBBFF], dtype=np.uint16)  # lasers 0-31, 32-63, ...
+
+_DUAL_ORDER = np.stack(
+    [np.arange(BLOCKS_PER_PACKET * RETURNS_PER_BLOCK), np.arange(384).reshape(6, 2, 32).transpose(0, 2, 1).ravel()]
+)
+
+
+@dataclass(frozen=True)
+class VelodyneModel:
+    name: str
+    product_id: int  # factory byte 1205
+    num_lasers: int
+    firing_time_s: np.ndarray  # (12, 32) float32, time of each return after the packet's timestamp
+
+
+def _vlp16_timing() -> np.ndarray:
+    # VLP-16 manual: 16 firings of 2.304 us, a 55.296 us cycle; a block holds two cycles.
+    block, channel = np.meshgrid(np.arange(12), np.arange(32), indexing="ij")
+    return (55.296e-6 * (2 * block + channel // 16) + 2.304e-6 * (channel % 16)).astype(np.float32)
+
+
+def _vlp32c_timing() -> np.ndarray:
+    # VLP-32C manual: lasers fire in pairs, 16 firings of 2.304 us, a 55.296 us cycle per block.
+    block, channel = np.meshgrid(np.arange(12), np.arange(32), indexing="ij")
+    return (55.296e-6 * block + 2.304e-6 * (channel // 2)).astype(np.float32)
+
+
+def _vls128_timing() -> np.ndarray:
+    # VLS-128: groups of 8 lasers fire every 2.66666 us, 20 group slots a sequence (16 groups plus
+    # maintenance after groups 8 and 16); 4 blocks (banks) make one sequence; timestamp 7 us late.
+    block, channel = np.meshgrid(np.arange(12), np.arange(32), indexing="ij")
+    group_time = 2.66666e-6
+    laser = 32 * (block % 4) + channel
+    t = (block // 4) * 20 * group_time + (laser // 8 + laser // 64 * 2) * group_time - 7e-6
+    return t.astype(np.float32)
+
+
+MODELS = {
+    m.product_id: m
+    for m in (
+        VelodyneModel("VLP-16", 0x22, 16, _vlp16_timing()),
+        VelodyneModel("VLP-32C", 0x28, 32, _vlp32c_timing()),
+        VelodyneModel("VLS-128", 0xA1, 128, _vls128_timing()),
+    )
+}
+
+
+@dataclass
+class VelodynePacketCounts:
+    """What happened to the datagrams of one decode call; packets_in is always packets_decoded plus
+    the four reasons to skip."""
+
+    packets_in: int = 0
+    packets_decoded: int = 0
+    wrong_size: int = 0  # not 1,206 bytes (position packets are 512)
+    bad_block_flag: int = 0  # a block's flag is not the bank the model puts there
+    unknown_factory: int = 0  # product id or return mode byte of no model decoded here
+    foreign_model: int = 0  # a known model, but not the one the calibration is for
+
+    def add(self, other: VelodynePacketCounts) -> None:
+        for f in fields(self):
+            setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
+
+
+@dataclass
+class VelodynePoints:
+    """The N returns of one decode call with a range inside the decoder's limits, in packet order,
+    then block, then channel (velodyne-decoder's order)."""
+
+    model: str | None  # None when no packet decoded
+    xyz: np.ndarray  # (N, 3) float32 metres, sensor frame
+    distance_m: np.ndarray  # (N,) float32, corrected range
+    intensity: np.ndarray  # (N,) float32, calibrated intensity (the raw byte without focal corrections)
+    laser_id: np.ndarray  # (N,) uint8, channel in the packet (with the bank for 64/128 lasers)
+    ring: np.ndarray  # (N,) uint16, rank of the laser by elevation, 0 = lowest
+    azimuth_cdeg: np.ndarray  # (N,) uint16, interpolated azimuth in 0.01 degrees
+    return_type: np.ndarray  # (N,) uint8, RETURN_TYPE_STRONGEST | RETURN_TYPE_LAST bits: which return(s) it is
+    timestamp_ns: np.ndarray  # (N,) int64, sensor time past the top of the hour of the point's firing
+    packet_index: np.ndarray  # (N,) int64, position of the point's packet in the decoder's input
+    counts: VelodynePacketCounts = field(default_factory=VelodynePacketCounts)
+
+    def to_point_cloud(self, frame_id: int) -> LidarPointCloud:
+        """The vendor-neutral cloud (range in mm, intensity clipped to a byte, azimuth as column)."""
+        return LidarPointCloud(
+            frame_id=frame_id,
+            xyz=self.xyz,
+            range_mm=np.rint(self.distance_m * 1000.0).astype(np.uint32),
+            reflectivity=np.clip(np.rint(self.intensity), 0, 255).astype(np.uint8),
+            ring=self.ring,
+            column=self.azimuth_cdeg,
+            timestamp_ns=self.timestamp_ns.astype(np.uint64),
+        )
+
+
+def _rotation_tables() -> tuple[np.ndarray, np.ndarray]:
+    # As velodyne-decoder caches them: float32 angle of each 0.01 degree step.
+    angle = np.float32(0.01) * np.arange(36000, dtype=np.float32) * np.float32(np.pi / 180.0)
+    return np.cos(angle), np.sin(angle)
+
+
+class VelodyneDecoder:
+    """Decodes batches of one sensor's data packets with its calibration.
+
+    VLS-128 packets take their rotation rate from the previous packet's azimuth, so the decoder keeps
+    the last packet's azimuth between calls: feed it the packets of one stream in order."""
+
+    def __init__(self, calibration: VelodyneCalibration, min_range_m: float = 0.1, max_range_m: float = 200.0):
+        self.calibration = calibration
+        self.min_range_m = np.float32(min_range_m)
+        self.max_range_m = np.float32(max_range_m)
+        self._cos_table, self._sin_table = _rotation_tables()
+        f32 = np.float32
+        self._cos_rot = np.cos(calibration.rot_correction_rad.astype(f32))
+        self._sin_rot = np.sin(calibration.rot_correction_rad.astype(f32))
+        self._cos_vert = np.cos(calibration.vert_correction_rad.astype(f32))
+        self._sin_vert = np.sin(calibration.vert_correction_rad.astype(f32))
+        model = next((m for m in MODELS.values() if m.num_lasers == calibration.num_lasers), None)
+        self._slot_tables = _slot_tables(model, calibration) if model is not None else {}
+        # With no offsets the offset terms vanish: the formula velodyne-decoder uses for such files.
+        self._has_offsets = bool(np.any(calibration.vert_offset_m) or np.any(calibration.horiz_offset_m))
+        self._has_offsets |= calibration.two_point_correction
+        self._prev_azimuth: int | None = None  # VLS-128: first block azimuth of the last packet
+        self._prev_rate = np.float32(0.0)
+
+    def decode(self, packets: np.ndarray | list[bytes]) -> VelodynePoints:
+        """Decode an (N, 1206) uint8 array or a list of datagram payloads of any size."""
+        counts = VelodynePacketCounts()
+        batch, index = self._as_batch(packets, counts)
+        good, model = self._check_packets(batch, counts)
+        batch, index = batch[good], index[good]
+        counts.packets_decoded = int(batch.shape[0])
+        if model is None or batch.shape[0] == 0:
+            return _empty_points(counts, None if model is None else model.name)
+        points = self._decode_points(batch, index, model)
+        points.counts = counts
+        return points
+
+    @staticmethod
+    def _as_batch(packets: np.ndarray | list[bytes], counts: VelodynePacketCounts) -> tuple[np.ndarray, np.ndarray]:
+        if isinstance(packets, np.ndarray):
+            if packets.ndim != 2:
+                raise TypeError("expected an (N, packet_size) uint8 array")
+            counts.packets_in = int(packets.shape[0])
+            if packets.shape[1] != PACKET_SIZE:
+                counts.wrong_size = counts.packets_in
+                return np.zeros((0, PACKET_SIZE), np.uint8), np.zeros(0, np.int64)
+            return packets.astype(np.uint8, copy=False), np.arange(packets.shape[0], dtype=np.int64)
+        counts.packets_in = len(packets)
+        index = np.array([i for i, p in enumerate(packets) if len(p) == PACKET_SIZE], dtype=np.int64)
+        counts.wrong_size = counts.packets_in - len(index)
+        joined = b"".join(packets[i] for i in index)
+        return np.frombuffer(joined, dtype=np.uint8).reshape(-1, PACKET_SIZE), index
+
+    def _check_packets(
+        self, batch: np.ndarray, counts: VelodynePacketCounts
+    ) -> tuple[np.ndarray, VelodyneModel | None]:
+        """Mask of the packets to decode; counts the others by reason."""
+        product = batch[:, _PRODUCT_ID_OFFSET]
+        mode = batch[:, _RETURN_MODE_OFFSET]
+        known = np.isin(product, list(MODELS)) & np.isin(mode, [RETURN_STRONGEST, RETURN_LAST, RETURN_DUAL])
+        counts.unknown_factory = int((~known).sum())
+        ours = [m for m in MODELS.values() if m.num_lasers == self.calibration.num_lasers]
+        model = ours[0] if ours else None
+        mine = known & (product == (model.product_id if model else -1))
+        counts.foreign_model = int((known & ~mine).sum())
+        flags = _u16(batch[:, :_TIMESTAMP_OFFSET].reshape(-1, BLOCKS_PER_PACKET, _BLOCK_BYTES), 0)
+        if model is not None and model.num_lasers == 128:
+            blocks_used = np.where(mode == RETURN_DUAL, 8, 12)
+            bank = np.arange(BLOCKS_PER_PACKET) // np.where(mode == RETURN_DUAL, 2, 1)[:, None] % 4
+            ok = (flags == _BANK_FLAGS[bank]) | (np.arange(BLOCKS_PER_PACKET)[None, :] >= blocks_used[:, None])
+        else:
+            ok = flags == _BANK_FLAGS[0]
+        flags_ok = ok.all(axis=1)
+        counts.bad_block_flag = int((mine & ~flags_ok).sum())
+        return mine & flags_ok, model
+
+    def _vls128_rate(self, first_azimuth: np.ndarray, packet_duration: np.ndarray) -> np.ndarray:
+        """Azimuth units per second of each packet, from the previous packet (velodyne-decoder's rule:
+        a rate above 1.8x the last accepted one means a dropped packet and keeps the last one)."""
+        az = first_azimuth.astype(np.int64)
+        prev = np.concatenate([[-1 if self._prev_azimuth is None else self._prev_azimuth], az[:-1]])
+        diff = ((az - prev + 36000) % 36000).astype(np.float32)
+        rate = diff / packet_duration
+        rate[prev < 0] = 0.0
+        accepted = self._prev_rate
+        for i in np.flatnonzero(prev >= 0):  # sequential by nature; one scalar step per packet
+            if accepted > 0 and rate[i] > accepted * np.float32(1.8):
+                rate[i] = accepted
+            else:
+                accepted = rate[i]
+        self._prev_rate = np.float32(accepted)
+        self._prev_azimuth = int(az[-1])
+        return rate
+
+    def _decode_points(self, batch: np.ndarray, index: np.ndarray, model: VelodyneModel) -> VelodynePoints:
+        """All returns computed densely as (n, 384) slots, then the kept ones picked out. A slot is a
+        return in velodyne-decoder's order: block by block, a dual pair channel by channel (last,
+        strongest); what depends on the laser and firing only comes from per-slot tables."""
+        n = batch.shape[0]
+        f32 = np.float32
+        blocks = batch[:, :_TIMESTAMP_OFFSET].reshape(n, BLOCKS_PER_PACKET, _BLOCK_BYTES)
+        block_azimuth = _u16(blocks, 2)  # (n, 12)
+        returns = blocks[:, :, 4:].reshape(n, BLOCKS_PER_PACKET, RETURNS_PER_BLOCK, 3)
+        raw_distance = _u16(returns, 0)  # (n, 12, 32)
+        raw_intensity = returns[:, :, :, 2]
+        timestamp_us = batch[:, _TIMESTAMP_OFFSET : _TIMESTAMP_OFFSET + 4].copy().view("<u4")[:, 0]
+        mode = batch[:, _RETURN_MODE_OFFSET]
+        dual = mode == RETURN_DUAL
+        return_type = self._return_types(raw_distance, raw_intensity, dual, mode == RETURN_LAST)
+        tables = self._slot_tables
+        uniform = bool(dual.all() or not dual.any())
+
+        def per_slot(table: np.ndarray) -> np.ndarray:
+            """(2, 384) table by dual mode -> (1 or n, 384) for the packets."""
+            return table[int(dual[0])][None, :] if uniform else table[dual.astype(np.intp)]
+
+        def in_slot_order(a: np.ndarray) -> np.ndarray:
+            flat = a.reshape(n, -1)
+            if not dual.any():
+                return flat
+            if dual.all():  # the same permutation for every packet, as a transpose
+                return a.reshape(n, 6, 2, RETURNS_PER_BLOCK).transpose(0, 1, 3, 2).reshape(n, -1)
+            return np.take_along_axis(flat, np.broadcast_to(per_slot(_DUAL_ORDER), flat.shape), axis=1)
+
+        if model.num_lasers == 128:
+            seq = model.firing_time_s[4, 0] - model.firing_time_s[0, 0]
+            rate = self._vls128_rate(block_azimuth[:, 0], np.where(dual, seq, f32(3) * seq).astype(f32))
+        else:
+            last_row = np.where(dual, (BLOCKS_PER_PACKET - 1) // 2, BLOCKS_PER_PACKET - 1)
+            duration = model.firing_time_s[last_row, 0] - model.firing_time_s[0, 0]
+            diff = (block_azimuth[:, -1].astype(np.int32) - block_azimuth[:, 0] + 36000) % 36000
+            rate = diff.astype(f32) / duration
+        slot_block_azimuth = np.take_along_axis(
+            block_azimuth, np.broadcast_to(per_slot(tables["block"]), (n, 384)), axis=1
+        ).astype(f32)
+        azimuth_f = slot_block_azimuth + rate[:, None] * per_slot(tables["dt"])
+        azimuth_f += f32(36000.5)
+        azimuth = np.floor(azimuth_f).astype(np.int32) % 36000
+
+        slot_raw_distance = in_slot_order(raw_distance)
+        slot_return_type = in_slot_order(return_type)
+        distance = slot_raw_distance.astype(f32) * f32(self.calibration.distance_resolution_m)
+        distance += per_slot(tables["dist_correction"])
+        keep = slot_return_type != 0
+        keep &= slot_raw_distance != 0
+        keep &= per_slot(tables["in_use"])
+        keep &= distance >= self.min_range_m
+        keep &= distance <= self.max_range_m
+        kept_packet, kept_slot = np.nonzero(keep)
+        az_k = azimuth[keep]
+        d = distance[keep]
+        laser_k = per_slot(tables["laser"])[0 if uniform else kept_packet, kept_slot]
+
+        cos_az, sin_az = self._cos_table[az_k], self._sin_table[az_k]
+        cos_rc, sin_rc = self._cos_rot[laser_k], self._sin_rot[laser_k]
+        cos_rot = cos_az * cos_rc + sin_az * sin_rc  # cos(azimuth - rot_correction)
+        sin_rot = sin_az * cos_rc - cos_az * sin_rc
+        cos_v, sin_v = self._cos_vert[laser_k], self._sin_vert[laser_k]
+        xyz = np.empty((d.shape[0], 3), dtype=f32)
+        cal = self.calibration
+        if not self._has_offsets:
+            xy = d * cos_v
+            np.multiply(xy, cos_rot, out=xyz[:, 0])
+            np.multiply(xy, sin_rot, out=xyz[:, 1])
+            np.negative(xyz[:, 1], out=xyz[:, 1])
+            np.multiply(d, sin_v, out=xyz[:, 2])
+        else:
+            v_off = cal.vert_offset_m.astype(f32)[laser_k]
+            h_off = cal.horiz_offset_m.astype(f32)[laser_k]
+            d_x, d_y = d, d
+            if cal.two_point_correction:
+                d_x, d_y = self._two_point_distances(d, laser_k, cos_v, sin_v, cos_rot, sin_rot, v_off, h_off)
+            xy_x = d_x * cos_v - v_off * sin_v
+            xy_y = d_y * cos_v - v_off * sin_v
+            xyz[:, 0] = xy_y * cos_rot + h_off * sin_rot
+            xyz[:, 1] = -(xy_x * sin_rot - h_off * cos_rot)
+            xyz[:, 2] = d_y * sin_v + v_off * cos_v
+
+        intensity = self._intensity(in_slot_order(raw_intensity)[keep], slot_raw_distance[keep], laser_k)
+        time_ns = per_slot(tables["time_ns"])[0 if uniform else kept_packet, kept_slot]
+        return VelodynePoints(
+            model=model.name,
+            xyz=xyz,
+            distance_m=d,
+            intensity=intensity,
+            laser_id=laser_k.astype(np.uint8),
+            ring=cal.ring[laser_k],
+            azimuth_cdeg=az_k.astype(np.uint16),
+            return_type=slot_return_type[keep],
+            timestamp_ns=timestamp_us[kept_packet].astype(np.int64) * 1000 + time_ns,
+            packet_index=index[kept_packet],
+        )
+
+    @staticmethod
+    def _return_types(raw_distance: np.ndarray, raw_intensity: np.ndarray, dual: np.ndarray, last_mode: np.ndarray):
+        """(n, 12, 32) uint8 return type of each return, 0 for the strongest return of a dual pair that
+        repeats the last one (block 2k holds the last returns, 2k + 1 the strongest of the same firing;
+        one point of both types stands for the two, as velodyne-decoder gives it)."""
+        single = np.where(last_mode, RETURN_TYPE_LAST, RETURN_TYPE_STRONGEST).astype(np.uint8)
+        return_type = np.broadcast_to(single[:, None, None], raw_distance.shape).copy()
+        if dual.any():
+            same = (raw_distance[:, 0::2] == raw_distance[:, 1::2]) & (raw_intensity[:, 0::2] == raw_intensity[:, 1::2])
+            pair = np.empty_like(return_type)
+            pair[:, 0::2] = np.where(same, RETURN_TYPE_LAST | RETURN_TYPE_STRONGEST, RETURN_TYPE_LAST)
+            pair[:, 1::2] = np.where(same, 0, RETURN_TYPE_STRONGEST)
+            return_type[dual] = pair[dual]
+        return return_type
+
+    def _two_point_distances(self, d, laser, cos_v, sin_v, cos_rot, sin_rot, v_off, h_off):
+        """HDL-64E's distance-dependent corrections along x and y (linear between 2.4/1.93 m and 25.04 m)."""
+        cal = self.calibration
+        f32 = np.float32
+        dc = cal.dist_correction_m.astype(f32)[laser]
+        dcx = cal.dist_correction_x_m.astype(f32)[laser]
+        dcy = cal.dist_correction_y_m.astype(f32)[laser]
+        xy = d * cos_v - v_off * sin_v
+        xx = np.abs(xy * sin_rot - h_off * cos_rot)
+        yy = np.abs(xy * cos_rot + h_off * sin_rot)
+        corr_x = (dc - dcx) * (xx - f32(2.4)) / f32(25.04 - 2.4) + dcx - dc
+        corr_y = (dc - dcy) * (yy - f32(1.93)) / f32(25.04 - 1.93) + dcy - dc
+        return d + corr_x, d + corr_y
+
+    def _intensity(self, raw_intensity: np.ndarray, raw_distance: np.ndarray, laser: np.ndarray) -> np.ndarray:
+        cal = self.calibration
+        f32 = np.float32
+        intensity = raw_intensity.astype(f32)
+        slope = cal.focal_slope.astype(f32)[laser]
+        if np.any(slope != 0):
+            focal_offset = (f32(1) - cal.focal_distance.astype(f32)[laser] / f32(13100)) ** 2
+            falloff = (f32(1) - raw_distance.astype(f32) / f32(65535)) ** 2
+            intensity = intensity + f32(256) * slope * np.abs(focal_offset - falloff)
+        elif np.all(cal.min_intensity <= 0) and np.all(cal.max_intensity >= 255):
+            return intensity  # a raw byte is always within the limits
+        lo, hi = cal.min_intensity.astype(f32)[laser], cal.max_intensity.astype(f32)[laser]
+        return np.minimum(np.maximum(intensity, lo), hi)
+
+
+def _slot_tables(model: VelodyneModel, calibration: VelodyneCalibration) -> dict[str, np.ndarray]:
+    """Per return slot (velodyne-decoder's order; see VelodyneDecoder._decode_points), for single
+    (row 0) and dual return (row 1) packets: its block, laser, firing time, the time since its block's
+    reference firing (azimuth interpolation) and the laser's distance correction."""
+    order = _DUAL_ORDER  # (2, 384) flat block * 32 + channel of each slot
+    block, channel = order // RETURNS_PER_BLOCK, order % RETURNS_PER_BLOCK
+    dual = np.array([[False], [True]])
+    timing = model.firing_time_s
+    row = np.where(dual, block // 2, block)  # dual: two blocks (last, strongest) share one firing
+    if model.num_lasers == 128:
+        bank = np.where(dual, block // 2, block) % 4
+        laser = 32 * bank + channel
+        t0 = timing[np.where(dual, 0, block // 4 * 4), 0]
+        in_use = ~dual | (block < 8)  # dual return: blocks 8-11 are empty
+    else:
+        laser = channel % model.num_lasers
+        t0 = timing[row, 0]
+        in_use = np.ones_like(block, dtype=bool)
+    time = timing[row, channel]
+    return {
+        "block": block,
+        "in_use": np.broadcast_to(in_use, block.shape),
+        "laser": laser,
+        "dt": (time - t0).astype(np.float32),
+        "time_ns": np.rint(time.astype(np.float64) * 1e9).astype(np.int64),
+        "dist_correction": calibration.dist_correction_m.astype(np.float32)[laser],
+    }
+
+
+def _u16(a: np.ndarray, offset: int) -> np.ndarray:
+    """Little-endian uint16 at byte `offset` of the last axis."""
+    return a[..., offset].astype(np.uint16) | (a[..., offset + 1].astype(np.uint16) << 8)
+
+
+def _empty_points(counts: VelodynePacketCounts, model: str | None) -> VelodynePoints:
+    return VelodynePoints(
+        model=model,
+        xyz=np.zeros((0, 3), np.float32),
+        distance_m=np.zeros(0, np.float32),
+        intensity=np.zeros(0, np.float32),
+        laser_id=np.zeros(0, np.uint8),
+        ring=np.zeros(0, np.uint16),
+        azimuth_cdeg=np.zeros(0, np.uint16),
+        return_type=np.zeros(0, np.uint8),
+        timestamp_ns=np.zeros(0, np.int64),
+        packet_index=np.zeros(0, np.int64),
+        counts=counts,
+    )
