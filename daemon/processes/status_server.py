@@ -28,6 +28,9 @@ from daemon.spine.messages import DriverHealth
 from daemon.spine.process_table import required_drivers
 from daemon.spine.topics import topic_table
 
+LISTEN_BACKLOG = 256  # connections the kernel queues before the server accepts them
+IDLE_TIMEOUT_S = 10.0  # a client that sends nothing (or stops reading) for this long is disconnected
+
 
 class HealthBoard:
     """The latest DriverHealth of every process, read from the bus by a background thread."""
@@ -80,6 +83,26 @@ def _detail(health: DriverHealth) -> dict:
     except json.JSONDecodeError:
         value = {}
     return value
+
+
+def _figures(detail: dict, key: str) -> tuple[dict[str, float], int]:
+    """detail[key] as {label: number} (what /metrics exports), and how many of its entries were not numbers (a
+    detail of another shape counts as one): those are skipped, counted, and do not cost the other metrics."""
+    value = detail.get(key, {})
+    if not isinstance(value, dict):
+        return {}, 1
+    good = {str(k): float(v) for k, v in value.items() if isinstance(v, int | float) and not isinstance(v, bool)}
+    return good, len(value) - len(good)
+
+
+def _restarts(detail: dict) -> tuple[dict[str, float], int]:
+    """The supervisor's restart count per process, and how many entries were badly shaped."""
+    processes = detail.get("processes", {})
+    if not isinstance(processes, dict):
+        return {}, 1
+    counts = {str(name): info.get("restarts", 0) for name, info in processes.items() if isinstance(info, dict)}
+    good = {k: float(v) for k, v in counts.items() if isinstance(v, int | float) and not isinstance(v, bool)}
+    return good, len(processes) - len(good)
 
 
 def status_document(config: CarConfig, board: HealthBoard) -> dict:
@@ -139,6 +162,8 @@ class _BoardCollector:
         written = GaugeMetricFamily("roadlog_recorder_written_messages", "messages written to the log",
                                     labels=["topic"])
         restarts = GaugeMetricFamily("roadlog_process_restarts", "restarts by the supervisor", labels=["process"])
+        malformed = CounterMetricFamily("roadlog_status_malformed_details", "health detail entries of the wrong "
+                                        "shape, skipped (in the latest health of each process)", labels=["process"])
         for name, (h, _) in sorted(self.board.snapshot().items()):
             gauges["rate_hz"].add_metric([name], h.rate_hz)
             gauges["age"].add_metric([name], h.last_message_age_s if h.last_message_age_s != float("inf") else -1)
@@ -146,24 +171,30 @@ class _BoardCollector:
             for k, fam in counters.items():
                 fam.add_metric([name], getattr(h, k))
             detail = _detail(h)
+            bad = 0
             if name == "recorder":
-                for topic, n in detail.get("lost", {}).items():
-                    lost.add_metric([topic], n)
-                for topic, n in detail.get("written", {}).items():
-                    written.add_metric([topic], n)
+                for family, key in ((lost, "lost"), (written, "written")):
+                    figures, wrong = _figures(detail, key)
+                    bad += wrong
+                    for topic, n in figures.items():
+                        family.add_metric([topic], n)
             if name == "supervisor":
-                for proc, info in detail.get("processes", {}).items():
-                    restarts.add_metric([proc], info.get("restarts", 0))
+                figures, bad = _restarts(detail)
+                for proc, n in figures.items():
+                    restarts.add_metric([proc], n)
+            malformed.add_metric([name], bad)
         yield from gauges.values()
         yield from counters.values()
-        yield from (lost, written, restarts)
+        yield from (lost, written, restarts, malformed)
 
 
-def make_handler(config: CarConfig, board: HealthBoard, registry: CollectorRegistry, data_folder: Path):
+def make_handler(config: CarConfig, board: HealthBoard, registry: CollectorRegistry, data_folder: Path,
+                 idle_timeout_s: float = IDLE_TIMEOUT_S):
     previews = {f"/preview/{name}.png": name for name in PREVIEWS}
 
     class Handler(BaseHTTPRequestHandler):
         server_version = "roadlog-status"
+        timeout = idle_timeout_s  # a connection silent this long is closed (its thread ends)
 
         def log_message(self, fmt, *args):  # keep the journal quiet: one line per request is noise
             pass
@@ -212,12 +243,16 @@ def make_handler(config: CarConfig, board: HealthBoard, registry: CollectorRegis
     return Handler
 
 
-def make_server(config: CarConfig, board: HealthBoard, data_folder: Path, port: int | None = None
-                ) -> ThreadingHTTPServer:
+class StatusHTTPServer(ThreadingHTTPServer):
+    request_queue_size = LISTEN_BACKLOG  # socketserver's default of 5 left clients waiting seconds under load
+
+
+def make_server(config: CarConfig, board: HealthBoard, data_folder: Path, port: int | None = None,
+                idle_timeout_s: float = IDLE_TIMEOUT_S) -> ThreadingHTTPServer:
     registry = CollectorRegistry()
     registry.register(_BoardCollector(board))
-    server = ThreadingHTTPServer((config.status.bind_address, config.status.port if port is None else port),
-                                 make_handler(config, board, registry, data_folder))
+    server = StatusHTTPServer((config.status.bind_address, config.status.port if port is None else port),
+                              make_handler(config, board, registry, data_folder, idle_timeout_s))
     server.daemon_threads = True
     return server
 

@@ -1,6 +1,7 @@
 """The status endpoint over real HTTP: liveness, readiness, JSON status, Prometheus metrics, previews, 404s."""
 
 import json
+import socket
 import threading
 import time
 import urllib.error
@@ -133,3 +134,50 @@ def test_board_reads_health_from_the_bus(served):
         time.sleep(0.1)
     pub.close()
     assert doc["processes"]["gnss"]["state"] == "ok"
+
+
+def test_metrics_answer_despite_badly_shaped_health_details(served):
+    """One process's odd detail is skipped and counted; /metrics still answers with everything else."""
+    cfg, board, base, _ = served
+    board.update(_healthy("recorder", detail=json.dumps({"lost": [1, 2], "written": {"imu": "many", "gnss": 3}})))
+    board.update(_healthy("supervisor", detail=json.dumps({"processes": {"lidar": "up", "gnss": {"restarts": 1}}})))
+    code, _, body = _get(base + "/metrics")
+    text = body.decode()
+    assert code == 200
+    assert 'roadlog_recorder_written_messages{topic="gnss"} 3.0' in text
+    assert 'roadlog_process_restarts{process="gnss"} 1.0' in text
+    assert 'roadlog_status_malformed_details_total{process="recorder"} 2.0' in text
+    assert 'roadlog_status_malformed_details_total{process="supervisor"} 1.0' in text
+    assert 'roadlog_published_total{process="recorder"}' in text
+
+
+def test_idle_connections_are_closed_and_many_clients_are_served(tmp_path):
+    cfg, _ = private_config(tmp_path)
+    board = HealthBoard(cfg)
+    server = make_server(cfg, board, tmp_path / "logs", port=0, idle_timeout_s=0.5)
+    assert server.request_queue_size >= 128
+    threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True).start()
+    host, port = server.server_address[:2]
+    try:
+        idle = [socket.create_connection((host, port), timeout=5) for _ in range(20)]  # connect, send nothing
+        time.sleep(1.0)
+        assert all(s.recv(1) == b"" for s in idle)  # the server hung up on each (recv would block otherwise)
+        for s in idle:
+            s.close()
+        answers: list[int] = []
+        lock = threading.Lock()
+
+        def ask() -> None:
+            code, _, _ = _get(f"http://{host}:{port}/livez")
+            with lock:
+                answers.append(code)
+
+        clients = [threading.Thread(target=ask) for _ in range(200)]
+        for c in clients:
+            c.start()
+        for c in clients:
+            c.join(30)
+        assert answers.count(200) == 200
+    finally:
+        server.shutdown()
+        server.server_close()
