@@ -1,19 +1,50 @@
-"""`roadlog check-config`: validate a car config and print it resolved (defaults filled in)."""
+"""`roadlog check-config`: validate a car config, run every start-up check its processes would make (the process
+table names each process's check: Lidar metadata, DBC signals and units, the segmentation model, ...), and print
+the config resolved (defaults filled in). Exit 2 when any check fails, with one line per problem."""
 
 from __future__ import annotations
 
 import argparse
+import importlib
+import sys
 
-from daemon.spine.config import config_to_yaml, load_config, reports_config_errors
+from daemon.spine.config import (
+    EXIT_CONFIG_ERROR,
+    CarConfig,
+    ConfigError,
+    config_to_yaml,
+    load_config,
+    reports_config_errors,
+)
+from daemon.spine.process_table import process_table
+
+
+def start_up_problems(config: CarConfig, config_path: str) -> list[str]:
+    """What each process of a live run would refuse at start, one line each (empty: all would start)."""
+    problems = []
+    for spec in process_table(config, config_path, "live"):
+        if not spec.check:
+            continue
+        module, _, function = spec.check.partition(":")
+        try:
+            getattr(importlib.import_module(module), function)(config, config_path)
+        except ConfigError as exc:
+            problems.append(f"{spec.name}: {exc}")
+    return problems
 
 
 @reports_config_errors
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="roadlog check-config", description=__doc__)
+    parser = argparse.ArgumentParser(prog="roadlog check-config", description=__doc__.split("\n\n")[0])
     parser.add_argument("config", help="path of the car's YAML config")
     parser.add_argument("--quiet", action="store_true", help="print nothing when the config is valid")
     args = parser.parse_args(argv)
     config = load_config(args.config)
+    problems = start_up_problems(config, args.config)
+    for line in problems:
+        print(f"error: {line}", file=sys.stderr)
+    if problems:
+        return EXIT_CONFIG_ERROR
     if not args.quiet:
         print(config_to_yaml(config), end="")
     return 0

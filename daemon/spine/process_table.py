@@ -27,6 +27,7 @@ class ProcessSpec:
     stop_timeout_s: float = 10.0  # how long it may take to exit after SIGTERM
     start_after: tuple[str, ...] = ()  # processes that must be up (have published health) before it starts
     nice: int = 0  # CPU priority below the others' by this much (`nice` increment)
+    check: str = ""  # "module:function(car, config_path)" raising ConfigError: its start-up checks (check-config)
 
 
 def process_table(
@@ -50,11 +51,13 @@ def process_table(
             module = "sim.camera_playback" if cam.backend == "sim" else "drivers.camera.camera_driver"
             table.append(ProcessSpec(camera_process(cam.name), module, cfg + ("--camera", cam.name), required=True))
         if s.lidar is not None:
-            table.append(ProcessSpec("lidar", "drivers.lidar.udp_driver", cfg, required=True))
+            table.append(ProcessSpec("lidar", "drivers.lidar.udp_driver", cfg, required=True,
+                                     check="drivers.lidar.udp_driver:check_config"))
         if s.gnss is not None:
             table.append(ProcessSpec("gnss", "drivers.gnss.serial_driver", cfg, required=True))
         if s.can is not None:
-            table.append(ProcessSpec("can", "drivers.can.can_driver", cfg, required=True))
+            table.append(ProcessSpec("can", "drivers.can.can_driver", cfg, required=True,
+                                     check="drivers.can.can_driver:check_config"))
     else:
         # the player starts once the recorder and the mapper listen: nothing is played before they subscribe
         consumers = ("recorder",) * record + ("mapper",) * config.mapper.enabled
@@ -69,7 +72,8 @@ def process_table(
     if config.mapper.enabled:
         # the log comes first: on a busy machine the drivers and the recorder get the CPU before the mapper
         table.append(ProcessSpec("mapper", "mapping.live.mapping_worker", cfg + out, heartbeat_s=120.0,
-                                 stop_timeout_s=map_stop_timeout_s, restart_on_success=False, nice=MAPPER_NICE))
+                                 stop_timeout_s=map_stop_timeout_s, restart_on_success=False, nice=MAPPER_NICE,
+                                 check="mapping.inputs.drive_inputs:check_config"))
     table.append(ProcessSpec("status", "daemon.processes.status_server", cfg + out, heartbeat_s=0.0))
     return table
 

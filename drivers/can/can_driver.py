@@ -22,7 +22,7 @@ from pathlib import Path
 import can
 from cantools.database import UnsupportedDatabaseFormatError
 
-from daemon.spine.config import CanConfig, ConfigError, load_config, reports_config_errors, resolve_path
+from daemon.spine.config import CanConfig, CarConfig, ConfigError, load_config, reports_config_errors, resolve_path
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import CanFrame
 from daemon.spine.topics import CAN_FRAMES, WHEEL_SPEEDS, health_topic
@@ -170,6 +170,20 @@ def run_can_driver(
     return stats
 
 
+def check_config(car: CarConfig, config_path: str | Path,
+                 dbc: str | Path | None = None) -> tuple[Path, float | None]:
+    """What the driver checks before it starts (also run by `roadlog check-config`): the DBC loads and holds the
+    configured wheel-speed signals in a usable unit. Returns the DBC's path and the wheel message's cycle (ms)."""
+    if car.sensors.can is None:
+        raise ConfigError(f"{config_path}: has no sensors.can section")
+    dbc_path = Path(dbc) if dbc else resolve_path(config_path, car.sensors.can.dbc_file)
+    try:
+        cycle_ms = wheel_speed_layout(load_dbc(dbc_path), car.sensors.can.signals).wheel_message.cycle_time
+    except (OSError, UnsupportedDatabaseFormatError, WheelSpeedLayoutError) as exc:
+        raise ConfigError(f"{config_path}: sensors.can with DBC {str(dbc_path)!r}: {exc}") from None
+    return dbc_path, cycle_ms
+
+
 @reports_config_errors
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="roadlog CAN driver: raw frames and wheel speeds onto the bus")
@@ -182,15 +196,9 @@ def main(argv: list[str] | None = None) -> int:
     from daemon.bus.pubsub import open_publisher
 
     car = load_config(args.config)
-    if car.sensors.can is None:
-        raise ConfigError(f"{args.config}: has no sensors.can section")
+    dbc_path, cycle_ms = check_config(car, args.config, args.dbc)
     overrides = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
     config = car.sensors.can.model_copy(update=overrides)
-    dbc_path = Path(args.dbc) if args.dbc else resolve_path(args.config, config.dbc_file)
-    try:
-        cycle_ms = wheel_speed_layout(load_dbc(dbc_path), config.signals).wheel_message.cycle_time
-    except (OSError, UnsupportedDatabaseFormatError, WheelSpeedLayoutError) as exc:
-        raise ConfigError(f"{args.config}: sensors.can with DBC {str(dbc_path)!r}: {exc}") from None
     publishers = {topic: open_publisher(car, topic) for topic in (CAN_FRAMES, WHEEL_SPEEDS, health_topic(PROCESS))}
     health = HealthCounters(PROCESS, expected_rate_hz=1000.0 / cycle_ms if cycle_ms else 0.0)
     stop = threading.Event()

@@ -23,10 +23,11 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-from daemon.spine.config import ConfigError, LidarConfig, load_config, reports_config_errors, resolve_path
+from daemon.spine.config import CarConfig, ConfigError, LidarConfig, load_config, reports_config_errors, resolve_path
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import LidarPacket
 from daemon.spine.topics import LIDAR_IMU, LIDAR_PACKETS, health_topic
@@ -347,6 +348,19 @@ def run_lidar_driver(
     return stats
 
 
+def check_config(car: CarConfig, config_path: str | Path) -> tuple[OusterMetadata, OusterPacketLayout]:
+    """What the driver checks before it starts (also run by `roadlog check-config`): the sensor metadata file
+    reads and gives a packet layout the decoder knows."""
+    if car.sensors.lidar is None:
+        raise ConfigError(f"{config_path}: has no sensors.lidar section")
+    metadata_path = resolve_path(config_path, car.sensors.lidar.metadata_file)
+    try:
+        metadata = parse_metadata(metadata_path)
+        return metadata, packet_layout(metadata)
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"{config_path}: sensors.lidar.metadata_file {str(metadata_path)!r}: {exc}") from None
+
+
 @reports_config_errors
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="roadlog Lidar driver: raw Ouster UDP packets onto the bus")
@@ -358,16 +372,9 @@ def main(argv: list[str] | None = None) -> int:
     from daemon.bus.pubsub import open_publisher
 
     car = load_config(args.config)
-    if car.sensors.lidar is None:
-        raise ConfigError(f"{args.config}: has no sensors.lidar section")
+    metadata, layout = check_config(car, args.config)
     overrides = {k: v for k, v in (("port", args.port), ("bind_address", args.bind)) if v is not None}
     config = car.sensors.lidar.model_copy(update=overrides)
-    metadata_path = resolve_path(args.config, config.metadata_file)
-    try:
-        metadata = parse_metadata(metadata_path)
-        layout = packet_layout(metadata)
-    except (OSError, ValueError) as exc:
-        raise ConfigError(f"{args.config}: sensors.lidar.metadata_file {str(metadata_path)!r}: {exc}") from None
     if metadata.columns_per_frame != config.columns_per_frame or metadata.fps != config.rate_hz:
         print(f"lidar driver: warning: the sensor metadata says {metadata.lidar_mode}, the config "
               f"{config.columns_per_frame}x{config.rate_hz}; decoding as the metadata says", file=sys.stderr)

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from daemon.log_format.reader import ReadReport, read_log
-from daemon.spine.config import CarConfig, resolve_path
+from daemon.spine.config import CarConfig, ConfigError, resolve_path
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.messages import (
     RAW_FORMAT_CHANNELS,
@@ -302,6 +302,18 @@ def _keyframe_messages(config: CarConfig, frames: dict[str, list[CameraFrame]],
 def keyframe_semantics(image: np.ndarray, mask: SemanticMask | None, segmenter: OnnxSegmenter | None) -> np.ndarray:
     """A keyframe's class ids: the model's labels of its image if a segmenter is given, else its recorded mask."""
     return segmenter.labels(image) if segmenter is not None else decode_mask(mask)
+
+
+def check_config(car: CarConfig, config_path: str | Path) -> None:
+    """What the mapper (live worker or reconstruct) needs of the config before it starts (also run by `roadlog
+    check-config`): the segmentation model loads, the Lidar metadata reads."""
+    segmenter_for(car, config_path)
+    if car.sensors.lidar is not None:
+        path = resolve_path(config_path, car.sensors.lidar.metadata_file)
+        try:
+            parse_metadata(path)
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"{config_path}: sensors.lidar.metadata_file {str(path)!r}: {exc}") from None
 
 
 def segmenter_for(config: CarConfig, config_path: str | Path | None) -> OnnxSegmenter | None:

@@ -104,3 +104,35 @@ def test_a_config_recorded_before_the_mapper_was_sectioned_still_reads():
     assert m.runtime.torch_threads_faithful_fit == 1 and m.fast_fit == MapperConfig().fast_fit
     current = yaml.safe_load((CONFIGS / "sim.yaml").read_text())
     assert sectioned_recorded_config(current) == current  # a sectioned config passes unchanged
+
+
+def _runnable(tmp_path, mutate) -> Path:
+    """sim.yaml in tmp_path with its files named absolutely, then `mutate`d."""
+    data = yaml.safe_load((CONFIGS / "sim.yaml").read_text())
+    data["sensors"]["can"]["dbc_file"] = str(CONFIGS / "sim_car.dbc")
+    data["sensors"]["lidar"]["metadata_file"] = str(CONFIGS / "sim_os128_metadata.json")
+    mutate(data)
+    path = tmp_path / "car.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.mark.parametrize(
+    "mutate, names",
+    [
+        (lambda d: d["sensors"]["can"].update(dbc_file="absent.dbc"), ["can:", "absent.dbc"]),
+        (lambda d: d["sensors"]["can"]["signals"].update(wheel_speed_fl="WHEEL_SPEEDS.NO_SUCH_SIGNAL"),
+         ["can:", "NO_SUCH_SIGNAL"]),
+        (lambda d: d["sensors"]["lidar"].update(metadata_file="junk.json"), ["lidar:", "mapper:", "junk.json"]),
+        (lambda d: d["mapper"].update(segmentation={"provider": "onnx", "model": "absent.onnx",
+                                                    "class_map": {0: "road"}}), ["mapper:", "absent.onnx"]),
+    ],
+)
+def test_check_config_runs_the_start_up_checks_of_every_process(tmp_path, capsys, mutate, names):
+    """A config that parses but that a process would refuse at start is refused by check-config too."""
+    (tmp_path / "junk.json").write_text("{not json")
+    assert check_config_main([str(_runnable(tmp_path, lambda d: None)), "--quiet"]) == 0
+    assert check_config_main([str(_runnable(tmp_path, mutate)), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert all(name in err for name in names), err
+    assert "Traceback" not in err
