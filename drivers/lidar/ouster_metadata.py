@@ -10,6 +10,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from daemon.spine.config import ConfigError, resolve_path
+
 if TYPE_CHECKING:
     from daemon.spine.config import LidarConfig
 
@@ -236,3 +238,13 @@ def imu_port(config: LidarConfig, metadata: OusterMetadata) -> int | None:
     when the config sets 0 (IMU off)."""
     port = metadata.udp_port_imu if config.imu_port is None else config.imu_port
     return port or None
+
+
+def configured_metadata(config: LidarConfig, config_path: str | Path) -> OusterMetadata:
+    """The metadata of the configured sensor (`metadata_file`, relative to the config file); a file that cannot be
+    read or parsed is a ConfigError naming it."""
+    path = resolve_path(config_path, config.metadata_file)
+    try:
+        return parse_metadata(path)
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"{config_path}: sensors.lidar.metadata_file {str(path)!r}: {exc}") from None

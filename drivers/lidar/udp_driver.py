@@ -27,13 +27,13 @@ from pathlib import Path
 
 import numpy as np
 
-from daemon.spine.config import CarConfig, ConfigError, LidarConfig, load_config, reports_config_errors, resolve_path
+from daemon.spine.config import CarConfig, ConfigError, LidarConfig, load_config, reports_config_errors
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import LidarPacket
 from daemon.spine.topics import LIDAR_IMU, LIDAR_PACKETS, health_topic
 from drivers.lidar.ouster_decoder import count_missing_packets, decode_packets, newest_packet, packet_sequence
 from drivers.lidar.ouster_imu import decode_imu_packet, imu_profile_supported
-from drivers.lidar.ouster_metadata import OusterMetadata, imu_port, parse_metadata
+from drivers.lidar.ouster_metadata import OusterMetadata, configured_metadata, imu_port
 from drivers.lidar.ouster_packet_layout import OusterPacketLayout, packet_layout, packets_per_second
 
 PROCESS = "lidar"
@@ -353,12 +353,12 @@ def check_config(car: CarConfig, config_path: str | Path) -> tuple[OusterMetadat
     reads and gives a packet layout the decoder knows."""
     if car.sensors.lidar is None:
         raise ConfigError(f"{config_path}: has no sensors.lidar section")
-    metadata_path = resolve_path(config_path, car.sensors.lidar.metadata_file)
+    metadata = configured_metadata(car.sensors.lidar, config_path)
     try:
-        metadata = parse_metadata(metadata_path)
         return metadata, packet_layout(metadata)
-    except (OSError, ValueError) as exc:
-        raise ConfigError(f"{config_path}: sensors.lidar.metadata_file {str(metadata_path)!r}: {exc}") from None
+    except ValueError as exc:
+        raise ConfigError(f"{config_path}: sensors.lidar.metadata_file {car.sensors.lidar.metadata_file!r}: "
+                          f"{exc}") from None
 
 
 @reports_config_errors

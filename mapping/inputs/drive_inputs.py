@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from daemon.log_format.reader import ReadReport, read_log
-from daemon.spine.config import CarConfig, ConfigError, resolve_path
+from daemon.spine.config import CarConfig, resolve_path
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.messages import (
     RAW_FORMAT_CHANNELS,
@@ -32,7 +32,7 @@ from daemon.spine.messages import (
     WheelSpeeds,
 )
 from daemon.spine.topics import GNSS_FIX, IMU, LIDAR_PACKETS, POSE, TIME_ANCHOR, WHEEL_SPEEDS, camera_topic, mask_topic
-from drivers.lidar.ouster_metadata import parse_metadata
+from drivers.lidar.ouster_metadata import configured_metadata, parse_metadata
 from mapping.inputs.lidar_ground import (
     GroundFilter,
     LidarDecoding,
@@ -309,11 +309,7 @@ def check_config(car: CarConfig, config_path: str | Path) -> None:
     check-config`): the segmentation model loads, the Lidar metadata reads."""
     segmenter_for(car, config_path)
     if car.sensors.lidar is not None:
-        path = resolve_path(config_path, car.sensors.lidar.metadata_file)
-        try:
-            parse_metadata(path)
-        except (OSError, ValueError) as exc:
-            raise ConfigError(f"{config_path}: sensors.lidar.metadata_file {str(path)!r}: {exc}") from None
+        configured_metadata(car.sensors.lidar, config_path)
 
 
 def segmenter_for(config: CarConfig, config_path: str | Path | None) -> OnnxSegmenter | None:

@@ -41,7 +41,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from daemon.bus import pubsub
-from daemon.spine.config import CarConfig, data_dir, load_config, reports_config_errors, resolve_path
+from daemon.spine.config import CarConfig, data_dir, load_config, reports_config_errors
 from daemon.spine.data_layout import preview_dir
 from daemon.spine.health import HealthCounters, process_memory_mb
 from daemon.spine.local_frame import LocalFrame
@@ -56,7 +56,7 @@ from daemon.spine.topics import (
     mask_topic,
     topic_table,
 )
-from drivers.lidar.ouster_metadata import parse_metadata
+from drivers.lidar.ouster_metadata import configured_metadata
 from mapping.fits.reconstruction import reconstruct
 from mapping.inputs.drive_inputs import (
     camera_models,
@@ -158,7 +158,7 @@ class MappingWorker:
         self.odometry = Odometry(list(self.journal.odometry_t), list(self.journal.odometry_s),
                                  self.journal.odometry_last_speed_mps)
         self.origin = LocalFrame(*self.journal.origin) if self.journal.origin else None
-        self.lidar_meta = (parse_metadata(resolve_path(config_path, config.sensors.lidar.metadata_file))
+        self.lidar_meta = (configured_metadata(config.sensors.lidar, config_path)
                            if config.sensors.lidar is not None else None)
         last_seq, newest = self.spool.last_seq_and_newest()
         self.reader = BusReader(config, self.spool, self.lock, self.health, last_seq,
