@@ -85,10 +85,9 @@ def _detail(health: DriverHealth) -> dict:
     return value
 
 
-def _figures(detail: dict, key: str) -> tuple[dict[str, float], int]:
-    """detail[key] as {label: number} (what /metrics exports), and how many of its entries were not numbers (a
-    detail of another shape counts as one): those are skipped, counted, and do not cost the other metrics."""
-    value = detail.get(key, {})
+def _numbers(value: object) -> tuple[dict[str, float], int]:
+    """A detail's {label: number} (what /metrics exports), and how many of its entries were not numbers (a value
+    of another shape counts as one): those are skipped, counted, and do not cost the other metrics."""
     if not isinstance(value, dict):
         return {}, 1
     good = {str(k): float(v) for k, v in value.items() if isinstance(v, int | float) and not isinstance(v, bool)}
@@ -100,9 +99,8 @@ def _restarts(detail: dict) -> tuple[dict[str, float], int]:
     processes = detail.get("processes", {})
     if not isinstance(processes, dict):
         return {}, 1
-    counts = {str(name): info.get("restarts", 0) for name, info in processes.items() if isinstance(info, dict)}
-    good = {k: float(v) for k, v in counts.items() if isinstance(v, int | float) and not isinstance(v, bool)}
-    return good, len(processes) - len(good)
+    return _numbers({name: info.get("restarts", 0) if isinstance(info, dict) else None
+                     for name, info in processes.items()})
 
 
 def status_document(config: CarConfig, board: HealthBoard) -> dict:
@@ -174,7 +172,7 @@ class _BoardCollector:
             bad = 0
             if name == "recorder":
                 for family, key in ((lost, "lost"), (written, "written")):
-                    figures, wrong = _figures(detail, key)
+                    figures, wrong = _numbers(detail.get(key, {}))
                     bad += wrong
                     for topic, n in figures.items():
                         family.add_metric([topic], n)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import threading
 
-from daemon.spine.config import CameraConfig
+from daemon.spine.config import CameraConfig, ConfigError
 from daemon.spine.health import HealthCounters
 from drivers.camera.camera_process import FrameSource, camera_process_main
 
@@ -20,7 +20,8 @@ def open_frame_source(config: CameraConfig, stop: threading.Event, health: Healt
         from drivers.camera.depthai_camera import depthai_frames
 
         return depthai_frames(config, stop, health)
-    raise ValueError(f"camera {config.name}: backend {config.backend!r} is not a device backend")
+    raise ConfigError(f"camera {config.name}: backend {config.backend!r} is played by sim.camera_playback, "
+                      f"not by the device camera driver")
 
 
 def main(argv: list[str] | None = None) -> int:
