@@ -133,10 +133,10 @@ def _by_sensor_time(messages: list) -> list:
 
 def fuse_log_trajectory(gnss: list[GnssFix], imu: list[ImuSample], wheels: list[WheelSpeeds], config: CarConfig,
                         origin: LocalFrame | None, clocks: dict[str, ClockMap]) -> Trajectory:
-    """The vehicle trajectory from the log's GNSS, IMU and wheel speeds (host clock)."""
-    if not gnss or not imu or not wheels:
-        raise ValueError(f"pose fusion needs GNSS, IMU and wheel speeds (got {len(gnss)} fixes, {len(imu)} IMU "
-                         f"samples, {len(wheels)} wheel speeds) or a `pose` topic in the log")
+    """The vehicle trajectory from the log's GNSS, IMU and (when it has them) wheel speeds (host clock)."""
+    if not gnss or not imu:
+        raise ValueError(f"pose fusion needs GNSS and IMU, wheel speeds where the car has them (got {len(gnss)} "
+                         f"fixes, {len(imu)} IMU samples, {len(wheels)} wheel speeds) or a `pose` topic in the log")
     g = config.sensors.gnss
     gnss, imu, wheels = _by_sensor_time(gnss), _by_sensor_time(imu), _by_sensor_time(wheels)
     fixes = pose_fusion.GnssFixes(
@@ -156,7 +156,7 @@ def fuse_log_trajectory(gnss: list[GnssFix], imu: list[ImuSample], wheels: list[
         times_ns=clocks[WHEEL_SPEEDS].to_host([m.sensor_time_ns for m in wheels]),
         speeds=np.array([[m.front_left_mps, m.front_right_mps, m.rear_left_mps, m.rear_right_mps] for m in wheels]),
         yaw_rate=None if np.all(np.isnan(yaw)) else yaw,
-    )
+    ) if wheels else None
     mounting = pose_fusion.VehicleMounting(
         gnss_lever_arm=np.array(g.antenna_lever_arm_m, float),
         imu_lever_arm=np.array(g.imu_extrinsics.translation_m, float),

@@ -2,25 +2,27 @@
 
 An error-state Kalman filter runs the IMU strapdown mechanisation forward and updates at every GNSS fix
 (position, optionally velocity, antenna lever arm) and at 20 Hz epochs with the wheel speeds interpolated
-there (rear-axle speed with a scale-factor state, zero lateral and vertical velocity, optional yaw rate);
+there (rear-axle speed with a scale-factor state, zero lateral and vertical velocity, optional yaw rate; a drive
+without wheel speeds, such as a GNSS/INS box alone, keeps the zero lateral and vertical velocity of the rear axle);
 a Rauch-Tung-Striebel pass then smooths the whole window backward, and poses come out at IMU rate. A
 first pass over the first minute refines the initial state. States (19 errors): position, velocity,
 attitude of the IMU frame (world-frame angles), accelerometer bias, gyro bias, wheel scale error,
 IMU-to-vehicle misalignment.
 """
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from daemon.spine.local_frame import WGS84_A, LocalFrame
+from daemon.spine.local_frame import LocalFrame
+from mapping.localization.navigation_math import gravity_enu, normal_gravity, skew, so3_exp, so3_log
 from mapping.localization.trajectory import Trajectory
 
 _P, _V, _TH, _BA, _BG, _K, _MU = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15), 15, slice(16, 19)
 N_STATES = 19
 CHI2_3DOF_9999 = 21.11  # 99.99 % quantile of chi-square with 3 degrees of freedom
+CHI2_2DOF_9999 = 18.42
 CHI2_1DOF_9999 = 15.14
 
 
@@ -110,39 +112,6 @@ class FusionResult:
     counts: dict[str, int]  # measurements used / rejected by the innovation gate, per kind
 
 
-def skew(v) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def so3_exp(phi: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a rotation vector (Rodrigues), in scalar arithmetic for speed."""
-    x, y, z = phi.tolist()
-    angle2 = x * x + y * y + z * z
-    if angle2 < 1e-12:
-        s, c = 1.0, 0.5
-    else:
-        angle = math.sqrt(angle2)
-        s, c = math.sin(angle) / angle, (1.0 - math.cos(angle)) / angle2
-    return np.array([[1.0 - c * (y * y + z * z), c * x * y - s * z, c * x * z + s * y],
-                     [c * x * y + s * z, 1.0 - c * (x * x + z * z), c * y * z - s * x],
-                     [c * x * z - s * y, c * y * z + s * x, 1.0 - c * (x * x + y * y)]])
-
-
-def so3_log(r: np.ndarray) -> np.ndarray:
-    """Rotation vector of a rotation matrix with an angle well below pi (corrections, increments)."""
-    vee = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
-    cos_angle = min(1.0, max(-1.0, 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0)))
-    angle = math.acos(cos_angle)
-    return vee * (0.5 if angle < 1e-6 else 0.5 * angle / math.sin(angle))
-
-
-def normal_gravity(lat_deg: float, alt_m: float) -> float:
-    """Somigliana's normal gravity on the WGS84 ellipsoid with the free-air height correction, m/s^2."""
-    s2 = np.sin(np.radians(lat_deg)) ** 2
-    g0 = 9.7803253359 * (1.0 + 0.00193185265241 * s2) / np.sqrt(1.0 - 0.00669437999013 * s2)
-    return float(g0 * (1.0 - 2.0 * alt_m / WGS84_A))
-
-
 def _specific_force_at_reference(imu: ImuSamples, lever_arm_imu: np.ndarray, seconds: np.ndarray) -> np.ndarray:
     """Removes the centripetal and tangential accelerations between the IMU and the reference point."""
     gyro = np.asarray(imu.gyro, dtype=np.float64)
@@ -152,11 +121,6 @@ def _specific_force_at_reference(imu: ImuSamples, lever_arm_imu: np.ndarray, sec
     angular_accel = np.gradient(smooth, seconds, axis=0)
     centripetal = np.cross(gyro, np.cross(gyro, lever_arm_imu))
     return np.asarray(imu.accel, dtype=np.float64) - np.cross(angular_accel, lever_arm_imu) - centripetal
-
-
-def _gravity_enu(position: np.ndarray, g0: float) -> np.ndarray:
-    """Gravity in the tangent frame near its origin: tilted towards the origin, weaker with height."""
-    return -g0 * np.array([position[0] / WGS84_A, position[1] / WGS84_A, 1.0 - 2.0 * position[2] / WGS84_A])
 
 
 @dataclass
@@ -204,6 +168,8 @@ def _epoch_times(gnss_ns: np.ndarray, end_ns: int, update_rate_hz: float) -> np.
 
 def _interpolate_with_gaps(times: np.ndarray, sample_t: np.ndarray, values: np.ndarray, max_gap: float):
     """Linear interpolation at `times`; NaN where the neighbouring samples are missing or too far apart."""
+    if len(sample_t) < 2:
+        return np.full(len(times), np.nan)
     after = np.searchsorted(sample_t, times)
     inside = (after > 0) & (after < len(sample_t))
     after = np.clip(after, 1, max(len(sample_t) - 1, 1))
@@ -219,9 +185,15 @@ def _initial_state(gnss_enu, gnss_cov0, gnss_t, imu_t, force_ref, wheel_t, rear_
     start = gnss_t[0]
     first = (imu_t >= start) & (imu_t <= start + 0.5)
     force = force_ref[first].mean(axis=0) if np.any(first) else force_ref[np.searchsorted(imu_t, start)]
-    near = (wheel_t >= start) & (wheel_t <= start + 1.0)
-    speed0 = float(np.interp(start, wheel_t, rear_speed))
-    accel_forward = np.polyfit(wheel_t[near], rear_speed[near], 1)[0] if np.count_nonzero(near) > 2 else 0.0
+    if len(wheel_t):
+        near = (wheel_t >= start) & (wheel_t <= start + 1.0)
+        speed0 = float(np.interp(start, wheel_t, rear_speed))
+        accel_forward = np.polyfit(wheel_t[near], rear_speed[near], 1)[0] if np.count_nonzero(near) > 2 else 0.0
+    else:  # no wheel speeds: the speed of the first GNSS second (the first pass refines it and the tilt)
+        near = gnss_t <= start + 1.0
+        speed0 = (float(np.linalg.norm(np.polyfit(gnss_t[near], gnss_enu[near, :2], 1)[0]))
+                  if np.count_nonzero(near) > 2 else 0.0)
+        accel_forward = 0.0
     r_iv = np.asarray(mounting.imu_to_vehicle, dtype=np.float64).T
     forward_i = r_iv[:, 0]
     up_i = force - accel_forward * forward_i
@@ -288,6 +260,7 @@ def _smooth(inputs: _Inputs, x: _State, p: np.ndarray, end_ns: int, settings: Fu
     epochs = epochs_ns * 1e-9
     gnss_at = {int(t): i for i, t in enumerate(gnss_ns)}
     epoch_speed = _interpolate_with_gaps(epochs, wheel_t, rear_speed, settings.wheel_max_gap_s)
+    no_wheels = len(wheel_t) == 0
     epoch_yaw_rate = (np.full(len(epochs), np.nan) if inputs.yaw_rate is None else
                       _interpolate_with_gaps(epochs, wheel_t, np.asarray(inputs.yaw_rate, dtype=np.float64),
                                              settings.wheel_max_gap_s))
@@ -320,13 +293,14 @@ def _smooth(inputs: _Inputs, x: _State, p: np.ndarray, end_ns: int, settings: Fu
     knot_p = np.zeros((len(knots), 3))
     knot_v = np.zeros((len(knots), 3))
     knot_r = np.zeros((len(knots), 3, 3))
-    counts = {f"{kind}_{outcome}": 0 for kind in ("gnss_position", "gnss_velocity", "wheel", "yaw_rate")
+    counts = {f"{kind}_{outcome}": 0 for kind in ("gnss_position", "gnss_velocity", "wheel", "yaw_rate",
+                                                              "nonholonomic")
               for outcome in ("used", "rejected")}
     eye = np.eye(N_STATES)
     sum_force = np.zeros(3)  # integral of the specific force in ENU over the epoch interval
     sum_rotation = np.zeros((3, 3))  # integral of the IMU attitude over the epoch interval
     interval = 0.0
-    gravity = _gravity_enu(x.p, g0)  # refreshed every epoch
+    gravity = gravity_enu(x.p, g0)  # refreshed every epoch
 
     def update(residual, h, noise, gate, kind):
         nonlocal p
@@ -395,7 +369,7 @@ def _smooth(inputs: _Inputs, x: _State, p: np.ndarray, end_ns: int, settings: Fu
                        settings.gate_chi2, "gnss_velocity")
 
         speed = epoch_speed[epoch - 1]
-        if np.isfinite(speed):
+        if np.isfinite(speed) or no_wheels:  # the rear axle's velocity in the vehicle frame
             r_wv = x.r_wi @ x.r_iv
             u_center = r_wv.T @ x.v
             u = u_center + skew(w_vehicle) @ l_axle
@@ -404,10 +378,13 @@ def _smooth(inputs: _Inputs, x: _State, p: np.ndarray, end_ns: int, settings: Fu
             h[:, _TH] = r_wv.T @ skew(x.v)
             h[:, _BG] = skew(l_axle) @ x.r_iv.T
             h[:, _MU] = skew(u_center)
-            h[0] *= 1.0 + x.k
-            h[0, _K] = u[0]
-            predicted = np.array([(1.0 + x.k) * u[0], u[1], u[2]])
-            update(np.array([speed, 0.0, 0.0]) - predicted, h, wheel_noise, settings.gate_chi2, "wheel")
+            if np.isfinite(speed):
+                h[0] *= 1.0 + x.k
+                h[0, _K] = u[0]
+                predicted = np.array([(1.0 + x.k) * u[0], u[1], u[2]])
+                update(np.array([speed, 0.0, 0.0]) - predicted, h, wheel_noise, settings.gate_chi2, "wheel")
+            else:  # no wheel speeds at all: the rear axle still moves without sliding sideways or up
+                update(-u[1:], h[1:], wheel_noise[1:, 1:], CHI2_2DOF_9999, "nonholonomic")
 
         yaw_rate = epoch_yaw_rate[epoch - 1]
         if np.isfinite(yaw_rate):
@@ -417,7 +394,7 @@ def _smooth(inputs: _Inputs, x: _State, p: np.ndarray, end_ns: int, settings: Fu
             update(np.array([yaw_rate - w_vehicle[2]]), h, np.array([[settings.yaw_rate_sigma ** 2]]),
                    CHI2_1DOF_9999, "yaw_rate")
         posts.append(x.copy())
-        gravity = _gravity_enu(x.p, g0)
+        gravity = gravity_enu(x.p, g0)
         knot_p[s_index], knot_v[s_index], knot_r[s_index] = x.p, x.v, x.r_wi
 
     smoothed = [posts[-1]]
@@ -444,15 +421,17 @@ def _smooth(inputs: _Inputs, x: _State, p: np.ndarray, end_ns: int, settings: Fu
                      velocities=knot_v + correction[:, _V], first=smoothed[0], final=smoothed[-1], counts=counts)
 
 
-def fuse_trajectory(gnss: GnssFixes, imu: ImuSamples, wheels: WheelSpeeds,
+def fuse_trajectory(gnss: GnssFixes, imu: ImuSamples, wheels: WheelSpeeds | None,
                     mounting: VehicleMounting = VehicleMounting(),
                     settings: FusionSettings = FusionSettings(),
                     origin: LocalFrame | None = None) -> FusionResult:
     """Forward error-state Kalman filter over the IMU, then an RTS smoother; poses come out at every IMU
     sample and Kalman epoch, from the first GNSS fix to the last IMU sample. The ENU origin defaults to
-    the first GNSS fix."""
+    the first GNSS fix. Without wheel speeds (None) the rear axle's zero lateral and vertical velocity is
+    kept at every epoch instead."""
+    wheels = wheels if wheels is not None else WheelSpeeds(np.zeros(0, np.int64), np.zeros((0, 4)))
     for name, times in (("gnss", gnss.times_ns), ("imu", imu.times_ns), ("wheel", wheels.times_ns)):
-        if len(times) < 2 or np.any(np.diff(np.asarray(times, dtype=np.int64)) <= 0):
+        if (name != "wheel" or len(times)) and (len(times) < 2 or np.any(np.diff(np.asarray(times, np.int64)) <= 0)):
             raise ValueError(f"{name} times must be at least 2 and strictly increasing")
     frame = origin or LocalFrame(float(gnss.lat_deg[0]), float(gnss.lon_deg[0]), float(gnss.alt_m[0]))
     t_ref = int(gnss.times_ns[0])

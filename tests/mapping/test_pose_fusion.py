@@ -9,13 +9,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from daemon.spine.local_frame import LocalFrame
+from mapping.localization.navigation_math import normal_gravity
 from mapping.localization.pose_fusion import (
     GnssFixes,
     ImuSamples,
     VehicleMounting,
     WheelSpeeds,
     fuse_trajectory,
-    normal_gravity,
 )
 from mapping.localization.trajectory import Trajectory
 
@@ -257,6 +257,19 @@ def test_gnss_velocity_and_wheel_yaw_rate_are_fused():
     assert result.counts["yaw_rate_used"] > 1000 and result.counts["yaw_rate_rejected"] == 0
     errors = pose_errors(result.trajectory, drive.truth)
     assert errors["horizontal_m"] < plain["horizontal_m"] and errors["yaw_deg"] < plain["yaw_deg"], (errors, plain)
+
+
+def test_without_wheel_speeds_gnss_and_imu_alone_give_a_bounded_trajectory():
+    """A GNSS/INS box alone (no CAN): the rear axle's zero sideways and vertical velocity holds the heading."""
+    drive = simulate_drive(60.0, gnss_sigma_h=0.015, gnss_sigma_v=0.025, seed=3)
+    result = fuse_trajectory(drive.gnss, drive.imu, None, MOUNTING)
+    errors = pose_errors(result.trajectory, drive.truth)
+    assert errors["horizontal_m"] < 0.05 and errors["vertical_m"] < 0.05, errors
+    assert errors["pitch_deg"] < 0.3 and errors["roll_deg"] < 0.3 and errors["yaw_deg"] < 0.3, errors
+    assert result.counts["wheel_used"] == 0 and result.counts["nonholonomic_used"] > 1000
+    assert result.counts["nonholonomic_rejected"] <= 0.001 * result.counts["nonholonomic_used"]
+    with_wheels = pose_errors(fuse_trajectory(drive.gnss, drive.imu, drive.wheels, MOUNTING).trajectory, drive.truth)
+    assert errors["yaw_deg"] < 3 * with_wheels["yaw_deg"] + 0.05, (errors, with_wheels)
 
 
 def test_imu_mounting_misalignment_is_estimated():
