@@ -29,8 +29,9 @@ from drivers.camera.frame_encoding import FrameEncodingError, encode_image, raw_
 
 
 def _as_delivered(message: CameraFrame | SemanticMask, config: CameraConfig, sensor_time_ns: int):
-    if isinstance(message, CameraFrame) and message.format in RAW_FORMAT_CHANNELS and config.encoding == "jpeg":
-        return encode_image(raw_frame_image(message), config.name, "jpeg", config.jpeg_quality, sensor_time_ns)
+    if isinstance(message, CameraFrame) and message.format in RAW_FORMAT_CHANNELS and config.encoding != "raw":
+        return encode_image(raw_frame_image(message), config.name, config.encoding, config.jpeg_quality,
+                            sensor_time_ns)
     return dataclasses.replace(message, seq=0, host_mono_ns=0, sensor_time_ns=sensor_time_ns, camera=config.name)
 
 

@@ -21,10 +21,11 @@ from daemon.spine.process_table import process_table
 
 def start_up_problems(config: CarConfig, config_path: str) -> list[str]:
     """What each process of a live run would refuse at start, one line each (empty: all would start)."""
-    problems = []
+    problems, checked = [], set()
     for spec in process_table(config, config_path, "live"):
-        if not spec.check:
+        if not spec.check or spec.check in checked:  # one check may serve several processes (the cameras')
             continue
+        checked.add(spec.check)
         module, _, function = spec.check.partition(":")
         try:
             getattr(importlib.import_module(module), function)(config, config_path)

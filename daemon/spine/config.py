@@ -71,9 +71,19 @@ class CameraPhotometry(_Strict):
     noise_sigma: float = Field(1.0, ge=0)
 
 
+# The encodings each camera backend can deliver: host-side encoders (frame_encoding) for opencv and the simulator's
+# playback, the device's own for an OAK; a recorded camera (frames only in logs, e.g. an imported dataset) any.
+BACKEND_ENCODINGS = {
+    "sim": ("jpeg", "png", "raw", "mono8"),
+    "opencv": ("jpeg", "png", "raw", "mono8"),
+    "depthai": ("jpeg", "h264", "h265", "raw"),
+    "recorded": ("jpeg", "png", "h264", "h265", "raw", "mono8"),
+}
+
+
 class CameraConfig(_Strict):
     name: str = Field(pattern=r"^[a-z][a-z0-9_]*$")
-    backend: Literal["sim", "opencv", "depthai"]
+    backend: Literal["sim", "opencv", "depthai", "recorded"]  # recorded: no live driver (frames come from logs)
     device: str = ""  # V4L2 path, GStreamer pipeline, or OAK serial number
     model: Literal["pinhole"] = "pinhole"
     width: int = Field(gt=0, le=8192)
@@ -82,7 +92,7 @@ class CameraConfig(_Strict):
     intrinsics: CameraIntrinsics
     distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)  # k1 k2 p1 p2 k3
     extrinsics: Extrinsics
-    encoding: Literal["jpeg", "h264", "h265", "raw"] = "jpeg"
+    encoding: Literal["jpeg", "png", "h264", "h265", "raw", "mono8"] = "jpeg"
     jpeg_quality: int = Field(90, ge=1, le=100)
     photometry: CameraPhotometry = CameraPhotometry()
 
@@ -90,6 +100,9 @@ class CameraConfig(_Strict):
     def _principal_point_inside(self) -> CameraConfig:
         if not (0 <= self.intrinsics.cx <= self.width and 0 <= self.intrinsics.cy <= self.height):
             raise ValueError("intrinsics cx/cy must lie inside the image (0..width, 0..height)")
+        if self.encoding not in BACKEND_ENCODINGS[self.backend]:
+            raise ValueError(f"the {self.backend} backend delivers {', '.join(BACKEND_ENCODINGS[self.backend])}, "
+                             f"not {self.encoding}")
         return self
 
 

@@ -49,7 +49,8 @@ def process_table(
         s = config.sensors
         for cam in s.cameras:
             module = "sim.camera_playback" if cam.backend == "sim" else "drivers.camera.camera_driver"
-            table.append(ProcessSpec(camera_process(cam.name), module, cfg + ("--camera", cam.name), required=True))
+            table.append(ProcessSpec(camera_process(cam.name), module, cfg + ("--camera", cam.name), required=True,
+                                     check="drivers.camera.camera_driver:check_config"))
         if s.lidar is not None:
             table.append(ProcessSpec("lidar", "drivers.lidar.udp_driver", cfg, required=True,
                                      check="drivers.lidar.udp_driver:check_config"))

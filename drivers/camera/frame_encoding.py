@@ -1,4 +1,5 @@
-"""A camera image (numpy, BGR or mono) -> the CameraFrame the car logs: JPEG, or raw pixels."""
+"""A camera image (numpy, BGR or mono) -> the CameraFrame the car logs: JPEG, PNG (lossless), or raw pixels (as
+captured, or mono8: converted to grey)."""
 
 from __future__ import annotations
 
@@ -13,22 +14,28 @@ class FrameEncodingError(ValueError):
 
 
 def encode_image(image: np.ndarray, camera: str, encoding: str, jpeg_quality: int, sensor_time_ns: int) -> CameraFrame:
-    """`encoding` is "jpeg" (cv2.imencode at `jpeg_quality`) or "raw" (bgr8 / mono8 bytes with the size)."""
+    """`encoding` is "jpeg" (cv2.imencode at `jpeg_quality`), "png" (cv2.imencode, lossless), "raw" (bgr8 / mono8
+    bytes with the size) or "mono8" (grey bytes with the size; a colour image is converted)."""
     if image is None or image.size == 0 or image.dtype != np.uint8 or image.ndim not in (2, 3) or (
             image.ndim == 3 and image.shape[2] not in (1, 3)):
         shape = None if image is None else (image.shape, image.dtype)
         raise FrameEncodingError(f"cannot encode an image of shape/dtype {shape}")
     height, width = image.shape[:2]
-    if encoding == "jpeg":
-        ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+    if encoding in ("jpeg", "png"):
+        params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality] if encoding == "jpeg" else []
+        ok, buf = cv2.imencode(".jpg" if encoding == "jpeg" else ".png", image, params)
         if not ok:
             raise FrameEncodingError("cv2.imencode failed")
-        return CameraFrame(sensor_time_ns=sensor_time_ns, camera=camera, format="jpeg", data=buf.tobytes())
+        return CameraFrame(sensor_time_ns=sensor_time_ns, camera=camera, format=encoding, data=buf.tobytes())
+    if encoding == "mono8":
+        grey = image if image.ndim == 2 or image.shape[2] == 1 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        return CameraFrame(sensor_time_ns=sensor_time_ns, camera=camera, format="mono8", width=width, height=height,
+                           data=np.ascontiguousarray(grey).tobytes())
     if encoding == "raw":
         mono = image.ndim == 2 or image.shape[2] == 1
         return CameraFrame(sensor_time_ns=sensor_time_ns, camera=camera, format="mono8" if mono else "bgr8",
                            width=width, height=height, data=np.ascontiguousarray(image).tobytes())
-    raise FrameEncodingError(f"encoding {encoding!r} is not done on the host (jpeg or raw)")
+    raise FrameEncodingError(f"encoding {encoding!r} is not done on the host (jpeg, png, raw or mono8)")
 
 
 def raw_frame_image(frame: CameraFrame) -> np.ndarray:

@@ -51,8 +51,6 @@ def open_capture(config: CameraConfig) -> cv2.VideoCapture | None:
 
 def opencv_frames(config: CameraConfig, stop: threading.Event, health: HealthCounters) -> Iterator[CameraFrame]:
     """Frames from the capture until `stop` is set (or a file ends)."""
-    if config.encoding not in ("jpeg", "raw"):
-        raise ValueError(f"camera {config.name}: the opencv backend encodes jpeg or raw, not {config.encoding}")
     is_file = Path(config.device).is_file()
     cap: cv2.VideoCapture | None = None
     backoff_s = BACKOFF_FIRST_S

@@ -126,6 +126,8 @@ def _runnable(tmp_path, mutate) -> Path:
         (lambda d: d["sensors"]["lidar"].update(metadata_file="junk.json"), ["lidar:", "mapper:", "junk.json"]),
         (lambda d: d["mapper"].update(segmentation={"provider": "onnx", "model": "absent.onnx",
                                                     "class_map": {0: "road"}}), ["mapper:", "absent.onnx"]),
+        (lambda d: [c.update(backend="recorded", encoding="png") for c in d["sensors"]["cameras"][1:]],
+         ["camera_", "front_left, front_right", "no live driver"]),
     ],
 )
 def test_check_config_runs_the_start_up_checks_of_every_process(tmp_path, capsys, mutate, names):

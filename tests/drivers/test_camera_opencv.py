@@ -8,8 +8,9 @@ import time
 import cv2
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
-from daemon.spine.config import CameraConfig
+from daemon.spine.config import CameraConfig, ConfigError
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import CameraFrame, DriverHealth
 from daemon.spine.topics import camera_topic, health_topic
@@ -108,9 +109,31 @@ def test_a_missing_device_is_retried_with_backoff_not_fatal():
     assert states and states[-1] == "error"
 
 
-def test_encodings_the_host_does_not_do_are_refused(video):
-    with pytest.raises(ValueError, match="h265"):
-        drive(camera(video, encoding="h265"))
+def test_png_frames_are_lossless_and_mono8_frames_grey(video):
+    published = drive(camera(video, encoding="png"))[0]
+    png = [m for t, m in published if t == camera_topic("front")]
+    assert len(png) == N and all(f.format == "png" and f.width == 0 for f in png)
+    decoded = [cv2.imdecode(np.frombuffer(f.data, np.uint8), cv2.IMREAD_UNCHANGED) for f in png]
+    raw = [m for t, m in drive(camera(video, encoding="raw"))[0] if t == camera_topic("front")]
+    assert all(np.array_equal(d, raw_frame_image(r)) for d, r in zip(decoded, raw, strict=True))  # lossless
+    mono = [m for t, m in drive(camera(video, encoding="mono8"))[0] if t == camera_topic("front")]
+    assert all(f.format == "mono8" and (f.width, f.height) == (W, H) and len(f.data) == W * H for f in mono)
+    grey = raw_frame_image(mono[9])
+    assert grey.shape == (H, W) and np.array_equal(grey, cv2.cvtColor(raw_frame_image(raw[9]), cv2.COLOR_BGR2GRAY))
+    assert block_column(grey[:, :, None]) == 9
+
+
+@pytest.mark.parametrize("backend, encoding", [("opencv", "h265"), ("depthai", "png"), ("depthai", "mono8")])
+def test_encodings_a_backend_cannot_deliver_are_a_config_error(backend, encoding):
+    fields = camera("0").model_dump() | {"backend": backend, "encoding": encoding}
+    with pytest.raises(ValidationError, match=f"the {backend} backend delivers .*not {encoding}"):
+        CameraConfig.model_validate(fields)
+
+
+def test_a_recorded_camera_has_no_live_driver():
+    config = CameraConfig.model_validate(camera("").model_dump() | {"backend": "recorded", "encoding": "png"})
+    with pytest.raises(ConfigError, match="no live driver"):
+        open_frame_source(config, threading.Event(), HealthCounters("camera_front"))
 
 
 def test_capture_arguments():
