@@ -15,6 +15,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("daemon.processes.daemon_main:replay_main", "run the daemon with a log player instead of the drivers"),
     "simulate": ("sim.drive_log", "simulate a drive (city, ramp, night) into a log with ground truth"),
     "reconstruct": ("mapping.offline.reconstruct_command", "EMIE-MAP road map of drive logs, with the paper's metrics"),
+    "import": ("importers.import_command", "a dataset (KITTI raw, KITTI odometry) as a roadlog log"),
     "status-server": ("daemon.processes.status_server",
                       "serve the status endpoint alone (the daemon starts it itself)"),
 }

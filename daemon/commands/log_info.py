@@ -1,12 +1,28 @@
-"""`roadlog log-info`: per-topic message counts, time span and damage of MCAP log files."""
+"""`roadlog log-info`: per-topic message counts, time span and damage of MCAP log files, and the car the first file
+recorded (its source, software, cameras with their intrinsics and extrinsics, Lidar, GNSS)."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from collections import Counter
 
-from daemon.log_format.reader import ReadReport, read_log
+from daemon.log_format.metadata_records import METADATA_NAME
+from daemon.log_format.reader import ReadReport, read_log, read_metadata
+
+
+def recorded_car(path: str) -> dict:
+    """What the file's `roadlog` metadata record says about where it came from and the car's sensors."""
+    meta = read_metadata(path).get(METADATA_NAME)
+    if meta is None:
+        return {"error": f"no {METADATA_NAME!r} metadata record: not a roadlog log (import it first)"}
+    car = {k: meta[k] for k in ("software_version", "source", "host") if k in meta}
+    try:
+        car.update(json.loads(meta.get("calibration", "{}")))
+    except json.JSONDecodeError as exc:
+        car["calibration_error"] = str(exc)
+    return car
 
 
 def summarise(paths: list[str]) -> dict:
@@ -23,6 +39,7 @@ def summarise(paths: list[str]) -> dict:
                   for f in report.files],
         "messages_per_topic": dict(sorted(counts.items())),
         "duration_s": (last - first) / 1e9 if first is not None else 0.0,
+        "recorded": recorded_car(paths[0]) if paths else {},
     }
 
 
@@ -30,5 +47,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="roadlog log-info", description=__doc__)
     parser.add_argument("logs", nargs="+", help="MCAP files")
     args = parser.parse_args(argv)
-    print(json.dumps(summarise(args.logs), indent=2))
+    summary = summarise(args.logs)
+    print(json.dumps(summary, indent=2))
+    if not summary["messages_per_topic"] and "error" in summary["recorded"]:
+        print(f"error: {args.logs[0]}: {summary['recorded']['error']}", file=sys.stderr)
+        return 1
     return 0

@@ -8,6 +8,7 @@ every `keyframe_spacing_m` of travel (per camera); their poses are interpolated 
 
 from __future__ import annotations
 
+import json
 from collections import defaultdict
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -17,7 +18,8 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from daemon.log_format.reader import ReadReport, read_log
+from daemon.log_format.metadata_records import METADATA_NAME, POSE_ENU_ORIGIN_KEY
+from daemon.log_format.reader import ReadReport, read_log, read_metadata
 from daemon.spine.config import CarConfig, resolve_path
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.messages import (
@@ -176,6 +178,12 @@ def _pose_trajectory(poses: list[VehiclePose], clock: ClockMap, origin: LocalFra
     )
 
 
+def recorded_pose_origin(path: str | Path) -> LocalFrame | None:
+    """The geo-reference of a log's `pose` topic, where its writer recorded one (metadata_records)."""
+    value = read_metadata(path).get(METADATA_NAME, {}).get(POSE_ENU_ORIGIN_KEY)
+    return LocalFrame(*(float(v) for v in json.loads(value))) if value else None
+
+
 def camera_pose(trajectory: Trajectory, t_ns: int, T_vehicle_camera: np.ndarray) -> np.ndarray:
     """4x4 T_world_camera at one time."""
     pos, quat = trajectory.interpolate(np.array([t_ns], np.int64))
@@ -230,7 +238,7 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
             lidar.append(m)
     clocks = {t: fit_clock([s for _, s in v], [h for h, _ in v], anchors) for t, v in host_sensor.items()}
     if poses:
-        trajectory = _pose_trajectory(poses, clocks[POSE], origin)
+        trajectory = _pose_trajectory(poses, clocks[POSE], origin or recorded_pose_origin(paths[0]))
     else:
         trajectory = fuse_log_trajectory(gnss, imu, wheels, config, origin, clocks)
     chosen, counts = _keyframe_messages(config, frames, masks if segmenter is None else None, clocks, trajectory,

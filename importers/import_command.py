@@ -1,0 +1,31 @@
+"""`roadlog import FORMAT SOURCE --out LOG.mcap`: a dataset or another system's recording as a roadlog log (with
+its car config recorded, so `roadlog reconstruct LOG` and `roadlog log-info LOG` need nothing else). One importer
+module per format, each with `add_arguments(parser)` and `run(args)`."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# format -> (module, one-line help): the only place an import format is declared
+FORMATS: dict[str, tuple[str, str]] = {
+    "kitti-raw": ("importers.kitti_raw", "a KITTI raw drive: image_02, oxts, calib_*.txt (velodyne_points)"),
+    "kitti-odometry": ("importers.kitti_odometry", "a KITTI odometry sequence: image_0, poses.txt, calib.txt"),
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="roadlog import", description=__doc__.split("\n\n")[0])
+    formats = parser.add_subparsers(dest="format", metavar="FORMAT", required=True)
+    for name, (module, help_text) in FORMATS.items():
+        sub = formats.add_parser(name, help=help_text, description=help_text)
+        importer = importlib.import_module(module)
+        importer.add_arguments(sub)
+        sub.set_defaults(run=importer.run)
+    args = parser.parse_args(argv)
+    return int(args.run(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,145 @@
+"""`roadlog import kitti-odometry|kitti-raw` on the real KITTI drives in ../shared/data, through the CLI, checked
+against the dataset's own files (poses, calibration, PNG bytes, OXTS records)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from daemon.commands.cli import main as roadlog
+from daemon.commands.log_info import summarise
+from daemon.log_format.reader import read_log
+from daemon.spine.local_frame import LocalFrame
+from daemon.spine.topics import POSE, camera_topic
+from importers.kitti_raw import read_oxts
+from mapping.inputs.drive_inputs import start_loading_drive
+from mapping.offline.reconstruct_command import config_from_logs
+
+DATA = Path("/work/shared/data")
+ODOMETRY, RAW = DATA / "kitti_odometry_01", DATA / "kitti_raw_0005"
+
+
+def imported(tmp_path: Path, capsys, *args: str) -> tuple[Path, dict]:
+    out = tmp_path / "drive.mcap"
+    assert roadlog(["import", *args, "--out", str(out)]) == 0
+    return out, json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+
+
+def test_kitti_odometry_imports_frames_and_ground_truth_poses(tmp_path, capsys):
+    log, printed = imported(tmp_path, capsys, "kitti-odometry", str(ODOMETRY))
+    assert printed["messages"] == {"pose": 51, "camera/image_0": 51} and printed["drive_s"] == pytest.approx(5.0)
+    records = list(read_log([log]))
+    frames = [r.message for r in records if r.topic == camera_topic("image_0")]
+    assert [f.data for f in frames] == [p.read_bytes() for p in sorted((ODOMETRY / "image_0").glob("*.png"))]
+    assert {f.format for f in frames} == {"png"}
+    # KITTI's camera -> world(first camera) poses, seen with the car's axes: forward = camera z, left = -x, up = -y
+    kitti = np.loadtxt(ODOMETRY / "poses.txt").reshape(-1, 3, 4)
+    poses = [r.message for r in records if r.topic == POSE]
+    positions = np.array([p.position_m for p in poses])
+    np.testing.assert_allclose(positions, np.column_stack([kitti[:51, 2, 3], -kitti[:51, 0, 3], -kitti[:51, 1, 3]]),
+                               atol=1e-9)
+    assert 50 < np.linalg.norm(np.diff(positions, axis=0), axis=1).sum() < 54  # the ~52 m highway exit
+    assert positions[-1, 1] < -35 and abs(positions[-1, 2]) < 1.5  # bending right, nearly level
+    headings = Rotation.from_quat([p.orientation_xyzw for p in poses]).apply([1.0, 0.0, 0.0])
+    camera_z = kitti[:51, :, 2]
+    np.testing.assert_allclose(headings, np.column_stack([camera_z[:, 2], -camera_z[:, 0], -camera_z[:, 1]]),
+                               atol=1e-6)  # KITTI's rotations have 7 digits: nearly, not exactly, orthonormal
+    config, _ = config_from_logs([str(log)])
+    (camera,) = config.sensors.cameras
+    p0 = np.array(ODOMETRY.joinpath("calib.txt").read_text().split()[:12], float).reshape(3, 4)
+    np.testing.assert_allclose(camera.intrinsics.matrix(), p0[:, :3])
+    assert (camera.width, camera.height, camera.backend, config.vehicle.reference_height_m) == (1241, 376,
+                                                                                                  "recorded", 1.65)
+    info = summarise([str(log)])
+    assert info["messages_per_topic"] == {"camera/image_0": 51, "pose": 51}
+    assert "KITTI odometry" in info["recorded"]["source"] and info["recorded"]["cameras"]["image_0"]["width"] == 1241
+
+
+def devkit_projection(points_velo: np.ndarray) -> np.ndarray:
+    """KITTI's devkit: pixel = P_rect_02 @ R_rect_00 @ T_cam0_velo @ X_velo."""
+    def values(name: str) -> dict[str, np.ndarray]:
+        out = {}
+        for line in (RAW / name).read_text().splitlines():
+            key, _, rest = line.partition(":")
+            try:
+                out[key] = np.array(rest.split(), float)
+            except ValueError:
+                pass
+        return out
+
+    cam, velo = values("calib_cam_to_cam.txt"), values("calib_velo_to_cam.txt")
+    r_rect = np.eye(4)
+    r_rect[:3, :3] = cam["R_rect_00"].reshape(3, 3)
+    t = np.eye(4)
+    t[:3, :3], t[:3, 3] = velo["R"].reshape(3, 3), velo["T"]
+    h = cam["P_rect_02"].reshape(3, 4) @ r_rect @ t @ np.column_stack([points_velo, np.ones(len(points_velo))]).T
+    return (h[:2] / h[2]).T
+
+
+def test_kitti_raw_imports_frames_oxts_and_a_calibration_that_projects_like_the_devkit(tmp_path, capsys):
+    log, printed = imported(tmp_path, capsys, "kitti-raw", str(RAW))
+    assert {k: printed["messages"][k] for k in ("camera/image_02", "gnss/fix", "imu", "pose")} == {
+        "camera/image_02": 91, "gnss/fix": 91, "imu": 91, "pose": 91}
+    assert printed["drive_s"] == pytest.approx(9.3, abs=0.05)
+    config, _ = config_from_logs([str(log)])
+    (camera,) = config.sensors.cameras
+    # a Velodyne point, through our vehicle frame (the OXTS unit) into the camera, lands where the devkit puts it
+    imu_velo = dict(zip(("R", "T"), (np.array(line.split(":")[1].split(), float) for line in
+                                      (RAW / "calib_imu_to_velo.txt").read_text().splitlines()[1:3]), strict=True))
+    t_velo_imu = np.eye(4)
+    t_velo_imu[:3, :3], t_velo_imu[:3, 3] = imu_velo["R"].reshape(3, 3), imu_velo["T"]
+    points = np.fromfile(RAW / "velodyne_points/data/0000000000.bin", np.float32).reshape(-1, 4)[:, :3]
+    points = points[points[:, 0] > 5][::50].astype(float)
+    in_vehicle = (np.linalg.inv(t_velo_imu) @ np.column_stack([points, np.ones(len(points))]).T)
+    in_camera = np.linalg.inv(camera.extrinsics.matrix()) @ in_vehicle
+    pixels = (camera.intrinsics.matrix() @ in_camera[:3]).T
+    np.testing.assert_allclose(pixels[:, :2] / pixels[:, 2:], devkit_projection(points), atol=1e-3)
+    assert camera.extrinsics.translation_m[2] + config.vehicle.reference_height_m == pytest.approx(1.65, abs=0.02)
+    # the GNSS fixes and IMU samples are the OXTS records; the poses its INS solution, geo-referenced
+    times, records = read_oxts(RAW)
+    fixes = [r.message for r in read_log([log], topics=["gnss/fix"])]
+    np.testing.assert_array_equal([f.sensor_time_ns for f in fixes], times)
+    np.testing.assert_array_equal([(f.latitude_deg, f.longitude_deg, f.altitude_m) for f in fixes], records[:, :3])
+    drive = start_loading_drive([str(log)], config, use_lidar=False)
+    frame = LocalFrame(drive.trajectory.origin_lat_deg, drive.trajectory.origin_lon_deg,
+                       drive.trajectory.origin_alt_m)
+    np.testing.assert_allclose(drive.trajectory.positions, frame.geodetic_to_enu(*records[:, :3].T), atol=1e-6)
+    yaw = Rotation.from_quat(drive.trajectory.quaternions).as_euler("ZYX")[:, 0]
+    np.testing.assert_allclose(np.unwrap(yaw), np.unwrap(records[:, 5]), atol=1e-9)
+
+
+def test_kitti_raw_without_its_ins_poses_is_mapped_through_pose_fusion(tmp_path, capsys):
+    log, printed = imported(tmp_path, capsys, "kitti-raw", str(RAW), "--poses", "fusion")
+    assert "pose" not in printed["messages"]
+    config, _ = config_from_logs([str(log)])
+    trajectory = start_loading_drive([str(log)], config, use_lidar=False).trajectory
+    times, records = read_oxts(RAW)
+    inside = (times >= trajectory.times_ns[0]) & (times <= trajectory.times_ns[-1])
+    assert inside.sum() >= 90
+    positions, quaternions = trajectory.interpolate(times[inside])
+    reference = trajectory.local_frame.geodetic_to_enu(*records[inside, :3].T)
+    assert np.sqrt(np.mean(np.sum((positions - reference)[:, :2] ** 2, axis=1))) < 0.3  # measured 0.13 m
+    heading_error = np.degrees(Rotation.from_quat(quaternions).as_euler("ZYX")[:, 0] - records[inside, 5])
+    assert np.sqrt(np.mean(((heading_error + 180) % 360 - 180) ** 2)) < 6.0  # measured 4.0 deg: see kitti_raw.py
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda d: (d / "calib_cam_to_cam.txt").unlink(), "calib_cam_to_cam.txt: calibration file missing"),
+    (lambda d: (d / "oxts/data/0000000040.txt").write_text("49.0 8.4 112.8\n"), "3 fields, an OXTS record has 30"),
+    (lambda d: (d / "image_02/timestamps.txt").write_text("yesterday\n"), "not a KITTI timestamp"),
+    (lambda d: (d / "image_02/data/0000000090.png").write_bytes(b"GIF89a"), "0000000090.png: not a PNG file"),
+])
+def test_a_damaged_drive_is_a_clear_error_and_leaves_no_log(tmp_path, capsys, damage, message):
+    copy = tmp_path / "drive"
+    shutil.copytree(RAW, copy, ignore=shutil.ignore_patterns("velodyne_points"))
+    damage(copy)
+    out = tmp_path / "out.mcap"
+    assert roadlog(["import", "kitti-raw", str(copy), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+    assert not out.exists() and not list(tmp_path.glob("*.partial"))
