@@ -12,6 +12,7 @@ import sys
 FORMATS: dict[str, tuple[str, str]] = {
     "kitti-raw": ("importers.kitti_raw", "a KITTI raw drive: image_02, oxts, calib_*.txt (velodyne_points)"),
     "kitti-odometry": ("importers.kitti_odometry", "a KITTI odometry sequence: image_0, poses.txt, calib.txt"),
+    "ros2": ("importers.ros2_bag", "a ROS 2 bag: images, camera info, NavSatFix, Imu, Odometry, tf"),
 }
 
 
