@@ -9,7 +9,7 @@ import sys
 from collections import Counter
 
 from daemon.log_format.metadata_records import METADATA_NAME
-from daemon.log_format.reader import ReadReport, read_log, read_metadata
+from daemon.log_format.reader import ReadReport, not_a_log, read_log, read_metadata
 
 
 def recorded_car(path: str) -> dict:
@@ -47,6 +47,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="roadlog log-info", description=__doc__)
     parser.add_argument("logs", nargs="+", help="MCAP files")
     args = parser.parse_args(argv)
+    problems = [why for why in map(not_a_log, args.logs) if why]
+    for why in problems:
+        print(f"error: {why}", file=sys.stderr)
+    if problems:
+        return 1
     summary = summarise(args.logs)
     print(json.dumps(summary, indent=2))
     if not summary["messages_per_topic"] and "error" in summary["recorded"]:

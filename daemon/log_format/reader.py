@@ -59,6 +59,27 @@ class ReadReport:
         return [f.path for f in self.files if not f.complete]
 
 
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def not_a_log(path: str | Path) -> str | None:
+    """Why `path` cannot be read as a roadlog log (None: it is an MCAP file), naming what it looks like instead."""
+    path = Path(path)
+    if path.is_dir():
+        if (path / "metadata.yaml").is_file():
+            return f"{path} is a ROS 2 bag: import it first (roadlog import ros2 {path} --out LOG.mcap)"
+        return f"{path} is a folder, not an MCAP log"
+    if not path.is_file():
+        return f"{path}: no such file"
+    with open(path, "rb") as f:
+        head = f.read(16)
+    if head.startswith(MCAP_MAGIC):
+        return None
+    if head.startswith(b"SQLite format 3"):
+        return f"{path} is a ROS 2 bag's sqlite3 storage: import its bag folder first (roadlog import ros2)"
+    return f"{path} is not an MCAP file"
+
+
 def decode_record(schema: Schema | None, channel: Channel, message: Message) -> object | None:
     """The message dataclass of one MCAP message, or None for channels that are not roadlog topics."""
     type_name = channel.metadata.get("roadlog.type", "")

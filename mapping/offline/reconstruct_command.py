@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from daemon.log_format.reader import read_metadata
+from daemon.log_format.reader import not_a_log, read_metadata
 from daemon.spine.config import (
     CarConfig,
     ConfigError,
@@ -122,6 +122,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--epochs", type=int,
                         help="epochs of the faithful fit (default: the config's mapper.faithful_fit.epochs)")
     args = parser.parse_args(argv)
+    problems = [why for why in map(not_a_log, args.logs) if why]
+    if problems:
+        raise ConfigError("; ".join(problems))
     if args.config:
         config, config_path = load_config(args.config), Path(args.config)
     else:

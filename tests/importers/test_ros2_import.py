@@ -180,3 +180,14 @@ def test_what_is_not_a_ros2_bag_is_a_clear_error(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "not a readable ROS 2 bag" in err and "no such bag" in err and "Traceback" not in err
     assert not (tmp_path / "x.mcap").exists()
+
+
+def test_reconstruct_and_log_info_given_a_bag_say_to_import_it(sim_bag, tmp_path, capsys):
+    path, _, _ = sim_bag
+    storage = next(path.glob("*.db3"))
+    assert roadlog(["reconstruct", str(path), "--out", str(tmp_path / "map")]) == 2
+    assert roadlog(["reconstruct", str(storage), "--out", str(tmp_path / "map")]) == 2
+    assert roadlog(["log-info", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("is a ROS 2 bag: import it first (roadlog import ros2") == 2
+    assert "sqlite3 storage" in err and "Traceback" not in err
