@@ -5,7 +5,6 @@ for message, with the car's cameras, antenna and IMU rebuilt from the bag's own 
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import cv2
 import numpy as np
