@@ -66,7 +66,7 @@ class LogWriter:
             "start_time_utc_ns": str(time.time_ns()),
             "start_mono_ns": str(time.monotonic_ns()),
         }
-        if config.sensors.lidar is not None and config_path is not None:
+        if config.sensors.lidar is not None and config.sensors.lidar.metadata_file and config_path is not None:
             try:  # the Lidar's own calibration file, so the segment decodes on its own
                 meta["lidar_metadata"] = resolve_path(config_path, config.sensors.lidar.metadata_file).read_text()
             except OSError as exc:

@@ -306,9 +306,9 @@ def keyframe_semantics(image: np.ndarray, mask: SemanticMask | None, segmenter: 
 
 def check_config(car: CarConfig, config_path: str | Path) -> None:
     """What the mapper (live worker or reconstruct) needs of the config before it starts (also run by `roadlog
-    check-config`): the segmentation model loads, the Lidar metadata reads."""
+    check-config`): the segmentation model loads, the Lidar metadata reads (a point-cloud Lidar has none)."""
     segmenter_for(car, config_path)
-    if car.sensors.lidar is not None:
+    if car.sensors.lidar is not None and not car.sensors.lidar.point_clouds:
         configured_metadata(car.sensors.lidar, config_path)
 
 
