@@ -1,7 +1,8 @@
-"""Writing: `LogWriter` maps camera frames, masks, GNSS fixes and poses to Foxglove's well-known schemas and every
-other message to its `roadlog.<Name>` schema derived from `daemon.spine.messages`. Each MCAP message record carries
-sequence = the message's per-topic seq, log_time = host_mono_ns and publish_time = sensor_time_ns, so every field
-round-trips. Each file starts with a `roadlog` metadata record and holds a CameraCalibration channel per camera."""
+"""Writing: `LogWriter` maps camera frames, masks, GNSS fixes, poses and point clouds to Foxglove's well-known schemas
+and every other message to its `roadlog.<Name>` schema derived from `daemon.spine.messages`. Each MCAP message record
+carries sequence = the message's per-topic seq, log_time = host_mono_ns and publish_time = sensor_time_ns, so every
+field round-trips. Each file starts with a `roadlog` metadata record and holds a CameraCalibration channel per
+camera."""
 
 from __future__ import annotations
 
