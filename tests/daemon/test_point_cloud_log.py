@@ -1,6 +1,8 @@
 """Point clouds in the log: our PointCloud records round-trip through a real MCAP file as foxglove.PointCloud, another
 tool's PointCloud layouts read back into ours, malformed ones are counted, never fatal."""
 
+import json
+
 import numpy as np
 import pytest
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
@@ -9,7 +11,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from daemon.log_format.foxglove_schemas import file_descriptor_set
-from daemon.log_format.reader import ReadReport, read_log
+from daemon.log_format.reader import ReadReport, read_log, read_metadata
 from daemon.log_format.writer import LogWriter
 from daemon.spine.messages import PointCloud
 from daemon.spine.point_cloud_codec import POINT_FIELDS, POINT_STRIDE, pack_points, point_array
@@ -56,6 +58,10 @@ def test_point_clouds_round_trip_through_an_mcap_file_as_foxglove_point_clouds(t
             writer.write(LIDAR_POINTS, cloud)
     back = [r.message for r in read_log([path], topics=[LIDAR_POINTS])]
     assert back == sent
+    recorded = read_metadata(path)["roadlog"]  # the Lidar's model and mounting, no Ouster metadata to record
+    assert json.loads(recorded["calibration"])["lidar"] == {
+        "model": "point-cloud", "extrinsics": config.sensors.lidar.extrinsics.model_dump(mode="json")}
+    assert "lidar_metadata" not in recorded and "lidar_metadata_error" not in recorded
     for cloud, (xyz, intensity, time_s) in zip(back, scans, strict=True):
         points = point_array(cloud)
         assert np.array_equal(points[:, :3], xyz) and np.array_equal(points[:, 3], intensity)
