@@ -18,7 +18,7 @@ from mcap.records import Channel, Chunk, Message, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.summary import Summary
 
-from daemon.log_format.foxglove_schemas import FROM_WELL_KNOWN
+from daemon.log_format.foxglove_schemas import FROM_WELL_KNOWN, TYPE_OF_FOREIGN_SCHEMA
 from daemon.spine import message_codec
 from daemon.spine.messages import MESSAGE_TYPE_BY_NAME
 
@@ -81,8 +81,9 @@ def not_a_log(path: str | Path) -> str | None:
 
 
 def decode_record(schema: Schema | None, channel: Channel, message: Message) -> object | None:
-    """The message dataclass of one MCAP message, or None for channels that are not roadlog topics."""
-    type_name = channel.metadata.get("roadlog.type", "")
+    """The message dataclass of one MCAP message, or None for channels that are not roadlog topics (a channel of
+    another tool's log is one when its schema can only be one roadlog message: TYPE_OF_FOREIGN_SCHEMA)."""
+    type_name = channel.metadata.get("roadlog.type") or TYPE_OF_FOREIGN_SCHEMA.get(schema.name if schema else "", "")
     msg_type = MESSAGE_TYPE_BY_NAME.get(type_name)
     if msg_type is None or schema is None:
         return None

@@ -1,7 +1,8 @@
-"""Writing: `LogWriter` maps camera frames, masks, GNSS fixes and poses to Foxglove's well-known schemas and every
-other message to its `roadlog.<Name>` schema derived from `daemon.spine.messages`. Each MCAP message record carries
-sequence = the message's per-topic seq, log_time = host_mono_ns and publish_time = sensor_time_ns, so every field
-round-trips. Each file starts with a `roadlog` metadata record and holds a CameraCalibration channel per camera."""
+"""Writing: `LogWriter` maps camera frames, masks, GNSS fixes, poses and point clouds to Foxglove's well-known schemas
+and every other message to its `roadlog.<Name>` schema derived from `daemon.spine.messages`. Each MCAP message record
+carries sequence = the message's per-topic seq, log_time = host_mono_ns and publish_time = sensor_time_ns, so every
+field round-trips. Each file starts with a `roadlog` metadata record and holds a CameraCalibration channel per
+camera."""
 
 from __future__ import annotations
 
@@ -66,7 +67,7 @@ class LogWriter:
             "start_time_utc_ns": str(time.time_ns()),
             "start_mono_ns": str(time.monotonic_ns()),
         }
-        if config.sensors.lidar is not None and config_path is not None:
+        if config.sensors.lidar is not None and config.sensors.lidar.metadata_file and config_path is not None:
             try:  # the Lidar's own calibration file, so the segment decodes on its own
                 meta["lidar_metadata"] = resolve_path(config_path, config.sensors.lidar.metadata_file).read_text()
             except OSError as exc:

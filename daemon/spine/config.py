@@ -106,16 +106,34 @@ class CameraConfig(_Strict):
         return self
 
 
+POINT_CLOUD_LIDAR = "point-cloud"  # a Lidar model whose scans arrive already decoded (messages.PointCloud)
+
+
 class LidarConfig(_Strict):
-    model: Literal["ouster-os-128", "ouster-os-32"]  # exactly the models the driver and the mapper decode
+    # exactly the models the driver and the mapper decode: Ouster packets, or scans already decoded into points
+    # (POINT_CLOUD_LIDAR: an imported dataset, a ROS bag, another system's driver; they come only in logs, there is
+    # no live driver for them)
+    model: Literal["ouster-os-128", "ouster-os-32", "point-cloud"]
     bind_address: str = "0.0.0.0"
     port: int = Field(7502, ge=1, le=65535)
     imu_port: int | None = Field(None, ge=0, le=65535)  # None: the metadata's udp_port_imu; 0: IMU off
-    metadata_file: str
+    metadata_file: str | None = None  # the Ouster's own calibration JSON (required for the Ouster models)
     columns_per_frame: Literal[512, 1024, 2048] = 1024
     rate_hz: Literal[10, 20] = 10
     receive_buffer_bytes: int = Field(64 * 1024 * 1024, ge=1 << 16)
     extrinsics: Extrinsics
+
+    @property
+    def point_clouds(self) -> bool:
+        """Whether its scans arrive as decoded point clouds (`lidar/points`) instead of Ouster packets."""
+        return self.model == POINT_CLOUD_LIDAR
+
+    @model_validator(mode="after")
+    def _packets_need_metadata(self) -> LidarConfig:
+        if not self.point_clouds and not self.metadata_file:
+            raise ValueError(f"metadata_file is required for model {self.model} (the sensor's metadata JSON, "
+                             f"which its packets are decoded with); only model {POINT_CLOUD_LIDAR} goes without")
+        return self
 
 
 class GnssConfig(_Strict):

@@ -60,6 +60,20 @@ class LidarPacket:
 
 
 @dataclass(slots=True)
+class PointCloud:
+    """One Lidar scan already decoded into points (an imported dataset, another system's driver), whatever the vendor:
+    `data` holds packed little-endian float32 records (x, y, z, intensity, time_s), one per point, in the Lidar
+    frame (x forward, y left, z up, metres); time_s is the point's firing time in seconds after `sensor_time_ns`
+    (the scan's start on the sensor clock). Packed and unpacked by daemon.spine.point_cloud_codec."""
+
+    seq: int = 0
+    sensor_time_ns: int = 0
+    host_mono_ns: int = 0
+    sensor: str = "lidar"
+    data: bytes = b""
+
+
+@dataclass(slots=True)
 class GnssFix:
     """A position fix (WGS84) with its covariance in local east/north/up metres squared (row-major 3x3)."""
 
@@ -159,6 +173,7 @@ MESSAGE_TYPES: tuple[type, ...] = (
     CameraFrame,
     SemanticMask,
     LidarPacket,
+    PointCloud,
     GnssFix,
     ImuSample,
     WheelSpeeds,

@@ -8,7 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from daemon.spine.config import CarConfig
+from daemon.spine.config import POINT_CLOUD_LIDAR, CarConfig, ConfigError
 from daemon.spine.topics import camera_process
 
 Mode = Literal["live", "replay"]
@@ -30,6 +30,29 @@ class ProcessSpec:
     check: str = ""  # "module:function(car, config_path)" raising ConfigError: its start-up checks (check-config)
 
 
+def driver_processes(config: CarConfig, config_path: str) -> list[ProcessSpec]:
+    """One driver process per configured sensor, live. A sensor without a live driver has module "" (a point-cloud
+    Lidar: its scans come only in logs, which the log player publishes under the driver's name)."""
+    cfg = ("--config", config_path)
+    s = config.sensors
+    table = []
+    for cam in s.cameras:
+        module = "sim.camera_playback" if cam.backend == "sim" else "drivers.camera.camera_driver"
+        table.append(ProcessSpec(camera_process(cam.name), module, cfg + ("--camera", cam.name), required=True,
+                                 check="drivers.camera.camera_driver:check_config"))
+    if s.lidar is not None and s.lidar.point_clouds:
+        table.append(ProcessSpec("lidar", "", cfg, required=True))
+    elif s.lidar is not None:
+        table.append(ProcessSpec("lidar", "drivers.lidar.udp_driver", cfg, required=True,
+                                 check="drivers.lidar.udp_driver:check_config"))
+    if s.gnss is not None:
+        table.append(ProcessSpec("gnss", "drivers.gnss.serial_driver", cfg, required=True))
+    if s.can is not None:
+        table.append(ProcessSpec("can", "drivers.can.can_driver", cfg, required=True,
+                                 check="drivers.can.can_driver:check_config"))
+    return table
+
+
 def process_table(
     config: CarConfig,
     config_path: str,
@@ -41,24 +64,17 @@ def process_table(
     output_dir: str | None = None,
     map_stop_timeout_s: float = 600.0,
 ) -> list[ProcessSpec]:
-    """The processes of one daemon run. Live: one per driver; replay: the log player instead."""
+    """The processes of one daemon run. Live: one per driver; replay: the log player instead. A live run of a
+    config with a sensor that has no live driver is a ConfigError (`roadlog run` and check-config exit 2)."""
     cfg = ("--config", config_path)
     out = ("--output-dir", output_dir) if output_dir else ()
     table: list[ProcessSpec] = []
     if mode == "live":
-        s = config.sensors
-        for cam in s.cameras:
-            module = "sim.camera_playback" if cam.backend == "sim" else "drivers.camera.camera_driver"
-            table.append(ProcessSpec(camera_process(cam.name), module, cfg + ("--camera", cam.name), required=True,
-                                     check="drivers.camera.camera_driver:check_config"))
-        if s.lidar is not None:
-            table.append(ProcessSpec("lidar", "drivers.lidar.udp_driver", cfg, required=True,
-                                     check="drivers.lidar.udp_driver:check_config"))
-        if s.gnss is not None:
-            table.append(ProcessSpec("gnss", "drivers.gnss.serial_driver", cfg, required=True))
-        if s.can is not None:
-            table.append(ProcessSpec("can", "drivers.can.can_driver", cfg, required=True,
-                                     check="drivers.can.can_driver:check_config"))
+        table += driver_processes(config, config_path)
+        if any(not spec.module for spec in table):  # only a point-cloud Lidar has none
+            raise ConfigError(f"{config_path}: sensors.lidar.model {POINT_CLOUD_LIDAR!r} has no live driver: its "
+                              f"scans come decoded, only in logs (an imported dataset, another system's recording); "
+                              f"use this config with `roadlog replay` or `roadlog reconstruct`")
     else:
         # the player starts once the recorder and the mapper listen: nothing is played before they subscribe
         consumers = ("recorder",) * record + ("mapper",) * config.mapper.enabled
@@ -81,5 +97,6 @@ def process_table(
 
 def required_drivers(config: CarConfig) -> list[str]:
     """The drivers whose health decides readiness, in live and replay runs alike (a replay stands in for them):
-    the live table's `required` processes, one per configured sensor."""
-    return sorted(spec.name for spec in process_table(config, "", "live", record=False) if spec.required)
+    the `required` driver processes, one per configured sensor (a point-cloud Lidar's too: a replay plays its
+    topic)."""
+    return sorted(spec.name for spec in driver_processes(config, "") if spec.required)

@@ -16,6 +16,7 @@ from daemon.spine.messages import (
     GnssFix,
     ImuSample,
     LidarPacket,
+    PointCloud,
     SemanticMask,
     TimeAnchor,
     VehiclePose,
@@ -65,6 +66,7 @@ def health_topic(process: str) -> str:
 
 LIDAR_PACKETS = "lidar/packets"
 LIDAR_IMU = "lidar/imu"  # the Lidar's own IMU (Ouster: UDP udp_port_imu)
+LIDAR_POINTS = "lidar/points"  # a point-cloud Lidar's scans, decoded (instead of lidar/packets and lidar/imu)
 GNSS_FIX = "gnss/fix"
 IMU = "imu"
 CAN_FRAMES = "can/frames"
@@ -87,7 +89,11 @@ def topic_table(config: CarConfig) -> dict[str, Topic]:
         topics.append(Topic(mask_topic(cam.name), SemanticMask, cam.rate_hz, max(16 * MB, 2 * raw_bytes), True,
                             process))
         topics.append(Topic(health_topic(process), DriverHealth, 1.0, 1 * MB, True, process))
-    if sensors.lidar is not None:
+    if sensors.lidar is not None and sensors.lidar.point_clouds:
+        # a 128-beam scan of 1024 columns is ~2.6 MB of points: the ring holds ~5 s of them at 10 Hz, as the packet
+        # ring holds ~4 s of packets
+        topics.append(Topic(LIDAR_POINTS, PointCloud, sensors.lidar.rate_hz, 128 * MB, True, "lidar"))
+    elif sensors.lidar is not None:
         packets_per_s = sensors.lidar.columns_per_frame / 16 * sensors.lidar.rate_hz
         topics.append(Topic(LIDAR_PACKETS, LidarPacket, packets_per_s, 128 * MB, True, "lidar"))
         topics.append(Topic(LIDAR_IMU, ImuSample, 100.0, 4 * MB, True, "lidar"))

@@ -242,7 +242,10 @@ def imu_port(config: LidarConfig, metadata: OusterMetadata) -> int | None:
 
 def configured_metadata(config: LidarConfig, config_path: str | Path) -> OusterMetadata:
     """The metadata of the configured sensor (`metadata_file`, relative to the config file); a file that cannot be
-    read or parsed is a ConfigError naming it."""
+    read or parsed is a ConfigError naming it, as is a point-cloud Lidar (it has none: its scans come decoded)."""
+    if config.metadata_file is None:
+        raise ConfigError(f"{config_path}: sensors.lidar.model {config.model!r} has no Ouster metadata_file: its scans "
+                          f"come decoded, not as Ouster packets")
     path = resolve_path(config_path, config.metadata_file)
     try:
         return parse_metadata(path)

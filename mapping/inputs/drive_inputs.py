@@ -28,21 +28,25 @@ from daemon.spine.messages import (
     GnssFix,
     ImuSample,
     LidarPacket,
+    PointCloud,
     SemanticMask,
     TimeAnchor,
     VehiclePose,
     WheelSpeeds,
 )
-from daemon.spine.topics import GNSS_FIX, IMU, LIDAR_PACKETS, POSE, TIME_ANCHOR, WHEEL_SPEEDS, camera_topic, mask_topic
-from drivers.lidar.ouster_metadata import configured_metadata, parse_metadata
-from mapping.inputs.lidar_ground import (
-    GroundFilter,
-    LidarDecoding,
-    TrajectoryGround,
-    ground_points,
-    keeps_scan,
-    lidar_world_points,
+from daemon.spine.topics import (
+    GNSS_FIX,
+    IMU,
+    LIDAR_PACKETS,
+    LIDAR_POINTS,
+    POSE,
+    TIME_ANCHOR,
+    WHEEL_SPEEDS,
+    camera_topic,
+    mask_topic,
 )
+from drivers.lidar.ouster_metadata import configured_metadata, parse_metadata
+from mapping.inputs.lidar_ground import GroundFilter, lidar_scans, scans_ground
 from mapping.inputs.segmentation import OnnxSegmenter
 from mapping.localization import pose_fusion
 from mapping.localization.keyframe_spacing import spaced_by_distance
@@ -209,12 +213,12 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
     cams = [c.name for c in config.sensors.cameras]
     frames: dict[str, list[CameraFrame]] = defaultdict(list)
     masks: dict[str, dict[int, SemanticMask]] = defaultdict(dict)
-    gnss, imu, wheels, poses, lidar = [], [], [], [], []
+    gnss, imu, wheels, poses, packets, clouds = [], [], [], [], [], []
     wanted = {camera_topic(c) for c in cams} | ({mask_topic(c) for c in cams} if segmenter is None else set())
     wanted |= {GNSS_FIX, IMU, WHEEL_SPEEDS, POSE, TIME_ANCHOR}
     anchors: list[tuple[int, int]] = []
     if use_lidar and config.sensors.lidar is not None:
-        wanted.add(LIDAR_PACKETS)
+        wanted |= {LIDAR_PACKETS, LIDAR_POINTS}  # a log of a point-cloud Lidar (or an imported one) has points
     host_sensor: dict[str, list[tuple[int, int]]] = defaultdict(list)
     for rec in read_log(paths, topics=wanted, report=report):
         m = rec.message
@@ -235,7 +239,9 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
         elif isinstance(m, VehiclePose):
             poses.append(m)
         elif isinstance(m, LidarPacket):
-            lidar.append(m)
+            packets.append(m)
+        elif isinstance(m, PointCloud):
+            clouds.append(m)
     clocks = {t: fit_clock([s for _, s in v], [h for h, _ in v], anchors) for t, v in host_sensor.items()}
     if poses:
         trajectory = _pose_trajectory(poses, clocks[POSE], origin or recorded_pose_origin(paths[0]))
@@ -246,13 +252,16 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
     # one background thread, the Lidar first: the reconstruction needs it first (its elevation fit), and the
     # decoding then runs beside that single-threaded fit. The pool lets its thread finish after shutdown.
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="load-drive")
-    if lidar and config.sensors.lidar is not None:
-        meta_path = resolve_path(config_path or ".", config.sensors.lidar.metadata_file)
-        metadata = parse_metadata(meta_path)  # a bad metadata file fails here, before the background work
-        ground = pool.submit(lidar_ground_from_packets, lidar, clocks[LIDAR_PACKETS], metadata, config, trajectory,
-                             config.mapper.inputs.lidar_every_n_scans,
+    lidar = config.sensors.lidar
+
+    def packet_metadata():  # a bad metadata file fails here, before the background work
+        return parse_metadata(resolve_path(config_path or ".", lidar.metadata_file)) if lidar.metadata_file else None
+
+    scans = lidar_scans(packets, clouds, packet_metadata, config.mapper.inputs.lidar_every_n_scans) if lidar else None
+    if scans is not None:
+        ground = pool.submit(scans_ground, scans, clocks[scans.topic], config, trajectory,
                              GroundFilter(corridor_half_width_m=config.mapper.mesh.corridor_half_width_m))
-        counts["lidar_packets"] = len(lidar)
+        counts.update(scans.counts)
     else:
         ground = Future()
         ground.set_result(None)
@@ -314,9 +323,9 @@ def keyframe_semantics(image: np.ndarray, mask: SemanticMask | None, segmenter: 
 
 def check_config(car: CarConfig, config_path: str | Path) -> None:
     """What the mapper (live worker or reconstruct) needs of the config before it starts (also run by `roadlog
-    check-config`): the segmentation model loads, the Lidar metadata reads."""
+    check-config`): the segmentation model loads, the Lidar metadata reads (a point-cloud Lidar has none)."""
     segmenter_for(car, config_path)
-    if car.sensors.lidar is not None:
+    if car.sensors.lidar is not None and not car.sensors.lidar.point_clouds:
         configured_metadata(car.sensors.lidar, config_path)
 
 
@@ -333,24 +342,3 @@ def _decode_keyframes(chosen: list[_KeyframeMessages], segmenter: OnnxSegmenter 
         keyframes.append(Keyframe(k.camera, k.timestamp, k.T_world_camera, image,
                                   keyframe_semantics(image, k.mask, segmenter)))
     return keyframes
-
-
-def lidar_ground_from_packets(packets: list[LidarPacket], clock: ClockMap, metadata, config: CarConfig,
-                              trajectory: Trajectory, every_n_scans: int, settings: GroundFilter) -> np.ndarray:
-    """Ground points of every n-th Lidar scan (a scan = the packets of one frame id), in scan order; the scans
-    are shared out over `mapper.runtime.lidar_ground_threads` threads (numpy releases the GIL in its array
-    work)."""
-    per_scan = metadata.packets_per_frame
-    T_vl = config.sensors.lidar.extrinsics.matrix()
-    road = TrajectoryGround.of(trajectory, config.vehicle.reference_height_m, settings.corridor_half_width_m,
-                               settings.ground_cell_m)
-    decoding = LidarDecoding.of(metadata)
-
-    def scan_ground(start: int) -> np.ndarray:
-        chunk = [bytes(p.data) for p in packets[start:start + per_scan]]
-        return ground_points(lidar_world_points(chunk, clock, decoding, T_vl, trajectory, settings), road, settings)
-
-    with ThreadPoolExecutor(config.mapper.runtime.lidar_ground_threads, thread_name_prefix="lidar-ground") as pool:
-        starts = [start for start in range(0, len(packets), per_scan) if keeps_scan(start, per_scan, every_n_scans)]
-        out = list(pool.map(scan_ground, starts))
-    return np.concatenate(out) if out else np.zeros((0, 3))

@@ -1,23 +1,30 @@
-"""Lidar ground points for the elevation loss: raw packets -> world points -> ground points only.
+"""Lidar ground points for the elevation loss: scans -> world points -> ground points only.
 
-Points are moved into the world frame column by column with the vehicle pose at each column's time
-(motion compensated). The ground filter keeps points within a height band around the trajectory's
-ground height under them, then, on a 0.5 m grid, only points close to the lowest point of their cell
-or on a flat patch at most a curb's height above it: points on cars and other things standing on the
-road are dropped. The trajectory's ground height is rasterised once per drive (TrajectoryGround): each
-`ground_cell_m` cell within the corridor holds the height of the trajectory point nearest to the cell's
-centre, so that the filter looks each point up in its cell instead of searching for its nearest
+A scan comes as raw Ouster packets or as a decoded PointCloud (any vendor's, `lidar/points`); decoding it into
+ScanPoints (points in the Lidar frame, each with its firing time) is the only step that differs. Points are then
+moved into the world frame with the vehicle pose at their time (motion compensated). The ground filter keeps
+points within a height band around the trajectory's ground height under them, then, on a 0.5 m grid, only points
+close to the lowest point of their cell or on a flat patch at most a curb's height above it: points on cars and
+other things standing on the road are dropped. The trajectory's ground height is rasterised once per drive
+(TrajectoryGround): each `ground_cell_m` cell within the corridor holds the height of the trajectory point nearest
+to the cell's centre, so that the filter looks each point up in its cell instead of searching for its nearest
 trajectory point (a k-d tree query per point was a large part of loading a drive).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from daemon.spine.config import CarConfig
+from daemon.spine.messages import LidarPacket, PointCloud
+from daemon.spine.point_cloud_codec import point_array
+from daemon.spine.topics import LIDAR_PACKETS, LIDAR_POINTS
 from drivers.lidar.lidar_points import XYZLut, batch_xyz
 from drivers.lidar.ouster_decoder import decode_packets
 from drivers.lidar.ouster_metadata import OusterMetadata
@@ -32,7 +39,8 @@ TILES_PER_QUERY = 256  # tiles whose cell centres are looked up in the trajector
 
 def keeps_scan(packet_index: int, packets_per_scan: int, every_n_scans: int) -> bool:
     """Whether the Lidar scan holding the `packet_index`-th packet (counted from the first, `packets_per_scan`
-    to a scan) is used: every n-th scan (`mapper.inputs.lidar_every_n_scans`), the first one included."""
+    to a scan; a PointCloud is a scan of one) is used: every n-th scan (`mapper.inputs.lidar_every_n_scans`), the
+    first one included."""
     return (packet_index // packets_per_scan) % every_n_scans == 0
 
 
@@ -67,31 +75,55 @@ class LidarDecoding:
         return LidarDecoding(packet_layout(metadata), make_xyz_lut(metadata))
 
 
-def lidar_world_points(packets: list[bytes], clock: ClockMap, decoding: LidarDecoding,
-                       T_vehicle_lidar: np.ndarray, trajectory: Trajectory, settings: GroundFilter) -> np.ndarray:
-    """World points (N, 3) of one batch of packets, motion compensated; columns outside the trajectory dropped.
+@dataclass(frozen=True)
+class ScanPoints:
+    """One scan's points in the Lidar frame, whatever they were decoded from: point k fired at sensor time
+    times_ns[time_index[k]] (the points of one Ouster column share their column's time)."""
 
-    Points come in packet, column, beam order. Only the points in the range band are transformed: each with
-    its column's pose composed with the Lidar mounting (T_world_vehicle(t) @ T_vehicle_lidar)."""
+    xyz: np.ndarray  # (N, 3) float32 metres, Lidar frame (x forward, y left, z up); no return: (0, 0, 0)
+    time_index: np.ndarray  # (N,) int64 into times_ns
+    times_ns: np.ndarray  # (T,) int64, sensor clock
+
+
+def packet_scan_points(packets: list[bytes], decoding: LidarDecoding) -> ScanPoints:
+    """An Ouster scan's packets decoded: every pixel of the valid columns, in packet, column, beam order."""
     batch = decode_packets(packets, decoding.layout)
     if batch.num_packets == 0:
-        return np.zeros((0, 3))
-    rng = batch.range_mm.astype(np.float64) / 1000.0
-    times = clock.to_host(batch.timestamp_ns.astype(np.int64).ravel())  # (P*K,)
-    inside = (times >= trajectory.times_ns[0]) & (times <= trajectory.times_ns[-1]) & batch.column_valid.ravel()
-    ok = (rng > settings.min_range_m) & (rng < settings.max_range_m)
-    ok &= inside.reshape(batch.column_valid.shape)[..., None]
-    flat = np.flatnonzero(ok)  # (N,) over (P, K, H)
+        return ScanPoints(np.zeros((0, 3), np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64))
+    valid = batch.column_valid.ravel()
+    xyz = batch_xyz(batch, decoding.lut).reshape(len(valid), -1, 3)  # (P * K, H, 3)
+    if not valid.all():
+        xyz = xyz[valid]
+    times = batch.timestamp_ns.ravel()[valid].astype(np.int64)
+    return ScanPoints(xyz.reshape(-1, 3), np.repeat(np.arange(len(times)), xyz.shape[1]), times)
+
+
+def cloud_scan_points(cloud: PointCloud) -> ScanPoints:
+    """A decoded scan's points, in the cloud's order, each at its own time (to the nanosecond)."""
+    points = point_array(cloud)
+    offsets_ns = np.rint(points[:, 4].astype(np.float64) * 1e9).astype(np.int64)
+    offsets, time_index = np.unique(offsets_ns, return_inverse=True)
+    return ScanPoints(points[:, :3], time_index.ravel(), int(cloud.sensor_time_ns) + offsets)
+
+
+def lidar_world_points(scan: ScanPoints, clock: ClockMap, T_vehicle_lidar: np.ndarray, trajectory: Trajectory,
+                       settings: GroundFilter) -> np.ndarray:
+    """World points (N, 3) of one scan, motion compensated, in the scan's order: those in the range band (distance
+    from the Lidar frame's origin) fired within the trajectory's time span, each moved with the pose at its time
+    composed with the Lidar mounting (T_world_vehicle(t) @ T_vehicle_lidar)."""
+    times = clock.to_host(scan.times_ns)
+    inside = (times >= trajectory.times_ns[0]) & (times <= trajectory.times_ns[-1])
+    rng = np.linalg.norm(scan.xyz, axis=1)
+    flat = np.flatnonzero((rng > settings.min_range_m) & (rng < settings.max_range_m) & inside[scan.time_index])
     if not len(flat):
         return np.zeros((0, 3))
-    column = flat // ok.shape[-1]  # (N,) over (P * K)
-    used, point_column = np.unique(column, return_inverse=True)
+    used, point_time = np.unique(scan.time_index[flat], return_inverse=True)
     positions, quats = trajectory.interpolate(times[used])
     R_world_vehicle = Rotation.from_quat(quats)
-    R = (R_world_vehicle * Rotation.from_matrix(T_vehicle_lidar[:3, :3])).as_matrix()  # (C, 3, 3) world <- Lidar
-    t = positions + R_world_vehicle.apply(T_vehicle_lidar[:3, 3])  # (C, 3)
-    xyz = batch_xyz(batch, decoding.lut).reshape(-1, 3)[flat].astype(np.float64)  # (N, 3) Lidar frame
-    R, t = R[point_column], t[point_column]
+    R = (R_world_vehicle * Rotation.from_matrix(T_vehicle_lidar[:3, :3])).as_matrix()  # (T, 3, 3) world <- Lidar
+    t = positions + R_world_vehicle.apply(T_vehicle_lidar[:3, 3])  # (T, 3)
+    xyz = scan.xyz[flat].astype(np.float64)  # (N, 3) Lidar frame
+    R, t = R[point_time.ravel()], t[point_time.ravel()]
     return (R[:, :, 0] * xyz[:, 0:1] + R[:, :, 1] * xyz[:, 1:2] + R[:, :, 2] * xyz[:, 2:3]) + t
 
 
@@ -202,3 +234,60 @@ def ground_points(world: np.ndarray, road: TrajectoryGround, settings: GroundFil
     pts = pts[_on_ground(pts, settings)]
     first, _ = _first_per_cell(np.floor(pts / settings.voxel_m).astype(np.int64))
     return pts[np.sort(first)]
+
+
+@dataclass(frozen=True)
+class LidarScans:
+    """The Lidar scans of a drive or a window as the log holds them, and how each becomes ScanPoints: per scan
+    the list of its packets (packet_scan_points), or one PointCloud (cloud_scan_points)."""
+
+    topic: str  # whose clock their stamps are on
+    scans: list
+    decode: Callable[[object], ScanPoints]
+    messages: int  # messages they came in (packets or point clouds)
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """Those messages as the drive's input counts and the worker's journal name them."""
+        return {"lidar_point_clouds" if self.topic == LIDAR_POINTS else "lidar_packets": self.messages}
+
+
+def packet_scans(packets: list[LidarPacket], metadata: OusterMetadata, every_n_scans: int) -> LidarScans:
+    """Every n-th scan of an Ouster's packets (a scan: `packets_per_frame` packets, counted from the first)."""
+    per_scan, decoding = metadata.packets_per_frame, LidarDecoding.of(metadata)
+    chunks = [packets[start:start + per_scan] for start in range(0, len(packets), per_scan)
+              if keeps_scan(start, per_scan, every_n_scans)]
+    return LidarScans(LIDAR_PACKETS, chunks, lambda chunk: packet_scan_points([bytes(p.data) for p in chunk],
+                                                                                decoding), len(packets))
+
+
+def point_cloud_scans(clouds: list[PointCloud], every_n_scans: int) -> LidarScans:
+    """Every n-th of a Lidar's decoded scans."""
+    kept = [cloud for k, cloud in enumerate(clouds) if keeps_scan(k, 1, every_n_scans)]
+    return LidarScans(LIDAR_POINTS, kept, cloud_scan_points, len(clouds))
+
+
+def lidar_scans(packets: list[LidarPacket], clouds: list[PointCloud],
+                metadata: Callable[[], OusterMetadata | None], every_n_scans: int) -> LidarScans | None:
+    """The scans the Lidar ground is taken from: the point clouds when there are any, else the packets decoded with
+    `metadata()` (asked for only then; None: packets that cannot be decoded, no scans)."""
+    if clouds:
+        return point_cloud_scans(clouds, every_n_scans)
+    meta = metadata() if packets else None
+    return packet_scans(packets, meta, every_n_scans) if meta is not None else None
+
+
+def scans_ground(scans: LidarScans, clock: ClockMap, config: CarConfig, trajectory: Trajectory,
+                 settings: GroundFilter) -> np.ndarray:
+    """Ground points of the scans, in scan order; the scans are shared out over `mapper.runtime.lidar_ground_threads`
+    threads (numpy releases the GIL in its array work)."""
+    T_vl = config.sensors.lidar.extrinsics.matrix()
+    road = TrajectoryGround.of(trajectory, config.vehicle.reference_height_m, settings.corridor_half_width_m,
+                               settings.ground_cell_m)
+
+    def scan_ground(scan: object) -> np.ndarray:
+        return ground_points(lidar_world_points(scans.decode(scan), clock, T_vl, trajectory, settings), road, settings)
+
+    with ThreadPoolExecutor(config.mapper.runtime.lidar_ground_threads, thread_name_prefix="lidar-ground") as pool:
+        out = list(pool.map(scan_ground, scans.scans))
+    return np.concatenate(out) if out else np.zeros((0, 3))

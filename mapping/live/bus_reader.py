@@ -1,5 +1,6 @@
 """The live worker's bus thread: every topic the mapper needs, read losslessly into the disk spool (the small
-streams, GNSS/IMU/wheels/anchors, also into memory), and the log segments the recorder or player name."""
+streams, GNSS/IMU/wheels/anchors, also into memory; of the Lidar's packets or point clouds every n-th scan), and the
+log segments the recorder or player name."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from daemon.spine.topics import (
     GNSS_FIX,
     IMU,
     LIDAR_PACKETS,
+    LIDAR_POINTS,
     TIME_ANCHOR,
     WHEEL_SPEEDS,
     camera_topic,
@@ -48,11 +50,11 @@ class BusReader(threading.Thread):
         cams = [c.name for c in config.sensors.cameras]
         table = topic_table(config)
         self.topics = [t for t in [camera_topic(c) for c in cams] + [mask_topic(c) for c in cams]
-                       + [LIDAR_PACKETS, GNSS_FIX, IMU, WHEEL_SPEEDS, TIME_ANCHOR] if t in table]
+                       + [LIDAR_PACKETS, LIDAR_POINTS, GNSS_FIX, IMU, WHEEL_SPEEDS, TIME_ANCHOR] if t in table]
         self.subs: dict[str, pubsub.Subscriber] = {}
         self.side: dict[str, pubsub.Subscriber] = {}
         self.lidar_count = 0
-        self.packets_per_scan = packets_per_scan
+        self.per_scan = {LIDAR_PACKETS: packets_per_scan, LIDAR_POINTS: 1}  # messages per Lidar scan
         self.last_message_ns = time.monotonic_ns()
         self.lost = 0
         self.newest: dict[str, int] = {}  # topic -> newest host time received
@@ -80,10 +82,10 @@ class BusReader(threading.Thread):
         self.health.received += 1
         arrival = msg.host_mono_ns
         self.newest[topic] = max(arrival, self.newest.get(topic, arrival))
-        if topic == LIDAR_PACKETS:
+        if topic in self.per_scan:  # a config has one of the two
             n = self.lidar_count
             self.lidar_count += 1
-            if not keeps_scan(n, self.packets_per_scan, self.config.mapper.inputs.lidar_every_n_scans):
+            if not keeps_scan(n, self.per_scan[topic], self.config.mapper.inputs.lidar_every_n_scans):
                 return
         with self.lock:
             self.spool.append(topic, msg, arrival)

@@ -49,6 +49,7 @@ from daemon.spine.topics import (
     GNSS_FIX,
     IMU,
     LIDAR_PACKETS,
+    LIDAR_POINTS,
     TIME_ANCHOR,
     WHEEL_SPEEDS,
     camera_topic,
@@ -64,10 +65,9 @@ from mapping.inputs.drive_inputs import (
     decode_image,
     fuse_log_trajectory,
     keyframe_semantics,
-    lidar_ground_from_packets,
     segmenter_for,
 )
-from mapping.inputs.lidar_ground import GroundFilter
+from mapping.inputs.lidar_ground import GroundFilter, lidar_scans, scans_ground
 from mapping.live import live_view, map_tiles
 from mapping.live.bus_reader import SMALL_TOPICS, BusReader
 from mapping.live.final_map import FinalMapMetadata, TileStore, write_final_map
@@ -158,8 +158,8 @@ class MappingWorker:
         self.odometry = Odometry(list(self.journal.odometry_t), list(self.journal.odometry_s),
                                  self.journal.odometry_last_speed_mps)
         self.origin = LocalFrame(*self.journal.origin) if self.journal.origin else None
-        self.lidar_meta = (configured_metadata(config.sensors.lidar, config_path)
-                           if config.sensors.lidar is not None else None)
+        lidar = config.sensors.lidar
+        self.lidar_meta = configured_metadata(lidar, config_path) if lidar and not lidar.point_clouds else None
         last_seq, newest = self.spool.last_seq_and_newest()
         self.reader = BusReader(config, self.spool, self.lock, self.health, last_seq,
                                 self.lidar_meta.packets_per_frame if self.lidar_meta else 1)
@@ -269,8 +269,8 @@ class MappingWorker:
             raise ValueError(f"window {k}: trajectory covers only [{traj.times_ns[0]}, {traj.times_ns[-1]}]")
         cams = [c.name for c in self.config.sensors.cameras]
         want = {camera_topic(c) for c in cams} | {mask_topic(c) for c in cams}
-        if self.lidar_meta is not None:
-            want.add(LIDAR_PACKETS)
+        if self.config.sensors.lidar is not None:
+            want |= {LIDAR_PACKETS, LIDAR_POINTS}
         with self.lock:
             records = list(self.spool.read(t_lo - 1_000_000_000, t_hi + 1_000_000_000, want))
         anchors = [(a.host_mono_ns, a.utc_ns) for a in small[TIME_ANCHOR] if a.host_mono_ns <= horizon]
@@ -300,18 +300,17 @@ class MappingWorker:
                                           camera_pose(traj, int(t), cam.extrinsics.matrix()), image,
                                           keyframe_semantics(image, masks.get(f.sensor_time_ns), self.segmenter)))
         keyframes.sort(key=lambda kf: kf.timestamp)
-        ground = None
-        packets = by_topic.get(LIDAR_PACKETS, [])
-        if packets:
-            ground = lidar_ground_from_packets(packets, clocks[LIDAR_PACKETS], self.lidar_meta, self.config, traj, 1,
-                                               GroundFilter(corridor_half_width_m=m.mesh.corridor_half_width_m))
+        scans = lidar_scans(by_topic.get(LIDAR_PACKETS, []), by_topic.get(LIDAR_POINTS, []), lambda: self.lidar_meta,
+                            1)  # every n-th scan: kept by the bus thread
+        settings = GroundFilter(corridor_half_width_m=m.mesh.corridor_half_width_m)
+        ground = None if scans is None else scans_ground(scans, clocks[scans.topic], self.config, traj, settings)
         fed = dict(by_topic)
         for t in (GNSS_FIX, IMU, WHEEL_SPEEDS):
             fed[t] = [x for x in small[t] if t_lo <= x.host_mono_ns <= t_hi]
         seq = {t: [min(x.seq for x in v), max(x.seq for x in v)] for t, v in sorted(fed.items()) if v}
         provenance = {"host_time_ns": [t_lo, t_hi], "seq": seq,
                       "segments": sorted(n for n, (a, b) in self.reader.segments.items() if a <= t_hi and b >= t_lo),
-                      "keyframes": len(keyframes), "lidar_packets": len(packets),
+                      "keyframes": len(keyframes), **(scans.counts if scans else {"lidar_packets": 0}),
                       "lidar_ground_points": 0 if ground is None else len(ground)}
         return WindowInputs(centre, s_lo, s_hi, t_lo, t_hi, traj, path, keyframes, ground, provenance)
 

@@ -59,7 +59,8 @@ class WindowEntry:
     seq: dict[str, list[int]] | None = None
     segments: list[str] | None = None
     keyframes: int | None = None
-    lidar_packets: int | None = None
+    lidar_packets: int | None = None  # the Lidar messages of the window: packets ...
+    lidar_point_clouds: int | None = None  # ... or decoded scans (a point-cloud Lidar)
     lidar_ground_points: int | None = None
     config: dict[str, str] | None = None  # {"path", "sha256"}
 

@@ -68,10 +68,11 @@ def config_from_logs(paths: list[str]) -> tuple[CarConfig, Path]:
     recorded = sectioned_recorded_config(yaml.safe_load(meta["config"]))
     config = parse_config(recorded, f"{paths[0]} (recorded config)")
     folder = Path(tempfile.mkdtemp(prefix="roadlog-reconstruct-"))
-    if config.sensors.lidar is not None and "lidar_metadata" not in meta:
+    packets = config.sensors.lidar is not None and not config.sensors.lidar.point_clouds  # decoded with metadata
+    if packets and "lidar_metadata" not in meta:
         raise ConfigError(f"{paths[0]}: the recorded config has a Lidar but the log holds no Lidar metadata "
                           f"({meta.get('lidar_metadata_error', 'not recorded')}); pass --config")
-    if config.sensors.lidar is not None:
+    if packets:
         (folder / Path(config.sensors.lidar.metadata_file).name).write_text(meta["lidar_metadata"])
         config = config.model_copy(update={"sensors": config.sensors.model_copy(update={
             "lidar": config.sensors.lidar.model_copy(update={"metadata_file": Path(

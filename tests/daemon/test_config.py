@@ -6,7 +6,13 @@ import pytest
 import yaml
 
 from daemon.commands.check_config import main as check_config_main
+from daemon.processes.daemon_main import run_main
+from daemon.processes.replay import replayed_topics
 from daemon.spine.config import ConfigError, MapperConfig, load_config, parse_config, sectioned_recorded_config
+from daemon.spine.messages import PointCloud
+from daemon.spine.process_table import process_table, required_drivers
+from daemon.spine.topics import LIDAR_IMU, LIDAR_PACKETS, LIDAR_POINTS, topic_table
+from tests.daemon_fixtures import private_config
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -138,3 +144,37 @@ def test_check_config_runs_the_start_up_checks_of_every_process(tmp_path, capsys
     err = capsys.readouterr().err
     assert all(name in err for name in names), err
     assert "Traceback" not in err
+
+
+def test_a_point_cloud_lidar_needs_no_metadata_and_carries_points_instead_of_packets(tmp_path):
+    """Model point-cloud: scans that come decoded (an imported dataset); only it goes without a metadata file."""
+    path = _write_bad(tmp_path, lambda d: (d["sensors"]["lidar"].update(model="point-cloud"),
+                                           d["sensors"]["lidar"].pop("metadata_file")))
+    config = load_config(path)
+    assert config.sensors.lidar.point_clouds and config.sensors.lidar.metadata_file is None
+    topics = topic_table(config)
+    assert topics[LIDAR_POINTS].message_type is PointCloud and topics[LIDAR_POINTS].source == "lidar"
+    assert LIDAR_PACKETS not in topics and LIDAR_IMU not in topics
+    assert topics[LIDAR_POINTS].ring_bytes >= 16 * 2_700_000  # a good many 128-beam scans of ~2.6 MB
+    for model in ("ouster-os-128", "ouster-os-32"):
+        path = _write_bad(tmp_path, lambda d, m=model: (d["sensors"]["lidar"].update(model=m),
+                                                        d["sensors"]["lidar"].pop("metadata_file")))
+        with pytest.raises(ConfigError, match=f"sensors.lidar: .*metadata_file is required for model {model}"):
+            load_config(path)
+    assert not load_config(CONFIGS / "sim.yaml").sensors.lidar.point_clouds
+
+
+def test_run_and_check_config_refuse_a_point_cloud_lidar_that_replay_plays(tmp_path, capsys):
+    """There is no live driver for a point-cloud Lidar: `roadlog run` and check-config refuse the config (exit 2,
+    before any process or ring exists); a replay of its logs plays `lidar/points` in the driver's place."""
+    config, path = private_config(tmp_path, point_clouds=True)
+    assert run_main(["--config", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "sensors.lidar.model 'point-cloud' has no live driver" in err and "roadlog replay" in err
+    assert "Traceback" not in err
+    assert not list(Path("/dev/shm").glob(f"{config.bus.shm_prefix}.*"))
+    assert check_config_main([str(path), "--quiet"]) == 2
+    assert "has no live driver" in capsys.readouterr().err
+    replay = process_table(config, str(path), "replay", replay_logs=("a.mcap",))
+    assert [p.name for p in replay][0] == "replay" and "lidar" not in [p.name for p in replay]
+    assert "lidar" in required_drivers(config) and LIDAR_POINTS in replayed_topics(config)

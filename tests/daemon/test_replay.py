@@ -19,6 +19,7 @@ import time
 import uuid
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -26,8 +27,29 @@ from daemon.bus import pubsub
 from daemon.log_format.writer import LogWriter
 from daemon.processes.replay import replay, replayed_topics
 from daemon.spine.config import load_config
-from daemon.spine.messages import CameraFrame, CanFrame, DriverHealth, ImuSample, LidarPacket, TimeAnchor, VehiclePose
-from daemon.spine.topics import CAN_FRAMES, IMU, LIDAR_PACKETS, POSE, TIME_ANCHOR, camera_topic, health_topic
+from daemon.spine.messages import (
+    CameraFrame,
+    CanFrame,
+    DriverHealth,
+    ImuSample,
+    LidarPacket,
+    PointCloud,
+    TimeAnchor,
+    VehiclePose,
+)
+from daemon.spine.point_cloud_codec import pack_points
+from daemon.spine.topics import (
+    CAN_FRAMES,
+    IMU,
+    LIDAR_IMU,
+    LIDAR_PACKETS,
+    LIDAR_POINTS,
+    POSE,
+    TIME_ANCHOR,
+    camera_topic,
+    health_topic,
+)
+from tests.daemon_fixtures import private_config
 
 ROOT = Path(__file__).resolve().parents[2]
 DRIVE_TOPICS = (camera_topic("front_wide"), LIDAR_PACKETS, IMU, CAN_FRAMES)
@@ -263,3 +285,34 @@ def test_replayed_topics_are_the_drivers_topics(configs, tmp_path):
     assert {camera_topic("front_wide"), "mask/front_left", LIDAR_PACKETS, IMU, "gnss/fix", CAN_FRAMES,
             "wheel_speeds"} <= topics
     assert not topics & {TIME_ANCHOR, POSE, health_topic("lidar"), health_topic("camera_front_wide")}
+
+
+def test_a_point_cloud_lidars_scans_are_played_in_its_drivers_place(tmp_path):
+    """A point-cloud Lidar has no live driver: the real player publishes its recorded clouds on lidar/points, whole
+    (a 128-beam scan is ~2.6 MB), as a driver would; packets in a log of that car are not its topics: skipped."""
+    config, config_path = private_config(tmp_path, point_clouds=True)
+    rng = np.random.default_rng(4)
+    clouds = [PointCloud(i, 1_700_000_000_000_000_000 + i * 100_000_000, 2_000_000_000 + i * 100_000_000, "lidar",
+                         pack_points(rng.normal(0, 20, (131_072, 3)), rng.uniform(0, 255, 131_072),
+                                     np.linspace(0, 0.1, 131_072))) for i in range(20)]
+    log = write_log(tmp_path / "points.mcap", config_path, [(LIDAR_POINTS, c) for c in clouds])
+    try:
+        pubsub.open_publisher(config, LIDAR_POINTS).close()
+        sub = pubsub.open_subscriber(config, LIDAR_POINTS, lossless=True)
+        proc = start("daemon.processes.replay", "--config", str(config_path), "--rate", "max", str(log))
+        got = collect({LIDAR_POINTS: sub}, {LIDAR_POINTS: 20}, proc, timeout_s=60)[LIDAR_POINTS]
+        assert proc.wait(timeout=30) == 0, proc.stderr.read()
+        assert [without_bus_stamps(m) for _, m in got] == [without_bus_stamps(c) for c in clouds]
+        assert sub.lost == 0
+        packets_car = write_config(tmp_path)
+        packet_log = write_log(tmp_path / "packets.mcap", packets_car, [
+            (LIDAR_PACKETS, LidarPacket(0, 5, 1_000, "lidar", b"x" * 100)), (LIDAR_IMU, ImuSample(0, 6, 1_001))])
+        played = replay(config, [packet_log], rate=None)
+        assert played.skipped == {LIDAR_PACKETS: 1, LIDAR_IMU: 1} and played.published == {}
+    finally:
+        while STARTED:
+            started = STARTED.pop()
+            if started.poll() is None:
+                started.kill()
+                started.wait()
+        pubsub.unlink_all(config)

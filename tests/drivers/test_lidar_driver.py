@@ -313,6 +313,15 @@ def test_a_lidar_model_without_a_decoder_is_a_config_error(tmp_path, capsys):
         assert "sensors.lidar.model" in capsys.readouterr().err
 
 
+def test_the_ouster_driver_refuses_a_point_cloud_lidar(tmp_path, capsys):
+    """A point-cloud Lidar's scans come decoded, only in logs: the packet driver started on it exits 2 (not retried),
+    naming the model, instead of failing on the metadata file it has not got."""
+    path = write_config(tmp_path, "{}", model="point-cloud", metadata_file=None)
+    assert udp_driver.main(["--config", str(path)]) == EXIT_CONFIG_ERROR
+    err = capsys.readouterr().err
+    assert "sensors.lidar.model 'point-cloud' has no Ouster metadata_file" in err and "Traceback" not in err
+
+
 def test_unusable_metadata_and_a_taken_port_are_clear_errors(tmp_path, capsys):
     path = write_config(tmp_path, "{}")
     assert udp_driver.main(["--config", str(path)]) == EXIT_CONFIG_ERROR
