@@ -77,8 +77,10 @@ class FaithfulOptimisation:
         tri_all = mesh.faces[faces]
         vertices = np.concatenate([mesh.xy, self.map.z_now[:, None].astype(np.float64)], 1)
         grid = rasterise(vertices, tri_all, cam, kf.T_world_camera).ravel()
-        labels = kf.semantics.ravel()
-        pixels = np.nonzero((grid >= 0) & (labels < NUM_MAP_CLASSES))[0]
+        seen = grid >= 0
+        if kf.semantics is not None:  # a mask: its obstacle and unlabelled pixels are not used
+            seen &= kf.semantics.ravel() < NUM_MAP_CLASSES
+        pixels = np.nonzero(seen)[0]
         return _Supervision(kf, cam, pixels, tri_all[grid[pixels]])
 
     # -- one optimisation step ------------------------------------------------------------------
@@ -133,10 +135,15 @@ class FaithfulOptimisation:
             target = np.concatenate([s.keyframe.image.reshape(-1, 3)[s.pixels] for s in sup])
             everywhere = torch.ones(len(rgb), dtype=torch.bool)
             terms["rgb"] = w_cfg.rgb * losses.colour_l1(rgb, torch.from_numpy(target).float() / 255, everywhere)
-            if logits_v is not None:
+            labelled = [s for s in sup if s.keyframe.semantics is not None]
+            if logits_v is not None and labelled:  # over the pixels of the views with semantics only
                 logits = (logits_v[loc] * w[..., None]).sum(1)
-                labels = np.concatenate([s.keyframe.semantics.ravel()[s.pixels] for s in sup]).astype(np.int64)
-                terms["semantics"] = w_cfg.semantics * losses.semantic_ce(logits, torch.from_numpy(labels), everywhere)
+                labels = np.concatenate([s.keyframe.semantics.ravel()[s.pixels] if s.keyframe.semantics is not None
+                                         else np.zeros(len(s.pixels), np.uint8) for s in sup]).astype(np.int64)
+                with_labels = torch.from_numpy(np.concatenate([np.full(len(s.pixels), s.keyframe.semantics is not None)
+                                                               for s in sup]))
+                terms["semantics"] = w_cfg.semantics * losses.semantic_ce(logits, torch.from_numpy(labels), with_labels)
+                rm.labelled[np.concatenate([s.tri.ravel() for s in labelled])] = True
         if rm.elevation is not None:
             if len(lidar_ids):
                 terms["elevation"] = w_cfg.elevation * losses.elevation_l1(

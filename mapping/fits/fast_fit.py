@@ -57,7 +57,8 @@ def _fit_elevation(road_map: RoadMap, lidar: np.ndarray | None, located: Located
 
 def observe(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraModel], trajectory: HorizontalTrack,
             config: MapperConfig, progress: bool, timings: dict[str, float]) -> VertexObservations:
-    """Every keyframe's view of every vertex in reach; sets the vertices' observation counts and semantics."""
+    """Every keyframe's view of every vertex in reach; sets the vertices' observation counts and semantics (of
+    the vertices a keyframe with semantics labelled)."""
     started = time.perf_counter()
     fast, threads = config.fast_fit, config.runtime.observe_threads
     mesh = road_map.mesh
@@ -89,6 +90,7 @@ def observe(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraM
     if road_map.semantic_logits is not None:
         labelled = np.nonzero(obs.label_counts.sum(1) > 0)[0]
         road_map.semantic_logits[torch.from_numpy(labelled)] = semantic_logits_from_counts(obs.label_counts[labelled])
+        road_map.labelled[labelled] = True
     timings["observe_wall_s"] = time.perf_counter() - started
     return obs
 

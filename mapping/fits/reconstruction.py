@@ -59,6 +59,22 @@ def select_keyframes(keyframes: list[Keyframe], trajectory: HorizontalTrack, spa
     return [kf for kf in in_time if id(kf) in kept]
 
 
+def semantics_status(train: list[Keyframe], road_map: RoadMap, config: MapperConfig) -> str:
+    """What the map's semantics rest on, in words (metrics `semantics`): "available" when every training
+    keyframe has semantics (a mask or the model's labels), "partial: ..." when some lack a mask (semantics from
+    the others only), "unavailable: ..." when none has one, "off: ..." under the no-semantics ablation."""
+    if road_map.semantic_logits is None:
+        return "off: the ablation has no semantics"
+    missing = sum(k.semantics is None for k in train)
+    if missing == 0:
+        return "available"
+    why = (f"{missing} of {len(train)} training keyframes have no mask and no segmentation model is configured "
+           f"(mapper.segmentation.provider: {config.segmentation.provider})")
+    if missing == len(train):
+        return f"unavailable: {why}"
+    return f"partial: {why}; semantics from the other {len(train) - missing}"
+
+
 def _waited_for(value, timings: dict[str, float], key: str):
     """An input that may still be in preparation (a Future: mapping.inputs.drive_inputs.LoadingDrive), once ready;
     the wait goes into `timings`."""
@@ -121,7 +137,10 @@ def reconstruct(
         held = {id(k) for k in holdout}
         train = [k for k in selected if id(k) not in held]
         if not train:
-            raise ValueError("no training keyframes after selection")
+            raise ValueError(f"no training keyframes after selection (of {len(selected)} keyframes selected)")
+        semantics = semantics_status(train, road_map, config)
+        if semantics.startswith("unavailable"):  # nothing to train them on: no semantics, not untrained logits
+            road_map.semantic_logits = None
         evaluation_args = (cameras, holdout, train, trajectory, lidar_ground_points, gt, windows.before_m,
                            windows.after_m, runtime.evaluation_threads)
         metric_points = MetricPoints(lidar_at, truth_at.result() if truth_at is not None else None)
@@ -155,6 +174,8 @@ def reconstruct(
         path="faithful" if faithful else "fast",
         keyframes_train=len(train),
         keyframes_holdout=len(holdout),
+        semantics=semantics,
+        keyframes_without_semantics=sum(k.semantics is None for k in selected),
         steps=len(history),
         vertices=mesh.num_vertices,
         vertices_observed=int((road_map.observed > 0).sum()),

@@ -12,7 +12,8 @@ count less where its pixel covers more ground along the line of sight than `labe
 with f = 1000 px covers 1.7 cm at 5 m, 15 cm at 15 m): far, grazing views smear a lane marking's edge over
 many vertices, near ones place it. Per camera it also accumulates the sum and count of the colours each
 vertex was seen with (the targets the colour codes and the camera decoders are fitted to). Pixels the
-mask marks as obstacles or unlabelled are not used, so cars never reach the map. Every pixel near the
+mask marks as obstacles or unlabelled are not used, so cars never reach the map (a keyframe without a mask
+gives every vertex in view its colour and no label). Every pixel near the
 vertex counts through the bilinear read; each vertex is seen from many keyframes at different sub-pixel
 positions, which averages out image noise.
 """
@@ -169,9 +170,13 @@ def observe_keyframe(obs: VertexObservations, ids: np.ndarray, points_world: np.
                      label_sharp_m: float | None = None) -> int:
     """Add one keyframe's view of the vertices `ids` (unique; world positions `points_world`), the labels
     over their footprints if `footprint` is given, weighted by label_weights(..., label_sharp_m); returns how
-    many vertices it labelled at their centre."""
+    many vertices it labelled at their centre. A keyframe without semantics adds the colours of every vertex
+    in view and no labels."""
     uv, ok = project_points(points_world, camera, keyframe.T_world_camera)
     ids, uv = ids[ok], uv[ok]
+    if keyframe.semantics is None:  # no mask: no labels, and every vertex in view reads its colour
+        _add_colours(obs, ids, uv, keyframe, camera)
+        return 0
     weight = label_weights(points_world[ok], camera, keyframe.T_world_camera, label_sharp_m)
     if footprint is not None:
         _label_half_edges(obs, ids, uv, weight, keyframe, footprint)
@@ -181,7 +186,13 @@ def observe_keyframe(obs: VertexObservations, ids: np.ndarray, points_world: np.
     if len(ids) == 0:
         return 0
     obs.label_counts.reshape(-1)[ids * obs.label_counts.shape[1] + label] += weight  # ids are unique in a keyframe
+    _add_colours(obs, ids, uv, keyframe, camera)
+    return len(ids)
+
+
+def _add_colours(obs: VertexObservations, ids: np.ndarray, uv: np.ndarray, keyframe: Keyframe,
+                 camera: CameraModel) -> None:
+    """The colours the keyframe shows at pixels `uv` of the vertices `ids` (unique) into their camera's sums."""
     c = obs.camera_names.index(camera.name)
     obs.colour_sum[ids, c] += bilinear(keyframe.image, uv) / 255.0
     obs.colour_count[ids, c] += 1.0
-    return len(ids)

@@ -28,13 +28,14 @@ class CameraModel:
 
 @dataclass(frozen=True)
 class Keyframe:
-    """One camera image with its pose and segmentation."""
+    """One camera image with its pose and segmentation (if it has one)."""
 
     camera: str  # CameraModel.name
     timestamp: float  # seconds, same clock as HorizontalTrack.times
     T_world_camera: np.ndarray  # 4x4, camera (OpenCV axes) to world
     image: np.ndarray  # HxWx3 uint8 RGB
-    semantics: np.ndarray  # HxW uint8 ids of daemon.spine.semantic_classes.SemanticClass
+    semantics: np.ndarray | None  # HxW uint8 ids of daemon.spine.semantic_classes.SemanticClass; None: no mask and
+    # no segmentation model (the keyframe gives colour and elevation only)
 
 
 @dataclass(frozen=True)
