@@ -40,13 +40,14 @@ from mapping.inputs.lidar_ground import (
     ground_points,
     keeps_scan,
     lidar_world_points,
+    standing_points,
 )
 from mapping.inputs.segmentation import OnnxSegmenter
 from mapping.localization import pose_fusion
 from mapping.localization.keyframe_spacing import spaced_preferring
 from mapping.localization.sensor_time import ClockMap, fit_clock
 from mapping.localization.trajectory import HorizontalTrack, Trajectory
-from mapping.method.scene_data import CameraModel, Keyframe
+from mapping.method.scene_data import CameraModel, Keyframe, StandingPoints
 
 
 @dataclass
@@ -58,6 +59,7 @@ class DriveInputs:
     clocks: dict[str, ClockMap]  # per topic: its sensor stamps -> host monotonic
     counts: dict[str, int] = field(default_factory=dict)
     report: ReadReport | None = None
+    lidar_standing: StandingPoints | None = None  # what stands on the road, for the keyframes without masks
 
     @property
     def path(self) -> HorizontalTrack:
@@ -81,6 +83,7 @@ class LoadingDrive:
     clocks: dict[str, ClockMap]
     counts: dict[str, int]
     report: ReadReport
+    lidar_standing: Future[StandingPoints | None]  # None: no Lidar, or every keyframe has a mask
 
     @property
     def path(self) -> HorizontalTrack:
@@ -92,7 +95,8 @@ class LoadingDrive:
         counts = dict(self.counts, keyframes=len(keyframes))
         if ground is not None:
             counts["lidar_ground_points"] = len(ground)
-        return DriveInputs(self.cameras, keyframes, self.trajectory, ground, self.clocks, counts, self.report)
+        return DriveInputs(self.cameras, keyframes, self.trajectory, ground, self.clocks, counts, self.report,
+                           self.lidar_standing.result())
 
 
 def camera_models(config: CarConfig) -> dict[str, CameraModel]:
@@ -192,10 +196,12 @@ def load_drive(paths: list[str | Path], config: CarConfig, config_path: str | Pa
 
 
 def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path: str | Path | None = None, *,
-                        origin: LocalFrame | None = None, use_lidar: bool = True) -> LoadingDrive:
+                        origin: LocalFrame | None = None, use_lidar: bool = True,
+                        standing: bool | None = None) -> LoadingDrive:
     """Read the log segments and fuse the trajectory; start extracting the Lidar ground (every
     `mapper.inputs.lidar_every_n_scans`-th scan) and decoding the keyframes (every
-    `mapper.inputs.keyframe_spacing_m`) in the background."""
+    `mapper.inputs.keyframe_spacing_m`) in the background. The Lidar's standing points come too when a keyframe
+    has no mask and `mapper.maskless.lidar_occlusion` is on (`standing` True / False: always / never)."""
     report = ReadReport()
     segmenter = segmenter_for(config, config_path)  # a bad model fails here, before the log is read
     cams = [c.name for c in config.sensors.cameras]
@@ -238,19 +244,35 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
     # one background thread, the Lidar first: the reconstruction needs it first (its elevation fit), and the
     # decoding then runs beside that single-threaded fit. The pool lets its thread finish after shutdown.
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="load-drive")
+    ground, standing = Future(), Future()
     if lidar and config.sensors.lidar is not None:
         meta_path = resolve_path(config_path or ".", config.sensors.lidar.metadata_file)
         metadata = parse_metadata(meta_path)  # a bad metadata file fails here, before the background work
-        ground = pool.submit(lidar_ground_from_packets, lidar, clocks[LIDAR_PACKETS], metadata, config, trajectory,
+        occlusion = (counts["keyframes_without_mask"] > 0 and config.mapper.maskless.lidar_occlusion
+                     if standing is None else standing)
+        points = pool.submit(lidar_ground_from_packets, lidar, clocks[LIDAR_PACKETS], metadata, config, trajectory,
                              config.mapper.inputs.lidar_every_n_scans,
-                             GroundFilter(corridor_half_width_m=config.mapper.mesh.corridor_half_width_m))
+                             GroundFilter(corridor_half_width_m=config.mapper.mesh.corridor_half_width_m),
+                             int(trajectory.times_ns[0]) if occlusion else None)
+        points.add_done_callback(lambda done: _split(done, ground, standing))
         counts["lidar_packets"] = len(lidar)
     else:
-        ground = Future()
         ground.set_result(None)
+        standing.set_result(None)
     keyframes = pool.submit(_decode_keyframes, chosen, segmenter)
     pool.shutdown(wait=False)
-    return LoadingDrive(camera_models(config), keyframes, trajectory, ground, clocks, counts, report)
+    return LoadingDrive(camera_models(config), keyframes, trajectory, ground, clocks, counts, report, standing)
+
+
+def _split(done: Future, first: Future, second: Future) -> None:
+    """The two results of a finished future into two futures (its error into both)."""
+    if done.exception() is not None:
+        first.set_exception(done.exception())
+        second.set_exception(done.exception())
+    else:
+        a, b = done.result()
+        first.set_result(a)
+        second.set_result(b)
 
 
 @dataclass(frozen=True)
@@ -359,8 +381,11 @@ def _decode_keyframes(chosen: list[_KeyframeMessages], segmenter: OnnxSegmenter 
 
 
 def lidar_ground_from_packets(packets: list[LidarPacket], clock: ClockMap, metadata, config: CarConfig,
-                              trajectory: Trajectory, every_n_scans: int, settings: GroundFilter) -> np.ndarray:
-    """Ground points of every n-th Lidar scan (a scan = the packets of one frame id), in scan order; the scans
+                              trajectory: Trajectory, every_n_scans: int, settings: GroundFilter,
+                              standing_t0_ns: int | None = None) -> tuple[np.ndarray, StandingPoints | None]:
+    """Ground points of every n-th Lidar scan (a scan = the packets of one frame id), in scan order, and with
+    `standing_t0_ns` the points standing on the road scan by scan (heights: `mapper.maskless`), each scan at the
+    host time of its middle packet in seconds from standing_t0_ns (the keyframes' clock), else None. The scans
     are shared out over `mapper.runtime.lidar_ground_threads` threads (numpy releases the GIL in its array
     work)."""
     per_scan = metadata.packets_per_frame
@@ -368,12 +393,21 @@ def lidar_ground_from_packets(packets: list[LidarPacket], clock: ClockMap, metad
     road = TrajectoryGround.of(trajectory, config.vehicle.reference_height_m, settings.corridor_half_width_m,
                                settings.ground_cell_m)
     decoding = LidarDecoding.of(metadata)
+    heights = config.mapper.maskless
 
-    def scan_ground(start: int) -> np.ndarray:
-        chunk = [bytes(p.data) for p in packets[start:start + per_scan]]
-        return ground_points(lidar_world_points(chunk, clock, decoding, T_vl, trajectory, settings), road, settings)
+    def scan_points(start: int) -> tuple[np.ndarray, tuple[float, np.ndarray] | None]:
+        scan = packets[start:start + per_scan]
+        world = lidar_world_points([bytes(p.data) for p in scan], clock, decoding, T_vl, trajectory, settings)
+        if standing_t0_ns is None:
+            return ground_points(world, road, settings), None
+        middle = int(clock.to_host([scan[len(scan) // 2].sensor_time_ns])[0])
+        return ground_points(world, road, settings), ((middle - standing_t0_ns) / 1e9, standing_points(
+            world, road, heights.standing_min_m, heights.standing_max_m))
 
     with ThreadPoolExecutor(config.mapper.runtime.lidar_ground_threads, thread_name_prefix="lidar-ground") as pool:
         starts = [start for start in range(0, len(packets), per_scan) if keeps_scan(start, per_scan, every_n_scans)]
-        out = list(pool.map(scan_ground, starts))
-    return np.concatenate(out) if out else np.zeros((0, 3))
+        out = list(pool.map(scan_points, starts))
+    ground = np.concatenate([g for g, _ in out]) if out else np.zeros((0, 3))
+    if standing_t0_ns is None:
+        return ground, None
+    return ground, StandingPoints.of(sorted((s for _, s in out), key=lambda s: s[0]))

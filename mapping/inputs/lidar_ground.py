@@ -1,4 +1,5 @@
-"""Lidar ground points for the elevation loss: raw packets -> world points -> ground points only.
+"""Lidar ground points for the elevation loss: raw packets -> world points -> ground points only (and, for views
+without masks, the points standing on the road: standing_points).
 
 Points are moved into the world frame column by column with the vehicle pose at each column's time
 (motion compensated). The ground filter keeps points within a height band around the trajectory's
@@ -28,6 +29,7 @@ from mapping.localization.trajectory import Trajectory
 
 TILE_CELLS = 64  # the ground raster is stored as square tiles of this many cells a side, only near the trajectory
 TILES_PER_QUERY = 256  # tiles whose cell centres are looked up in the trajectory k-d tree at once
+STANDING_VOXEL_M = 0.2  # standing points are thinned to one per voxel: ~2,600 a scan on the city drive
 
 
 def keeps_scan(packet_index: int, packets_per_scan: int, every_n_scans: int) -> bool:
@@ -202,3 +204,17 @@ def ground_points(world: np.ndarray, road: TrajectoryGround, settings: GroundFil
     pts = pts[_on_ground(pts, settings)]
     first, _ = _first_per_cell(np.floor(pts / settings.voxel_m).astype(np.int64))
     return pts[np.sort(first)]
+
+
+def standing_points(world: np.ndarray, road: TrajectoryGround, min_m: float, max_m: float,
+                    voxel_m: float = STANDING_VOXEL_M) -> np.ndarray:
+    """(M, 3) float32 points of `world` standing on the road: between `min_m` and `max_m` above the trajectory's
+    ground under them, inside the corridor (cars, people, walls; what hides the road from a camera), at most
+    one per `voxel_m` voxel (the first)."""
+    if len(world) == 0:
+        return np.zeros((0, 3), np.float32)
+    with np.errstate(invalid="ignore"):  # NaN: outside the corridor, not kept
+        height = world[:, 2] - road.height_at(world[:, :2])
+        pts = world[(height > min_m) & (height < max_m)]
+    first, _ = _first_per_cell(np.floor(pts / voxel_m).astype(np.int64))
+    return pts[np.sort(first)].astype(np.float32)

@@ -90,7 +90,7 @@ from mapping.live.worker_journal import (
 )
 from mapping.localization.sensor_time import span_clock
 from mapping.localization.trajectory import HorizontalTrack, Trajectory
-from mapping.method.scene_data import Keyframe
+from mapping.method.scene_data import Keyframe, StandingPoints
 from mapping.outputs.map_export import bev_rasters
 
 PROCESS = "mapper"
@@ -116,6 +116,7 @@ class WindowInputs:
     keyframes: list[Keyframe]
     ground: np.ndarray | None  # Lidar ground points, None without a Lidar
     provenance: dict  # host time range, per-topic seq ranges, log segments, input counts (into the journal)
+    standing: StandingPoints | None  # what the Lidar saw standing on the road, for keyframes without masks
 
 
 @dataclass
@@ -303,11 +304,13 @@ class MappingWorker:
                 keyframes.append(Keyframe(cam.name, (t - t_lo) / 1e9, camera_pose(traj, t, cam.extrinsics.matrix()),
                                           image, keyframe_semantics(image, mask, self.segmenter)))
         keyframes.sort(key=lambda kf: kf.timestamp)
-        ground = None
+        ground = standing = None
         packets = by_topic.get(LIDAR_PACKETS, [])
-        if packets:
-            ground = lidar_ground_from_packets(packets, clocks[LIDAR_PACKETS], self.lidar_meta, self.config, traj, 1,
-                                               GroundFilter(corridor_half_width_m=m.mesh.corridor_half_width_m))
+        if packets:  # what stands on the road too, when a keyframe has no mask to leave it out
+            occlusion = m.maskless.lidar_occlusion and any(kf.semantics is None for kf in keyframes)
+            ground, standing = lidar_ground_from_packets(
+                packets, clocks[LIDAR_PACKETS], self.lidar_meta, self.config, traj, 1,
+                GroundFilter(corridor_half_width_m=m.mesh.corridor_half_width_m), t_lo if occlusion else None)
         fed = dict(by_topic)
         for t in (GNSS_FIX, IMU, WHEEL_SPEEDS):
             fed[t] = [x for x in small[t] if t_lo <= x.host_mono_ns <= t_hi]
@@ -317,7 +320,7 @@ class MappingWorker:
                       "keyframes": len(keyframes), "frames": frames_seen, "frames_without_mask": frames_without_mask,
                       "lidar_packets": len(packets),
                       "lidar_ground_points": 0 if ground is None else len(ground)}
-        return WindowInputs(centre, s_lo, s_hi, t_lo, t_hi, traj, path, keyframes, ground, provenance)
+        return WindowInputs(centre, s_lo, s_hi, t_lo, t_hi, traj, path, keyframes, ground, provenance, standing)
 
     def run_window(self, k: int) -> WindowEntry:
         started = time.perf_counter()
@@ -335,7 +338,8 @@ class MappingWorker:
         torch.manual_seed(seed)
         cfg = m.model_copy(update={"model": m.model.model_copy(update={"seed": seed})})
         result = reconstruct(inputs.keyframes, self.cameras, path, inputs.ground, cfg,
-                             self.config.vehicle.reference_height_m, holdout_every=0, progress=False)
+                             self.config.vehicle.reference_height_m, holdout_every=0, progress=False,
+                             lidar_standing=inputs.standing)
         bev = bev_rasters(result.road_map, self.cam_names, self.res, m.runtime.raster_threads)
         j0, i0 = (int(round(v / self.res)) for v in bev["origin_xy"])
         half = (m.windows.before_m + m.windows.after_m) / 4.0
@@ -361,8 +365,8 @@ class MappingWorker:
             except Exception as exc:  # the live view never costs a window: counted and reported
                 self._error(f"live view, window {k}: {type(exc).__name__}: {exc}")
         wall = time.perf_counter() - started
-        keep = ("psnr_train_db", "elev_error_cm", "miou_pct", "semantics", "keyframes_without_semantics", "steps",
-                "vertices", "vertices_observed", "optimise_wall_s", "loss_last")
+        keep = ("psnr_train_db", "elev_error_cm", "miou_pct", "semantics", "keyframes_without_semantics",
+                "maskless_hidden_pct", "steps", "vertices", "vertices_observed", "optimise_wall_s", "loss_last")
         extent = ([float(x) for x in path.positions[:, :2].min(0)] + [float(x) for x in path.positions[:, :2].max(0)])
         return WindowEntry(k, "done", centre_m=centre, start_m=s_lo, end_m=s_hi, seed=seed, wall_s=wall,
                            finished_mono_ns=time.monotonic_ns(), tiles=tiles, trajectory_xy_box=extent,

@@ -241,6 +241,7 @@ def test_the_worker_maps_a_drive_without_masks_and_its_final_map_has_no_semantic
         assert entry.status == "done" and entry.keyframes > 0 and entry.frames_without_mask == entry.frames > 0
         assert entry.metrics["miou_pct"] is None and entry.metrics["semantics"].startswith("unavailable: ")
         assert entry.metrics["keyframes_without_semantics"] == entry.keyframes
+        assert 10 < entry.metrics["maskless_hidden_pct"] < 90  # the cars in view, left out by the Lidar's test
     previews = worker.previews
     assert (previews / "rgb.png").stat().st_size > 0 and (previews / "elevation.png").stat().st_size > 0
     assert not (previews / "semantics.png").exists()

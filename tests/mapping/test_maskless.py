@@ -1,7 +1,8 @@
 """Keyframes without semantics (a log without masks and no segmentation model): the fits map colour and
 elevation from them and train no semantics on them; a map with none has no semantics at all, a mixed one has
 them only where a view with a mask labelled it. Synthetic scene (tests/mapping/synthetic_road_scene.py); the
-real logs and the command: test_reconstruct_command.py, the live worker: test_mapping_worker.py."""
+real logs and the command: test_reconstruct_command.py, the live worker: test_mapping_worker.py, the occlusion
+test itself: test_lidar_occlusion.py."""
 
 import dataclasses
 import json
@@ -16,6 +17,7 @@ from mapping.fits.reconstruction import reconstruct
 from mapping.fits.vertex_observations import VertexObservations, observe_keyframe
 from mapping.method.road_map import NO_LABEL
 from mapping.method.road_mesh import build_road_mesh
+from mapping.method.scene_data import StandingPoints
 from mapping.outputs.map_export import vertex_labels
 from mapping.outputs.map_metrics import PSNR_PIXELS
 from tests.mapping.synthetic_road_scene import make_scene
@@ -57,6 +59,7 @@ def test_keyframes_without_masks_map_colour_and_elevation_and_no_semantics(scene
     assert m["semantics"].startswith(f"unavailable: {m['keyframes_train']} of {m['keyframes_train']} training "
                                      "keyframes have no mask and no segmentation model is configured")
     assert m["keyframes_without_semantics"] == len(keyframes)
+    assert m["maskless_rejection"].startswith("none: no Lidar standing points") and m["maskless_hidden_pct"] is None
     assert m["miou_pct"] is None and m["iou_pct"] is None and m["miou_mask_pct"] is None
     assert m["psnr_pixels"] == PSNR_PIXELS[frozenset({False})] and m["psnr_db"] > 18.0
     assert m["elev_mae_gt_cm"] < 3.0 and m["vertices_observed"] > 1000
@@ -90,3 +93,20 @@ def test_a_mixed_drive_takes_semantics_from_the_views_with_masks_only(scene, fai
                              scene.reference_height_m, gt=scene.gt, holdout_every=5, faithful=faithful, progress=False)
     # the same held-out views (here only the front camera's have masks to score): the maskless views spoil nothing
     assert m["miou_pct"] > 0.9 * all_masked.metrics["miou_pct"]
+
+
+@pytest.mark.parametrize("faithful", [False, True], ids=["fast", "faithful"])
+def test_both_fits_leave_out_the_surface_behind_what_the_lidar_saw_standing(scene, faithful):
+    """A wall across the road 12 m on, seen standing by every scan: the views without masks lose what lies
+    behind it, and say so; without the standing points they lose nothing."""
+    wall = np.array([(12.0, y, z) for y in np.arange(-5, 5.01, 0.2) for z in np.arange(0.5, 2.51, 0.2)], np.float32)
+    standing = StandingPoints.of([(t, wall) for t in np.arange(0.0, 4.01, 0.1)])
+    keyframes = _without_semantics(scene.keyframes)
+    config = CONFIG.model_copy(update={"faithful_fit": FaithfulFitConfig(epochs=1)})
+    runs = [reconstruct(keyframes, scene.cameras, scene.trajectory, scene.lidar, config, scene.reference_height_m,
+                        holdout_every=5, faithful=faithful, progress=False, lidar_standing=s) for s in (standing, None)]
+    tested, untested = (r.metrics for r in runs)
+    assert tested["maskless_rejection"].startswith("lidar occlusion") and tested["maskless_views_unchecked"] == 0
+    assert 5 < tested["maskless_hidden_pct"] < 95 and untested["maskless_hidden_pct"] is None
+    behind = runs[1].road_map.mesh.xy[:, 0] > 13.0  # the views from beyond the wall still see it
+    assert (runs[0].road_map.observed[behind] > 0).sum() < (runs[1].road_map.observed[behind] > 0).sum()

@@ -60,6 +60,9 @@ def test_a_drive_without_masks_maps_colour_and_elevation_and_says_semantics_are_
     assert metrics["inputs"]["frames"] == frames and metrics["inputs"]["frames_without_mask"] == frames
     assert metrics["inputs"]["keyframes_without_mask"] == metrics["inputs"]["keyframes"] > 20
     assert metrics["psnr_pixels"].startswith("mapped surface") and metrics["psnr_db"] > 15
+    # what stands on the road in view (parked and oncoming cars, the lead car) is left out by the Lidar's test
+    assert metrics["maskless_rejection"].startswith("lidar occlusion") and metrics["maskless_views_unchecked"] == 0
+    assert 20 < metrics["maskless_hidden_pct"] < 80
     assert metrics["elev_error_cm"] < 3 and metrics["elev_mae_gt_cm"] < 5  # the Lidar's elevation, as with masks
     for name in ("bev_rgb_front_wide.png", "bev_rgb_front_left.png", "bev_rgb_front_right.png", "bev_elevation.png",
                  "bev_elevation.npy", "mesh.ply", "mesh.glb", "checkpoint.pt"):
