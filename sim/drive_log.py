@@ -1,5 +1,6 @@
 """`roadlog simulate`: drive a scenario and write the drive log the recorder would have written (MCAP, all
-sensor topics in host arrival order) and, beside it, PATH.gt.npz with the ground truth.
+sensor topics in host arrival order) and, beside it, PATH.gt.npz with the ground truth. With --no-masks the
+log has no mask topics (a car without a segmenter); its images are the same as with them.
 
 Camera frames and Lidar scans are rendered in worker processes; GNSS/IMU bytes go through the GNSS
 driver's own framer and decoder and CAN frames through the CAN driver's decoder, the Lidar's own IMU
@@ -81,6 +82,7 @@ _SCENE: Scene | None = None
 _CLOCKS: dict[str, SensorClock] = {}
 _LIDAR_METADATA: Path | None = None
 _RIGS: dict[str, object] = {}
+_MASKS = True  # the camera tasks make segmentation masks
 
 
 @dataclass
@@ -120,8 +122,8 @@ def _camera_task(task: tuple) -> tuple:
     light = scene.scenario.lighting
     rgb = expose(view.radiance, cam.photometry, vignette, light.exposure, light.noise_scale,
                  int(rng.integers(1 << 31)))
-    mask = segmentation_mask(view.labels, view.depth, rng)
-    return ("camera", cam_index, frame_index, true_s, encode_jpeg(rgb, cam.jpeg_quality), encode_mask_png(mask))
+    png = encode_mask_png(segmentation_mask(view.labels, view.depth, rng)) if _MASKS else None
+    return ("camera", cam_index, frame_index, true_s, encode_jpeg(rgb, cam.jpeg_quality), png)
 
 
 def _lidar_task(task: tuple) -> tuple:
@@ -246,10 +248,11 @@ def _gt_path(out: Path) -> Path:
 
 
 def simulate_drive(scenario: str, seconds: float | None, out: Path, config: CarConfig, seed: int | None = None,
-                   config_dir: Path | None = None, workers: int = 2) -> SimulationSummary:
+                   config_dir: Path | None = None, workers: int = 2, masks: bool = True) -> SimulationSummary:
     """Simulate a drive and write `out` (MCAP) and its ground truth beside it; relative sensor files of the
-    config (Lidar metadata, DBC) are taken from config_dir (default: the repository's configs/)."""
-    global _SCENE, _CLOCKS, _LIDAR_METADATA
+    config (Lidar metadata, DBC) are taken from config_dir (default: the repository's configs/). `masks`
+    False leaves the mask topics out (the frames are the same)."""
+    global _SCENE, _CLOCKS, _LIDAR_METADATA, _MASKS
     started = time.monotonic()
     cv2.setNumThreads(1)  # OpenCV's thread pool does not survive fork(): the workers would hang
     sc = load_scenario(scenario)
@@ -283,7 +286,7 @@ def simulate_drive(scenario: str, seconds: float | None, out: Path, config: CarC
         push(host_mono_ns(k), TIME_ANCHOR, TimeAnchor(sensor_time_ns=host_mono_ns(k), host_mono_ns=host_mono_ns(k),
                                                       utc_ns=utc0 + k * 1_000_000_000))
 
-    _SCENE, _CLOCKS = scene, clocks
+    _SCENE, _CLOCKS, _MASKS = scene, clocks, masks
     _LIDAR_METADATA = resolve_path(config_file, sensors.lidar.metadata_file) if sensors.lidar else None
     if sensors.lidar is not None:
         for item in _lidar_imu_messages(scene, clocks, np.random.default_rng([seed, 9])):
@@ -324,8 +327,10 @@ def simulate_drive(scenario: str, seconds: float | None, out: Path, config: CarC
                     host = int(host_arrival_ns(clock, np.array([true_s]), cam_rng)[0])
                     push(host, camera_topic(cam.name), CameraFrame(sensor_time_ns=stamp, camera=cam.name,
                                                                    format="jpeg", data=jpeg))
-                    push(host + 4_000_000, mask_topic(cam.name), SemanticMask(sensor_time_ns=stamp, camera=cam.name,
-                                                                              format="png", data=png))
+                    if png is not None:
+                        push(host + 4_000_000, mask_topic(cam.name), SemanticMask(sensor_time_ns=stamp,
+                                                                                  camera=cam.name, format="png",
+                                                                                  data=png))
                     summary.camera_frames += 1
                     event_s = true_s
                 else:
@@ -398,10 +403,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="the simulated car's config")
     parser.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     parser.add_argument("--workers", type=int, default=2, help="rendering processes")
+    parser.add_argument("--no-masks", action="store_true",
+                        help="leave the segmentation masks out of the log (a car without a segmenter)")
     args = parser.parse_args(argv)
     config = load_config(args.config)
     summary = simulate_drive(args.scenario, args.seconds, args.out, config, args.seed,
-                             config_dir=args.config.resolve().parent, workers=args.workers)
+                             config_dir=args.config.resolve().parent, workers=args.workers,
+                             masks=not args.no_masks)
     print(summary.as_json())
     return 0
 

@@ -16,3 +16,11 @@ def city_drive(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("city_drive") / "city.mcap"
     simulate_drive("city", 5.0, out, load_config(REPO / "configs" / "sim.yaml"), seed=3)
     return out
+
+
+@pytest.fixture(scope="session")
+def city_drive_without_masks(tmp_path_factory) -> Path:
+    """The same drive as city_drive, logged without its mask topics (a car without a segmenter)."""
+    out = tmp_path_factory.mktemp("city_drive_without_masks") / "city.mcap"
+    simulate_drive("city", 5.0, out, load_config(REPO / "configs" / "sim.yaml"), seed=3, masks=False)
+    return out

@@ -15,16 +15,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.log_format.reader import read_log
 from mapping.live import map_tiles
 from mapping.live.final_map import FinalMapMetadata
-from mapping.live.mapping_worker import MappingWorker
 from mapping.live.odometry import Odometry
 from mapping.localization.sensor_time import span_clock
 from tests.daemon_fixtures import REPO, private_config
+from tests.mapping.fed_worker import SMALL_WINDOWS, worker_fed
 
-SMALL_WINDOWS = {"windows": {"before_m": 10.0, "after_m": 10.0}, "mesh": {"side_m": 0.25, "corridor_half_width_m": 6.0},
-                 "inputs": {"keyframe_spacing_m": 2.0}}
 UTC_2026_NS = 1_790_000_000_000_000_000
 
 
@@ -60,26 +57,11 @@ def test_odometry_integrates_wheel_speeds_and_resumes_from_its_knots():
     assert resumed.knots_t == odo.knots_t and resumed.knots_s == odo.knots_s
 
 
-def _worker_fed(folder: Path, drive: Path, shift_ns: int, topic_by_topic: bool) -> MappingWorker:
-    """A worker fed the log (without its bus thread): arrivals moved by shift_ns, in log order or per topic."""
-    folder.mkdir()
-    config, config_path = private_config(folder, mapper=SMALL_WINDOWS)
-    worker = MappingWorker(config, str(config_path), str(folder / "data"))
-    records = [r for r in read_log([drive]) if r.topic in worker.reader.topics]
-    if topic_by_topic:
-        records.sort(key=lambda r: r.topic)  # stable: each topic still in its own order
-    for r in records:
-        r.message.host_mono_ns = r.log_time_ns + shift_ns
-        worker.reader.take(r.topic, r.message)
-    worker.update_distance()
-    return worker
-
-
 def test_a_window_is_the_same_whatever_the_host_clock_offset_and_arrival_order(city_drive, tmp_path):
     shifts = (10_000_000_000_000, 10_000_000_000_000 + 987_654_321_987)
     entries, tiles = [], []
     for n, shift in enumerate(shifts):
-        worker = _worker_fed(tmp_path / f"run{n}", city_drive, shift, topic_by_topic=n == 1)
+        worker = worker_fed(tmp_path / f"run{n}", city_drive, shift, topic_by_topic=n == 1)
         entries.append(worker.run_window(0).to_json())
         tiles.append({name: map_tiles.load_tile(worker.tiles_dir / name, worker.tile_cells, worker.cam_names)
                       for name in entries[-1]["tiles"]})

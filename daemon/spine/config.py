@@ -335,6 +335,27 @@ class FastFitConfig(_Strict):
     colour_encoder_lr: float = Field(0.01, gt=0)  # Adam learning rate of the colour encoder (the codes' source)
 
 
+class MasklessConfig(_Strict):
+    """Keyframes without semantics (no mask, no segmentation model; mapping.fits.lidar_occlusion): a view's pixel
+    is not used where the Lidar scan nearest in time saw something standing on the road (a car, a person, a wall)
+    between the camera and the surface, as a mask's obstacle pixels are not."""
+
+    lidar_occlusion: bool = True  # False: every pixel of such a view counts (cars in view reach the colours)
+    standing_min_m: float = Field(0.4, gt=0)  # a Lidar point stands on the road from this height (m) above the
+    # trajectory's ground (curbs, the crown and sidewalks are lower) ...
+    standing_max_m: float = Field(3.0, gt=0)  # ... up to this one (higher: branches, signs; they hide little)
+    cell_px: int = Field(8, ge=1)  # the test's image cells (px): a standing point hides the surface behind it in
+    # its cell, the cells either side and every cell below (it stands on the ground)
+    margin_m: float = Field(0.5, ge=0)  # a surface point is hidden when a standing point is this much nearer (m)
+    max_gap_s: float = Field(0.25, gt=0)  # a view with no Lidar scan this close in time keeps every pixel (counted)
+
+    @model_validator(mode="after")
+    def _heights_in_order(self) -> MasklessConfig:
+        if self.standing_max_m <= self.standing_min_m:
+            raise ValueError("standing_max_m must be above standing_min_m")
+        return self
+
+
 class FaithfulFitConfig(_Strict):
     """The paper-faithful fit (`roadlog reconstruct --faithful`; mapping.fits.faithful_fit): every pixel of every
     batch image rendered against the whole window, each step."""
@@ -369,6 +390,7 @@ class MapperConfig(_Strict):
     inputs: InputsConfig = InputsConfig()
     fast_fit: FastFitConfig = FastFitConfig()
     faithful_fit: FaithfulFitConfig = FaithfulFitConfig()
+    maskless: MasklessConfig = MasklessConfig()
     runtime: RuntimeConfig = RuntimeConfig()
     live_view: LiveViewConfig = LiveViewConfig()
     segmentation: SegmentationConfig = SegmentationConfig()

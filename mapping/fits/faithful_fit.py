@@ -13,6 +13,7 @@ from tqdm import tqdm
 
 from daemon.spine.config import MapperConfig
 from daemon.spine.semantic_classes import NUM_MAP_CLASSES
+from mapping.fits.lidar_occlusion import OcclusionTest
 from mapping.localization.trajectory import HorizontalTrack
 from mapping.method import losses
 from mapping.method.mesh_location import Located
@@ -51,8 +52,10 @@ class FaithfulOptimisation:
     """The paper-faithful optimisation: every pixel of every batch image rendered exactly against the
     whole 160 m window, every window vertex through the MLPs, each step."""
 
-    def __init__(self, road_map, cameras, config, lidar_ids, lidar_z):
+    def __init__(self, road_map, cameras, config, lidar_ids, lidar_z, occlusion: OcclusionTest | None = None):
         self.map, self.cameras, self.config = road_map, cameras, config
+        self.occlusion = occlusion  # the views without semantics leave out the pixels it finds hidden
+        self.maskless_reads = self.maskless_hidden = self.maskless_unchecked = 0
         self.windows = WindowIndex.of(road_map.mesh)
         self.lidar_ids, self.lidar_z = lidar_ids, lidar_z
         self.lidar_order = np.argsort(road_map.mesh.s[lidar_ids], kind="stable")
@@ -77,9 +80,28 @@ class FaithfulOptimisation:
         tri_all = mesh.faces[faces]
         vertices = np.concatenate([mesh.xy, self.map.z_now[:, None].astype(np.float64)], 1)
         grid = rasterise(vertices, tri_all, cam, kf.T_world_camera).ravel()
-        labels = kf.semantics.ravel()
-        pixels = np.nonzero((grid >= 0) & (labels < NUM_MAP_CLASSES))[0]
-        return _Supervision(kf, cam, pixels, tri_all[grid[pixels]])
+        seen = grid >= 0
+        if kf.semantics is not None:  # a mask: its obstacle and unlabelled pixels are not used
+            seen &= kf.semantics.ravel() < NUM_MAP_CLASSES
+        pixels = np.nonzero(seen)[0]
+        tri = tri_all[grid[pixels]]
+        if kf.semantics is None:
+            pixels, tri = self._unhidden(kf, cam, pixels, tri, vertices)
+        return _Supervision(kf, cam, pixels, tri)
+
+    def _unhidden(self, kf: Keyframe, cam: CameraModel, pixels: np.ndarray, tri: np.ndarray, vertices: np.ndarray):
+        """The pixels of a view without semantics (and their triangles) the occlusion test does not find hidden
+        (each at its triangle's first vertex: within 0.1 m of the point it sees)."""
+        self.maskless_reads += len(pixels)
+        if self.occlusion is None:
+            return pixels, tri
+        uv = np.stack([pixels % cam.width, pixels // cam.width], 1).astype(np.float64)
+        hidden = self.occlusion.hidden(kf, cam, uv, vertices[tri[:, 0]])
+        if hidden is None:
+            self.maskless_unchecked += 1
+            return pixels, tri
+        self.maskless_hidden += int(hidden.sum())
+        return pixels[~hidden], tri[~hidden]
 
     # -- one optimisation step ------------------------------------------------------------------
     def step(self, batch: list[Keyframe], s_center: float) -> dict[str, float]:
@@ -133,10 +155,15 @@ class FaithfulOptimisation:
             target = np.concatenate([s.keyframe.image.reshape(-1, 3)[s.pixels] for s in sup])
             everywhere = torch.ones(len(rgb), dtype=torch.bool)
             terms["rgb"] = w_cfg.rgb * losses.colour_l1(rgb, torch.from_numpy(target).float() / 255, everywhere)
-            if logits_v is not None:
+            labelled = [s for s in sup if s.keyframe.semantics is not None]
+            if logits_v is not None and labelled:  # over the pixels of the views with semantics only
                 logits = (logits_v[loc] * w[..., None]).sum(1)
-                labels = np.concatenate([s.keyframe.semantics.ravel()[s.pixels] for s in sup]).astype(np.int64)
-                terms["semantics"] = w_cfg.semantics * losses.semantic_ce(logits, torch.from_numpy(labels), everywhere)
+                labels = np.concatenate([s.keyframe.semantics.ravel()[s.pixels] if s.keyframe.semantics is not None
+                                         else np.zeros(len(s.pixels), np.uint8) for s in sup]).astype(np.int64)
+                with_labels = torch.from_numpy(np.concatenate([np.full(len(s.pixels), s.keyframe.semantics is not None)
+                                                               for s in sup]))
+                terms["semantics"] = w_cfg.semantics * losses.semantic_ce(logits, torch.from_numpy(labels), with_labels)
+                rm.labelled[np.concatenate([s.tri.ravel() for s in labelled])] = True
         if rm.elevation is not None:
             if len(lidar_ids):
                 terms["elevation"] = w_cfg.elevation * losses.elevation_l1(
@@ -180,11 +207,13 @@ def _batches(keyframes: list[Keyframe], trajectory: HorizontalTrack, size: int) 
 
 def fit_faithful(road_map: RoadMap, cameras: dict[str, CameraModel], train: list[Keyframe], trajectory: HorizontalTrack,
                  supervision: np.ndarray | None, lidar_at: Located | None, config: MapperConfig,
-                 rng: np.random.Generator, progress: bool) -> tuple[list[float], int]:
+                 rng: np.random.Generator, progress: bool,
+                 occlusion: OcclusionTest | None = None) -> tuple[list[float], int, tuple[int, int, int]]:
     """Fit `road_map` to the training keyframes' pixels: `epochs` passes over the trajectory batches in a random
-    order. The total loss of every step, and the number of steps of the last epoch."""
+    order. The total loss of every step, the number of steps of the last epoch, and the views without
+    semantics' pixel reads, those `occlusion` found hidden and the views it could not test (over all epochs)."""
     lidar_ids, lidar_z = lidar_vertex_targets(road_map.mesh, supervision, lidar_at)
-    opt = FaithfulOptimisation(road_map, cameras, config, lidar_ids, lidar_z)
+    opt = FaithfulOptimisation(road_map, cameras, config, lidar_ids, lidar_z, occlusion)
     epochs = config.faithful_fit.epochs
     batches = _batches(train, trajectory, config.faithful_fit.batch_size)
     history: list[float] = []
@@ -200,4 +229,4 @@ def fit_faithful(road_map: RoadMap, cameras: dict[str, CameraModel], train: list
     if opt.semantic_opt is not None:
         opt.semantic_opt.flush()
     road_map.refresh_elevation()
-    return history, len(batches)
+    return history, len(batches), (opt.maskless_reads, opt.maskless_hidden, opt.maskless_unchecked)

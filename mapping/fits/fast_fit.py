@@ -16,6 +16,7 @@ from tqdm import tqdm
 
 from daemon.spine.config import FastFitConfig, MapperConfig
 from mapping.fits.lidar_detail import fit_lidar_detail
+from mapping.fits.lidar_occlusion import OcclusionTest
 from mapping.fits.observation_fit import fit_colours, fit_elevation, semantic_logits_from_counts
 from mapping.fits.vertex_observations import MeshFootprint, VertexObservations, observe_keyframe
 from mapping.localization.trajectory import HorizontalTrack
@@ -56,8 +57,11 @@ def _fit_elevation(road_map: RoadMap, lidar: np.ndarray | None, located: Located
 
 
 def observe(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraModel], trajectory: HorizontalTrack,
-            config: MapperConfig, progress: bool, timings: dict[str, float]) -> VertexObservations:
-    """Every keyframe's view of every vertex in reach; sets the vertices' observation counts and semantics."""
+            config: MapperConfig, progress: bool, timings: dict[str, float],
+            occlusion: OcclusionTest | None = None) -> VertexObservations:
+    """Every keyframe's view of every vertex in reach; sets the vertices' observation counts and semantics (of
+    the vertices a keyframe with semantics labelled). `occlusion`: the test the views without semantics pass
+    their vertices through (mapping.fits.lidar_occlusion)."""
     started = time.perf_counter()
     fast, threads = config.fast_fit, config.runtime.observe_threads
     mesh = road_map.mesh
@@ -72,7 +76,7 @@ def observe(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraM
             a, b = np.searchsorted(windows.vertex_s, [s - fast.behind_m, s + fast.ahead_m])
             ids = windows.vertex_order[a:b]
             points = np.concatenate([mesh.xy[ids], road_map.z_now[ids, None].astype(np.float64)], 1)
-            observe_keyframe(part, ids, points, kf, cameras[kf.camera], footprint, fast.label_sharp_m)
+            observe_keyframe(part, ids, points, kf, cameras[kf.camera], footprint, fast.label_sharp_m, occlusion)
             bar.update()
         return part
 
@@ -89,6 +93,7 @@ def observe(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraM
     if road_map.semantic_logits is not None:
         labelled = np.nonzero(obs.label_counts.sum(1) > 0)[0]
         road_map.semantic_logits[torch.from_numpy(labelled)] = semantic_logits_from_counts(obs.label_counts[labelled])
+        road_map.labelled[labelled] = True
     timings["observe_wall_s"] = time.perf_counter() - started
     return obs
 

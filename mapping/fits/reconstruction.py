@@ -21,12 +21,13 @@ import torch
 
 from daemon.spine.config import MapperConfig
 from mapping.fits import faithful_fit, fast_fit
+from mapping.fits.lidar_occlusion import OcclusionTest
 from mapping.localization.keyframe_spacing import spaced_by_distance
 from mapping.localization.trajectory import HorizontalTrack
 from mapping.method.mesh_location import Located
 from mapping.method.road_map import RoadMap, new_road_map, variant_for
 from mapping.method.road_mesh import build_road_mesh
-from mapping.method.scene_data import CameraModel, GroundTruth, Keyframe
+from mapping.method.scene_data import CameraModel, GroundTruth, Keyframe, StandingPoints
 from mapping.outputs.map_export import export_map
 from mapping.outputs.map_metrics import (
     MetricPoints,
@@ -59,6 +60,35 @@ def select_keyframes(keyframes: list[Keyframe], trajectory: HorizontalTrack, spa
     return [kf for kf in in_time if id(kf) in kept]
 
 
+def semantics_status(train: list[Keyframe], road_map: RoadMap, config: MapperConfig) -> str:
+    """What the map's semantics rest on, in words (metrics `semantics`): "available" when every training
+    keyframe has semantics (a mask or the model's labels), "partial: ..." when some lack a mask (semantics from
+    the others only), "unavailable: ..." when none has one, "off: ..." under the no-semantics ablation."""
+    if road_map.semantic_logits is None:
+        return "off: the ablation has no semantics"
+    missing = sum(k.semantics is None for k in train)
+    if missing == 0:
+        return "available"
+    why = (f"{missing} of {len(train)} training keyframes have no mask and no segmentation model is configured "
+           f"(mapper.segmentation.provider: {config.segmentation.provider})")
+    if missing == len(train):
+        return f"unavailable: {why}"
+    return f"partial: {why}; semantics from the other {len(train) - missing}"
+
+
+def maskless_figures(reads: int, hidden: int, unchecked: int, occlusion: OcclusionTest | None) -> dict:
+    """What was left out of the views without semantics (metrics): `maskless_rejection` in words,
+    `maskless_hidden_pct` of their colour reads (pixels, faithful) found hidden by what the Lidar saw standing
+    on the road, `maskless_views_unchecked`: those with no Lidar scan near enough in time to test."""
+    if occlusion is None:
+        return {"maskless_rejection": "none: no Lidar standing points (no Lidar, --no-lidar, or "
+                                      "mapper.maskless.lidar_occlusion false): what stands on the road in view "
+                                      "reaches the colours", "maskless_hidden_pct": None, "maskless_views_unchecked": 0}
+    return {"maskless_rejection": "lidar occlusion: surface points hidden in a view by what the Lidar scan nearest "
+                                  "in time saw standing on the road (mapping.fits.lidar_occlusion) are left out",
+            "maskless_hidden_pct": 100.0 * hidden / reads if reads else None, "maskless_views_unchecked": unchecked}
+
+
 def _waited_for(value, timings: dict[str, float], key: str):
     """An input that may still be in preparation (a Future: mapping.inputs.drive_inputs.LoadingDrive), once ready;
     the wait goes into `timings`."""
@@ -83,10 +113,13 @@ def reconstruct(
     faithful: bool = False,
     holdout_every: int = 10,
     progress: bool = True,
+    lidar_standing: StandingPoints | None | Future[StandingPoints | None] = None,
 ) -> ReconstructionResult:
     """Reconstruct the road surface seen by `keyframes` along `trajectory`; evaluate; export if out_dir.
-    `keyframes` and `lidar_ground_points` may be Futures (inputs still loading): the mesh is built first,
-    the Lidar waited for by the elevation fit, the keyframes after it."""
+    `keyframes`, `lidar_ground_points` and `lidar_standing` may be Futures (inputs still loading): the mesh is
+    built first, the Lidar waited for by the elevation fit, the keyframes after it. `lidar_standing`: what the
+    Lidar saw standing on the road, which the keyframes without semantics are tested against
+    (mapping.fits.lidar_occlusion; None: they are used whole)."""
     start = time.perf_counter()
     runtime, model, windows = config.runtime, config.model, config.windows
     torch.set_num_threads(runtime.torch_threads_faithful_fit if faithful else runtime.torch_threads_fast_fit)
@@ -121,16 +154,22 @@ def reconstruct(
         held = {id(k) for k in holdout}
         train = [k for k in selected if id(k) not in held]
         if not train:
-            raise ValueError("no training keyframes after selection")
+            raise ValueError(f"no training keyframes after selection (of {len(selected)} keyframes selected)")
+        semantics = semantics_status(train, road_map, config)
+        if semantics.startswith("unavailable"):  # nothing to train them on: no semantics, not untrained logits
+            road_map.semantic_logits = None
+        maskless = any(k.semantics is None for k in train)
+        occlusion = OcclusionTest.of(_waited_for(lidar_standing, timings, "standing_wait_s"), config.maskless)
         evaluation_args = (cameras, holdout, train, trajectory, lidar_ground_points, gt, windows.before_m,
                            windows.after_m, runtime.evaluation_threads)
         metric_points = MetricPoints(lidar_at, truth_at.result() if truth_at is not None else None)
         if faithful:
-            history, last_epoch_steps = faithful_fit.fit_faithful(road_map, cameras, train, trajectory, supervision,
-                                                                  lidar_at, config, rng, progress)
+            history, last_epoch_steps, tested = faithful_fit.fit_faithful(
+                road_map, cameras, train, trajectory, supervision, lidar_at, config, rng, progress, occlusion)
             evaluation = start_evaluation(road_map, *evaluation_args, metric_points)
         else:
-            obs = fast_fit.observe(road_map, train, cameras, trajectory, config, progress, timings)
+            obs = fast_fit.observe(road_map, train, cameras, trajectory, config, progress, timings, occlusion)
+            tested = (obs.maskless_reads, obs.maskless_hidden, obs.maskless_unchecked)
             # surface and semantics are final: the evaluation renders its views beside the colour fit
             evaluation = start_evaluation(road_map, *evaluation_args, metric_points)
             colour_first, colour_last = fast_fit.fit_colour(road_map, obs, config, rng, timings)
@@ -155,6 +194,8 @@ def reconstruct(
         path="faithful" if faithful else "fast",
         keyframes_train=len(train),
         keyframes_holdout=len(holdout),
+        semantics=semantics,
+        keyframes_without_semantics=sum(k.semantics is None for k in selected),
         steps=len(history),
         vertices=mesh.num_vertices,
         vertices_observed=int((road_map.observed > 0).sum()),
@@ -166,6 +207,7 @@ def reconstruct(
         step_mean_s=(train_s - timings["setup_wall_s"]) / max(1, len(history)),
         drive_s=drive_s,
         realtime_factor=drive_s / train_s if train_s > 0 else None,
+        **(maskless_figures(*tested, occlusion) if maskless else {}),
     )
     if out_dir is not None:
         path = Path(out_dir) / "metrics.json"

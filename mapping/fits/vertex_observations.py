@@ -12,7 +12,9 @@ count less where its pixel covers more ground along the line of sight than `labe
 with f = 1000 px covers 1.7 cm at 5 m, 15 cm at 15 m): far, grazing views smear a lane marking's edge over
 many vertices, near ones place it. Per camera it also accumulates the sum and count of the colours each
 vertex was seen with (the targets the colour codes and the camera decoders are fitted to). Pixels the
-mask marks as obstacles or unlabelled are not used, so cars never reach the map. Every pixel near the
+mask marks as obstacles or unlabelled are not used, so cars never reach the map (a keyframe without a mask
+gives every vertex in view its colour and no label, less those the Lidar's occlusion test finds hidden:
+mapping.fits.lidar_occlusion). Every pixel near the
 vertex counts through the bilinear read; each vertex is seen from many keyframes at different sub-pixel
 positions, which averages out image noise.
 """
@@ -20,12 +22,16 @@ positions, which averages out image noise.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from daemon.spine.semantic_classes import NUM_MAP_CLASSES
 from mapping.method.mesh_renderer import max_r2, to_camera
 from mapping.method.scene_data import CameraModel, Keyframe
+
+if TYPE_CHECKING:  # the test projects with this module's project_points
+    from mapping.fits.lidar_occlusion import OcclusionTest
 
 NEAR_M = 0.5
 
@@ -38,6 +44,9 @@ class VertexObservations:
     label_counts: np.ndarray  # (N, NUM_MAP_CLASSES) float32
     colour_sum: np.ndarray  # (N, n_cameras, 3) float32, RGB in [0, 1]
     colour_count: np.ndarray  # (N, n_cameras) float32
+    maskless_reads: int = 0  # colour reads of the views without semantics, before the occlusion test
+    maskless_hidden: int = 0  # of them, left out as hidden by what the Lidar saw standing on the road
+    maskless_unchecked: int = 0  # views without semantics with no Lidar scan near enough in time to test
 
     @staticmethod
     def empty(num_vertices: int, camera_names: list[str]) -> VertexObservations:
@@ -57,6 +66,9 @@ class VertexObservations:
         self.label_counts += other.label_counts
         self.colour_sum += other.colour_sum
         self.colour_count += other.colour_count
+        self.maskless_reads += other.maskless_reads
+        self.maskless_hidden += other.maskless_hidden
+        self.maskless_unchecked += other.maskless_unchecked
 
     def colour_mean(self, ids: np.ndarray) -> np.ndarray:
         return self.colour_sum[ids] / np.maximum(self.colour_count[ids], 1.0)[..., None]
@@ -166,12 +178,23 @@ def _label_half_edges(obs: VertexObservations, seen: np.ndarray, uv: np.ndarray,
 
 def observe_keyframe(obs: VertexObservations, ids: np.ndarray, points_world: np.ndarray, keyframe: Keyframe,
                      camera: CameraModel, footprint: MeshFootprint | None = None,
-                     label_sharp_m: float | None = None) -> int:
+                     label_sharp_m: float | None = None, occlusion: OcclusionTest | None = None) -> int:
     """Add one keyframe's view of the vertices `ids` (unique; world positions `points_world`), the labels
     over their footprints if `footprint` is given, weighted by label_weights(..., label_sharp_m); returns how
-    many vertices it labelled at their centre."""
+    many vertices it labelled at their centre. A keyframe without semantics adds the colours of every vertex
+    in view that `occlusion` (if given) does not find hidden, and no labels."""
     uv, ok = project_points(points_world, camera, keyframe.T_world_camera)
     ids, uv = ids[ok], uv[ok]
+    if keyframe.semantics is None:  # no mask: no labels, and every vertex in view not hidden reads its colour
+        obs.maskless_reads += len(ids)
+        hidden = occlusion.hidden(keyframe, camera, uv, points_world[ok]) if occlusion is not None else None
+        if hidden is not None:
+            obs.maskless_hidden += int(hidden.sum())
+            ids, uv = ids[~hidden], uv[~hidden]
+        elif occlusion is not None:
+            obs.maskless_unchecked += 1
+        _add_colours(obs, ids, uv, keyframe, camera)
+        return 0
     weight = label_weights(points_world[ok], camera, keyframe.T_world_camera, label_sharp_m)
     if footprint is not None:
         _label_half_edges(obs, ids, uv, weight, keyframe, footprint)
@@ -181,7 +204,13 @@ def observe_keyframe(obs: VertexObservations, ids: np.ndarray, points_world: np.
     if len(ids) == 0:
         return 0
     obs.label_counts.reshape(-1)[ids * obs.label_counts.shape[1] + label] += weight  # ids are unique in a keyframe
+    _add_colours(obs, ids, uv, keyframe, camera)
+    return len(ids)
+
+
+def _add_colours(obs: VertexObservations, ids: np.ndarray, uv: np.ndarray, keyframe: Keyframe,
+                 camera: CameraModel) -> None:
+    """The colours the keyframe shows at pixels `uv` of the vertices `ids` (unique) into their camera's sums."""
     c = obs.camera_names.index(camera.name)
     obs.colour_sum[ids, c] += bilinear(keyframe.image, uv) / 255.0
     obs.colour_count[ids, c] += 1.0
-    return len(ids)

@@ -49,10 +49,10 @@ from drivers.lidar.ouster_metadata import configured_metadata, parse_metadata
 from mapping.inputs.lidar_ground import GroundFilter, lidar_scans, scans_ground
 from mapping.inputs.segmentation import OnnxSegmenter
 from mapping.localization import pose_fusion
-from mapping.localization.keyframe_spacing import spaced_by_distance
+from mapping.localization.keyframe_spacing import spaced_preferring
 from mapping.localization.sensor_time import ClockMap, fit_clock
 from mapping.localization.trajectory import HorizontalTrack, Trajectory
-from mapping.method.scene_data import CameraModel, Keyframe
+from mapping.method.scene_data import CameraModel, Keyframe, StandingPoints
 
 
 @dataclass
@@ -64,6 +64,7 @@ class DriveInputs:
     clocks: dict[str, ClockMap]  # per topic: its sensor stamps -> host monotonic
     counts: dict[str, int] = field(default_factory=dict)
     report: ReadReport | None = None
+    lidar_standing: StandingPoints | None = None  # what stands on the road, for the keyframes without masks
 
     @property
     def path(self) -> HorizontalTrack:
@@ -87,6 +88,7 @@ class LoadingDrive:
     clocks: dict[str, ClockMap]
     counts: dict[str, int]
     report: ReadReport
+    lidar_standing: Future[StandingPoints | None]  # None: no Lidar, or every keyframe has a mask
 
     @property
     def path(self) -> HorizontalTrack:
@@ -98,7 +100,8 @@ class LoadingDrive:
         counts = dict(self.counts, keyframes=len(keyframes))
         if ground is not None:
             counts["lidar_ground_points"] = len(ground)
-        return DriveInputs(self.cameras, keyframes, self.trajectory, ground, self.clocks, counts, self.report)
+        return DriveInputs(self.cameras, keyframes, self.trajectory, ground, self.clocks, counts, self.report,
+                           self.lidar_standing.result())
 
 
 def camera_models(config: CarConfig) -> dict[str, CameraModel]:
@@ -204,10 +207,12 @@ def load_drive(paths: list[str | Path], config: CarConfig, config_path: str | Pa
 
 
 def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path: str | Path | None = None, *,
-                        origin: LocalFrame | None = None, use_lidar: bool = True) -> LoadingDrive:
+                        origin: LocalFrame | None = None, use_lidar: bool = True,
+                        standing: bool | None = None) -> LoadingDrive:
     """Read the log segments and fuse the trajectory; start extracting the Lidar ground (every
     `mapper.inputs.lidar_every_n_scans`-th scan) and decoding the keyframes (every
-    `mapper.inputs.keyframe_spacing_m`) in the background."""
+    `mapper.inputs.keyframe_spacing_m`) in the background. The Lidar's standing points come too when a keyframe
+    has no mask and `mapper.maskless.lidar_occlusion` is on (`standing` True / False: always / never)."""
     report = ReadReport()
     segmenter = segmenter_for(config, config_path)  # a bad model fails here, before the log is read
     cams = [c.name for c in config.sensors.cameras]
@@ -258,16 +263,33 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
         return parse_metadata(resolve_path(config_path or ".", lidar.metadata_file)) if lidar.metadata_file else None
 
     scans = lidar_scans(packets, clouds, packet_metadata, config.mapper.inputs.lidar_every_n_scans) if lidar else None
+    ground, standing_points = Future(), Future()
     if scans is not None:
-        ground = pool.submit(scans_ground, scans, clocks[scans.topic], config, trajectory,
-                             GroundFilter(corridor_half_width_m=config.mapper.mesh.corridor_half_width_m))
+        occlusion = (counts["keyframes_without_mask"] > 0 and config.mapper.maskless.lidar_occlusion
+                     if standing is None else standing)
+        points = pool.submit(scans_ground, scans, clocks[scans.topic], config, trajectory,
+                             GroundFilter(corridor_half_width_m=config.mapper.mesh.corridor_half_width_m),
+                             int(trajectory.times_ns[0]) if occlusion else None)
+        points.add_done_callback(lambda done: _split(done, ground, standing_points))
         counts.update(scans.counts)
     else:
-        ground = Future()
         ground.set_result(None)
+        standing_points.set_result(None)
     keyframes = pool.submit(_decode_keyframes, chosen, segmenter)
     pool.shutdown(wait=False)
-    return LoadingDrive(camera_models(config), keyframes, trajectory, ground, clocks, counts, report)
+    return LoadingDrive(camera_models(config), keyframes, trajectory, ground, clocks, counts, report,
+                        standing_points)
+
+
+def _split(done: Future, first: Future, second: Future) -> None:
+    """The two results of a finished future into two futures (its error into both)."""
+    if done.exception() is not None:
+        first.set_exception(done.exception())
+        second.set_exception(done.exception())
+    else:
+        a, b = done.result()
+        first.set_result(a)
+        second.set_result(b)
 
 
 @dataclass(frozen=True)
@@ -278,47 +300,78 @@ class _KeyframeMessages:
     timestamp: float  # seconds from the trajectory start
     T_world_camera: np.ndarray
     frame: CameraFrame
-    mask: SemanticMask | None  # None: the segmentation model labels the frame
+    mask: SemanticMask | None  # None: the segmentation model labels the frame, or it has no mask (no semantics)
+
+
+def spaced_camera_frames(frames: list[tuple[CameraFrame, int]], masks: dict[int, SemanticMask] | None,
+                         trajectory: Trajectory, spacing_m: float
+                         ) -> list[tuple[CameraFrame, int, SemanticMask | None]]:
+    """One camera's keyframes among `frames` ((frame, host time), in time order, inside `trajectory`): one every
+    `spacing_m` along the trajectory (3-D), each with its mask (by sensor time) or None. A frame without a mask
+    is passed over for one with a mask within `spacing_m` after it, and kept (without semantics) when there is
+    none (keyframe_spacing.spaced_preferring). `masks` None: a segmentation model labels every frame."""
+    if not frames:
+        return []
+    distance = trajectory.distance_3d_at(np.array([t for _, t in frames], np.int64))
+    at = {id(f): float(d) for (f, _), d in zip(frames, distance, strict=True)}
+
+    def has_mask(frame_time: tuple[CameraFrame, int]) -> bool:
+        return masks is None or frame_time[0].sensor_time_ns in masks
+
+    kept = spaced_preferring(frames, lambda ft: at[id(ft[0])], spacing_m, has_mask)
+    return [(f, t, masks.get(f.sensor_time_ns) if masks is not None else None) for f, t in kept]
 
 
 def _keyframe_messages(config: CarConfig, frames: dict[str, list[CameraFrame]],
                        masks: dict[str, dict[int, SemanticMask]] | None, clocks: dict[str, ClockMap],
                        trajectory: Trajectory, spacing_m: float) -> tuple[list[_KeyframeMessages], dict[str, int]]:
-    """Per camera, a frame (with its mask, unless `masks` is None: a model labels the frames) every
-    `spacing_m` of travel; the counts of frames passed over."""
-    chosen, counts = [], {"frames": 0, "frames_without_mask": 0, "frames_outside_trajectory": 0}
+    """Per camera, a frame every `spacing_m` of travel (spaced_camera_frames), with its mask unless `masks` is
+    None (a model labels the frames); the counts of the frames, of those passed over and of those without a
+    mask (`frames_without_mask`: every frame of the log that has none, `keyframes_without_mask`: the keyframes
+    among them)."""
+    chosen, counts = [], {"frames": 0, "frames_without_mask": 0, "frames_outside_trajectory": 0,
+                          "keyframes_without_mask": 0}
     t0 = trajectory.times_ns[0]
     for cam in config.sensors.cameras:
         T_vc = cam.extrinsics.matrix()
+        cam_masks = masks.get(cam.name, {}) if masks is not None else None
         inside = []  # (frame, host time)
         for f in frames.get(cam.name, []):
             counts["frames"] += 1
+            if cam_masks is not None and f.sensor_time_ns not in cam_masks:
+                counts["frames_without_mask"] += 1
             t = int(clocks[camera_topic(cam.name)].to_host([f.sensor_time_ns])[0])
             if not trajectory.times_ns[0] <= t <= trajectory.times_ns[-1]:
                 counts["frames_outside_trajectory"] += 1
                 continue
             inside.append((f, t))
-        cam_masks = masks.get(cam.name, {}) if masks is not None else None
-
-        def has_mask(frame_time: tuple[CameraFrame, int], cam_masks=cam_masks) -> bool:
-            if cam_masks is None or frame_time[0].sensor_time_ns in cam_masks:
-                return True
-            counts["frames_without_mask"] += 1
-            return False
-
-        def travelled(frame_time: tuple[CameraFrame, int]) -> float:
-            return float(trajectory.distance_3d_at(np.array([frame_time[1]], np.int64))[0])
-
-        for f, t in spaced_by_distance(inside, travelled, spacing_m, has_mask):
-            mask = cam_masks[f.sensor_time_ns] if cam_masks is not None else None
+        for f, t, mask in spaced_camera_frames(inside, cam_masks, trajectory, spacing_m):
+            counts["keyframes_without_mask"] += cam_masks is not None and mask is None
             chosen.append(_KeyframeMessages(cam.name, (t - t0) / 1e9, camera_pose(trajectory, t, T_vc), f, mask))
     chosen.sort(key=lambda k: k.timestamp)
     return chosen, counts
 
 
-def keyframe_semantics(image: np.ndarray, mask: SemanticMask | None, segmenter: OnnxSegmenter | None) -> np.ndarray:
-    """A keyframe's class ids: the model's labels of its image if a segmenter is given, else its recorded mask."""
-    return segmenter.labels(image) if segmenter is not None else decode_mask(mask)
+def missing_masks_warning(frames: int, without_mask: int) -> str | None:
+    """The warning for a drive of `frames` camera frames of which `without_mask` have no semantic mask and no
+    segmentation model labels them (None when every frame is labelled)."""
+    if without_mask == 0:
+        return None
+    if without_mask >= frames:
+        what = "the map has colour and elevation only (semantics unavailable)"
+    else:
+        what = "semantics come from the frames with a mask only, colour and elevation from all"
+    return (f"{without_mask} of {frames} camera frames have no semantic mask and no segmentation model is "
+            f"configured (mapper.segmentation.provider: log): {what}")
+
+
+def keyframe_semantics(image: np.ndarray, mask: SemanticMask | None,
+                       segmenter: OnnxSegmenter | None) -> np.ndarray | None:
+    """A keyframe's class ids: the model's labels of its image if a segmenter is given, else its recorded mask
+    (None without one: the keyframe gives colour and elevation only)."""
+    if segmenter is not None:
+        return segmenter.labels(image)
+    return decode_mask(mask) if mask is not None else None
 
 
 def check_config(car: CarConfig, config_path: str | Path) -> None:

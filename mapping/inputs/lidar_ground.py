@@ -1,4 +1,5 @@
-"""Lidar ground points for the elevation loss: scans -> world points -> ground points only.
+"""Lidar ground points for the elevation loss: scans -> world points -> ground points only (and, for views
+without masks, the points standing on the road: standing_points).
 
 A scan comes as raw Ouster packets or as a decoded PointCloud (any vendor's, `lidar/points`); decoding it into
 ScanPoints (points in the Lidar frame, each with its firing time) is the only step that differs. Points are then
@@ -32,9 +33,11 @@ from drivers.lidar.ouster_packet_layout import OusterPacketLayout, packet_layout
 from drivers.lidar.ouster_xyz import make_xyz_lut
 from mapping.localization.sensor_time import ClockMap
 from mapping.localization.trajectory import Trajectory
+from mapping.method.scene_data import StandingPoints
 
 TILE_CELLS = 64  # the ground raster is stored as square tiles of this many cells a side, only near the trajectory
 TILES_PER_QUERY = 256  # tiles whose cell centres are looked up in the trajectory k-d tree at once
+STANDING_VOXEL_M = 0.2  # standing points are thinned to one per voxel: ~2,600 a scan on the city drive
 
 
 def keeps_scan(packet_index: int, packets_per_scan: int, every_n_scans: int) -> bool:
@@ -236,6 +239,20 @@ def ground_points(world: np.ndarray, road: TrajectoryGround, settings: GroundFil
     return pts[np.sort(first)]
 
 
+def standing_points(world: np.ndarray, road: TrajectoryGround, min_m: float, max_m: float,
+                    voxel_m: float = STANDING_VOXEL_M) -> np.ndarray:
+    """(M, 3) float32 points of `world` standing on the road: between `min_m` and `max_m` above the trajectory's
+    ground under them, inside the corridor (cars, people, walls; what hides the road from a camera), at most
+    one per `voxel_m` voxel (the first)."""
+    if len(world) == 0:
+        return np.zeros((0, 3), np.float32)
+    with np.errstate(invalid="ignore"):  # NaN: outside the corridor, not kept
+        height = world[:, 2] - road.height_at(world[:, :2])
+        pts = world[(height > min_m) & (height < max_m)]
+    first, _ = _first_per_cell(np.floor(pts / voxel_m).astype(np.int64))
+    return pts[np.sort(first)].astype(np.float32)
+
+
 @dataclass(frozen=True)
 class LidarScans:
     """The Lidar scans of a drive or a window as the log holds them, and how each becomes ScanPoints: per scan
@@ -278,16 +295,29 @@ def lidar_scans(packets: list[LidarPacket], clouds: list[PointCloud],
 
 
 def scans_ground(scans: LidarScans, clock: ClockMap, config: CarConfig, trajectory: Trajectory,
-                 settings: GroundFilter) -> np.ndarray:
-    """Ground points of the scans, in scan order; the scans are shared out over `mapper.runtime.lidar_ground_threads`
-    threads (numpy releases the GIL in its array work)."""
+                 settings: GroundFilter, standing_t0_ns: int | None = None
+                 ) -> tuple[np.ndarray, StandingPoints | None]:
+    """Ground points of the scans, in scan order, and with `standing_t0_ns` the points standing on the road scan by
+    scan (heights: `mapper.maskless`), each scan at the host time of its middle firing in seconds from
+    standing_t0_ns (the keyframes' clock), else None. The scans are shared out over
+    `mapper.runtime.lidar_ground_threads` threads (numpy releases the GIL in its array work)."""
     T_vl = config.sensors.lidar.extrinsics.matrix()
     road = TrajectoryGround.of(trajectory, config.vehicle.reference_height_m, settings.corridor_half_width_m,
                                settings.ground_cell_m)
+    heights = config.mapper.maskless
 
-    def scan_ground(scan: object) -> np.ndarray:
-        return ground_points(lidar_world_points(scans.decode(scan), clock, T_vl, trajectory, settings), road, settings)
+    def scan_points(scan: object) -> tuple[np.ndarray, tuple[float, np.ndarray] | None]:
+        points = scans.decode(scan)
+        world = lidar_world_points(points, clock, T_vl, trajectory, settings)
+        if standing_t0_ns is None or len(points.times_ns) == 0:
+            return ground_points(world, road, settings), None
+        middle = int(clock.to_host([int(points.times_ns[len(points.times_ns) // 2])])[0])
+        return ground_points(world, road, settings), ((middle - standing_t0_ns) / 1e9, standing_points(
+            world, road, heights.standing_min_m, heights.standing_max_m))
 
     with ThreadPoolExecutor(config.mapper.runtime.lidar_ground_threads, thread_name_prefix="lidar-ground") as pool:
-        out = list(pool.map(scan_ground, scans.scans))
-    return np.concatenate(out) if out else np.zeros((0, 3))
+        out = list(pool.map(scan_points, scans.scans))
+    ground = np.concatenate([g for g, _ in out]) if out else np.zeros((0, 3))
+    if standing_t0_ns is None:
+        return ground, None
+    return ground, StandingPoints.of(sorted((s for _, s in out if s is not None), key=lambda s: s[0]))

@@ -1,5 +1,6 @@
 """The live worker's final map, `<data>/map/final`: the tiles' mosaic as rasters (.npy), overview PNGs, a grid
-mesh (PLY, GLB) and `metadata.json` (FinalMapMetadata: the one definition its writers and readers share)."""
+mesh (PLY, GLB) and `metadata.json` (FinalMapMetadata: the one definition its writers and readers share). A map
+none of whose windows had semantics (no masks, no model) has no bev_semantics.* files."""
 
 from __future__ import annotations
 
@@ -47,6 +48,8 @@ class FinalMapMetadata:
     semantics_no_label: int | None = None  # the class id of unmapped cells in bev_semantics.npy
     cameras: list[str] | None = None  # one bev_rgb_<camera>.png each
     mesh: dict | None = None  # the mesh files and sizes
+    semantics: str | None = None  # "available", "partial: ..." or "unavailable: ..." (map_semantics); unavailable:
+    # no bev_semantics.* files
 
     def write(self, folder: Path) -> None:
         fields = {k: v for k, v in asdict(self).items() if v is not None or k == "origin_lat_lon_alt"}
@@ -61,21 +64,37 @@ class FinalMapMetadata:
         return FinalMapMetadata(**data)
 
 
+def map_semantics(windows: list[dict]) -> str:
+    """What the final map's semantics rest on, from its done windows' `semantics` metrics (reconstruction.
+    semantics_status; a window journalled before they were recorded counts as available)."""
+    done = [w.get("metrics", {}).get("semantics", "available") for w in windows if w.get("status") == "done"]
+    unavailable = sum(s.startswith("unavailable") for s in done)
+    if unavailable == len(done):
+        return f"unavailable: no window had frames with masks or a segmentation model ({len(done)} windows)"
+    if unavailable or any(s.startswith("partial") for s in done):
+        return f"partial: {unavailable} of {len(done)} windows without semantics, others from their masked frames"
+    return "available"
+
+
 def write_final_map(out: Path, tiles: TileStore, meta: FinalMapMetadata) -> Path:
     """Mosaic the tiles into `out` (rasters, PNGs, mesh) and write `meta`, completed with the rasters' grid."""
     out.mkdir(parents=True, exist_ok=True)
     if map_tiles.tile_indices(tiles.folder):
+        meta.semantics = map_semantics(meta.windows)
+        labelled = not meta.semantics.startswith("unavailable")
         grid = map_tiles.write_mosaic_npy(tiles.folder, tiles.tile_cells, tiles.resolution_m,
-                                          {"elevation": out / "bev_elevation.npy",
-                                           "labels": out / "bev_semantics.npy"})
+                                          {"elevation": out / "bev_elevation.npy"}
+                                          | ({"labels": out / "bev_semantics.npy"} if labelled else {}))
         mos = map_tiles.mosaic(tiles.folder, tiles.tile_cells, tiles.resolution_m, tiles.cameras,
                                max_cells=OVERVIEW_MAX_CELLS)
         for c in tiles.cameras:
             atomic_png(out / f"bev_rgb_{c}.png", mos.rgb[c])
-        atomic_png(out / "bev_semantics.png", semantic_image(mos.labels))
+        if labelled:
+            atomic_png(out / "bev_semantics.png", semantic_image(mos.labels))
         atomic_png(out / "bev_elevation.png", elevation_image(mos.elevation))
         meta.origin_xy, meta.resolution_m, meta.shape = grid.origin_xy, grid.resolution_m, list(grid.shape)
-        meta.png_resolution_m, meta.cell, meta.semantics_no_label = mos.resolution_m, CELL_CONVENTION, NO_LABEL
+        meta.png_resolution_m, meta.cell = mos.resolution_m, CELL_CONVENTION
+        meta.semantics_no_label = NO_LABEL if labelled else None
         meta.cameras = tiles.cameras
         meta.mesh = write_mesh(out, tiles)
     meta.write(out)

@@ -1,5 +1,5 @@
 """The live map's images on disk: north-up PNGs and JSON written atomically (a reader never sees half a file), the
-semantic colours."""
+semantic colours, a window's previews."""
 
 from __future__ import annotations
 
@@ -11,6 +11,9 @@ import numpy as np
 
 from daemon.spine.semantic_classes import CLASS_COLOURS
 from mapping.method.road_map import NO_LABEL
+from mapping.outputs.map_export import elevation_image
+
+PREVIEW_NAMES = ("rgb", "semantics", "elevation")
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -36,3 +39,22 @@ def atomic_png(path: Path, rgb: np.ndarray) -> None:
 def semantic_image(labels: np.ndarray) -> np.ndarray:
     return CLASS_COLOURS[np.minimum(labels, len(CLASS_COLOURS) - 1)] * (labels != NO_LABEL)[..., None].astype(np.uint8)
 
+
+
+def preview_images(bev: dict, camera: str, semantics: bool) -> dict[str, np.ndarray]:
+    """A window's previews from its BEV rasters (map_export.bev_rasters): `camera`'s colour, the semantics (left
+    out when the window has none) and the elevation."""
+    images = {"rgb": bev["rgb"][camera], "semantics": semantic_image(bev["labels"]),
+              "elevation": elevation_image(bev["elevation"])}
+    if not semantics:
+        del images["semantics"]
+    return images
+
+
+def write_previews(folder: Path, images: dict[str, np.ndarray]) -> None:
+    """The previews as `<name>.png` in `folder`; one left out is removed (not an older window's left behind)."""
+    for name in PREVIEW_NAMES:
+        if name in images:
+            atomic_png(folder / f"{name}.png", images[name])
+        else:
+            (folder / f"{name}.png").unlink(missing_ok=True)

@@ -8,8 +8,9 @@ road lie beyond a window centre and every topic has delivered its data that far 
 window's inputs reach beyond), it optimises that window ([centre - windows.before_m, centre +
 windows.after_m]; centres every half window, so the windows overlap by half) with
 `reconstruction.reconstruct` on the window's keyframes, fused trajectory (`drive_inputs.fuse_log_trajectory`)
-and Lidar ground points. What a window sees depends on the log's content only, never on arrival timing,
-so replaying a log twice gives the same map (tests/test_replay_determinism.py).
+and Lidar ground points (frames without a mask are keyframes without semantics, warned about once). What a
+window sees depends on the log's content only, never on arrival timing, so replaying a log twice gives the
+same map (tests/test_replay_determinism.py).
 Each window's BEV goes into the disk tiles (`mapping.live.map_tiles`), the latest previews into
 `<data>/map/previews`, and a line into the journal `<data>/map/journal.jsonl` (`mapping.live.worker_journal`,
 append-only) with its provenance (host time range, per-topic seq ranges, log segments named by
@@ -65,14 +66,16 @@ from mapping.inputs.drive_inputs import (
     decode_image,
     fuse_log_trajectory,
     keyframe_semantics,
+    missing_masks_warning,
     segmenter_for,
+    spaced_camera_frames,
 )
 from mapping.inputs.lidar_ground import GroundFilter, lidar_scans, scans_ground
 from mapping.live import live_view, map_tiles
 from mapping.live.bus_reader import SMALL_TOPICS, BusReader
 from mapping.live.final_map import FinalMapMetadata, TileStore, write_final_map
 from mapping.live.keyframe_spool import KeyframeSpool
-from mapping.live.map_images import atomic_png, semantic_image
+from mapping.live.map_images import preview_images, write_previews
 from mapping.live.odometry import Odometry, wheel_speed_mps
 from mapping.live.window_schedule import window_span, windows_ended, windows_for_drive
 from mapping.live.worker_journal import VERSION as JOURNAL_VERSION
@@ -85,11 +88,10 @@ from mapping.live.worker_journal import (
     progress_line,
     read_journal,
 )
-from mapping.localization.keyframe_spacing import spaced_by_distance
 from mapping.localization.sensor_time import span_clock
 from mapping.localization.trajectory import HorizontalTrack, Trajectory
-from mapping.method.scene_data import Keyframe
-from mapping.outputs.map_export import bev_rasters, elevation_image
+from mapping.method.scene_data import Keyframe, StandingPoints
+from mapping.outputs.map_export import bev_rasters
 
 PROCESS = "mapper"
 FUSION_MARGIN_S = 20.0  # data kept (and fused) before the oldest unfinished window starts
@@ -114,6 +116,7 @@ class WindowInputs:
     keyframes: list[Keyframe]
     ground: np.ndarray | None  # Lidar ground points, None without a Lidar
     provenance: dict  # host time range, per-topic seq ranges, log segments, input counts (into the journal)
+    standing: StandingPoints | None  # what the Lidar saw standing on the road, for keyframes without masks
 
 
 @dataclass
@@ -146,6 +149,7 @@ class MappingWorker:
         self.cameras = camera_models(config)
         self.cam_names = sorted(self.cameras)
         self.segmenter = segmenter_for(config, config_path)  # None: the masks on the bus
+        self.masks_warned = False  # frames without masks were reported
         self.res = self.mapper.mesh.side_m
         self.tile_cells = max(1, int(round(TILE_M / self.res)))
         self.tile_store = TileStore(self.tiles_dir, self.tile_cells, self.res, self.cam_names)
@@ -284,35 +288,40 @@ class MappingWorker:
         times = np.concatenate([[t_lo], traj.times_ns[inside], [t_hi]]).astype(np.int64)
         pos, _ = traj.interpolate(times)
         path = HorizontalTrack((times - t_lo) / 1e9, pos)
-        keyframes = []
-        spacing = m.inputs.keyframe_spacing_m
+        keyframes, frames_without_mask, frames_seen = [], 0, 0
         for cam in self.config.sensors.cameras:
             masks = {x.sensor_time_ns: x for x in by_topic.get(mask_topic(cam.name), [])}
             frames = sorted(by_topic.get(camera_topic(cam.name), []), key=lambda f: f.sensor_time_ns)
             if not frames:
                 continue
             host = clocks[camera_topic(cam.name)].to_host([f.sensor_time_ns for f in frames])
-            candidates = [(f, t) for f, t in zip(frames, host, strict=True)
-                          if t_lo <= t <= t_hi and (self.segmenter is not None or f.sensor_time_ns in masks)]
-            for f, t in spaced_by_distance(candidates, lambda ft: float(traj.distance_3d_at(int(ft[1]))[0]), spacing):
+            inside = [(f, int(t)) for f, t in zip(frames, host, strict=True) if t_lo <= t <= t_hi]
+            frames_seen += len(inside)
+            frames_without_mask += 0 if self.segmenter else sum(f.sensor_time_ns not in masks for f, _ in inside)
+            chosen = spaced_camera_frames(inside, None if self.segmenter else masks, traj, m.inputs.keyframe_spacing_m)
+            for f, t, mask in chosen:
                 image = decode_image(f)
-                keyframes.append(Keyframe(cam.name, (int(t) - t_lo) / 1e9,
-                                          camera_pose(traj, int(t), cam.extrinsics.matrix()), image,
-                                          keyframe_semantics(image, masks.get(f.sensor_time_ns), self.segmenter)))
+                keyframes.append(Keyframe(cam.name, (t - t_lo) / 1e9, camera_pose(traj, t, cam.extrinsics.matrix()),
+                                          image, keyframe_semantics(image, mask, self.segmenter)))
         keyframes.sort(key=lambda kf: kf.timestamp)
         scans = lidar_scans(by_topic.get(LIDAR_PACKETS, []), by_topic.get(LIDAR_POINTS, []), lambda: self.lidar_meta,
                             1)  # every n-th scan: kept by the bus thread
-        settings = GroundFilter(corridor_half_width_m=m.mesh.corridor_half_width_m)
-        ground = None if scans is None else scans_ground(scans, clocks[scans.topic], self.config, traj, settings)
+        ground = standing = None
+        if scans is not None:  # what stands on the road too, when a keyframe has no mask to leave it out
+            occlusion = m.maskless.lidar_occlusion and any(kf.semantics is None for kf in keyframes)
+            ground, standing = scans_ground(scans, clocks[scans.topic], self.config, traj,
+                                            GroundFilter(corridor_half_width_m=m.mesh.corridor_half_width_m),
+                                            t_lo if occlusion else None)
         fed = dict(by_topic)
         for t in (GNSS_FIX, IMU, WHEEL_SPEEDS):
             fed[t] = [x for x in small[t] if t_lo <= x.host_mono_ns <= t_hi]
         seq = {t: [min(x.seq for x in v), max(x.seq for x in v)] for t, v in sorted(fed.items()) if v}
         provenance = {"host_time_ns": [t_lo, t_hi], "seq": seq,
                       "segments": sorted(n for n, (a, b) in self.reader.segments.items() if a <= t_hi and b >= t_lo),
-                      "keyframes": len(keyframes), **(scans.counts if scans else {"lidar_packets": 0}),
+                      "keyframes": len(keyframes), "frames": frames_seen, "frames_without_mask": frames_without_mask,
+                      **(scans.counts if scans else {"lidar_packets": 0}),
                       "lidar_ground_points": 0 if ground is None else len(ground)}
-        return WindowInputs(centre, s_lo, s_hi, t_lo, t_hi, traj, path, keyframes, ground, provenance)
+        return WindowInputs(centre, s_lo, s_hi, t_lo, t_hi, traj, path, keyframes, ground, provenance, standing)
 
     def run_window(self, k: int) -> WindowEntry:
         started = time.perf_counter()
@@ -321,12 +330,17 @@ class MappingWorker:
         centre, s_lo, s_hi, t_lo, path = inputs.centre_m, inputs.start_m, inputs.end_m, inputs.t_lo_ns, inputs.path
         if not inputs.keyframes:
             raise ValueError(f"window {k}: no keyframes in [{s_lo:.1f}, {s_hi:.1f}] m")
+        warning = missing_masks_warning(inputs.provenance["frames"], inputs.provenance["frames_without_mask"])
+        if warning is not None and not self.masks_warned:  # once; each window's counts are in its journal entry
+            self.masks_warned = True
+            log.warning("window %d: %s", k, warning)
         seed = m.model.seed * 1_000_003 + k
         np.random.seed(seed % 2**32)
         torch.manual_seed(seed)
         cfg = m.model_copy(update={"model": m.model.model_copy(update={"seed": seed})})
         result = reconstruct(inputs.keyframes, self.cameras, path, inputs.ground, cfg,
-                             self.config.vehicle.reference_height_m, holdout_every=0, progress=False)
+                             self.config.vehicle.reference_height_m, holdout_every=0, progress=False,
+                             lidar_standing=inputs.standing)
         bev = bev_rasters(result.road_map, self.cam_names, self.res, m.runtime.raster_threads)
         j0, i0 = (int(round(v / self.res)) for v in bev["origin_xy"])
         half = (m.windows.before_m + m.windows.after_m) / 4.0
@@ -343,29 +357,22 @@ class MappingWorker:
             central[ii, jj] = (t >= c_lo) & (t < c_hi)
         raster = map_tiles.WindowRaster(i0, j0, bev["elevation"], bev["labels"], bev["rgb"], central)
         tiles = map_tiles.write_window(self.tiles_dir, self.tile_cells, k, raster, self.cam_names)
-        self._write_previews(bev)
+        images = preview_images(bev, self.cam_names[0], result.road_map.semantic_logits is not None)
+        write_previews(self.previews, images)
         if self.live_view is not None:
             try:
-                live_view.publish_window(self.live_view, inputs.t_hi_ns, self._preview_images(bev), bev["elevation"],
+                live_view.publish_window(self.live_view, inputs.t_hi_ns, images, bev["elevation"],
                                          bev["origin_xy"], self.res, path.positions)
             except Exception as exc:  # the live view never costs a window: counted and reported
                 self._error(f"live view, window {k}: {type(exc).__name__}: {exc}")
         wall = time.perf_counter() - started
-        keep = ("psnr_train_db", "elev_error_cm", "miou_pct", "steps", "vertices", "vertices_observed",
-                "optimise_wall_s", "loss_last")
+        keep = ("psnr_train_db", "elev_error_cm", "miou_pct", "semantics", "keyframes_without_semantics",
+                "maskless_hidden_pct", "steps", "vertices", "vertices_observed", "optimise_wall_s", "loss_last")
         extent = ([float(x) for x in path.positions[:, :2].min(0)] + [float(x) for x in path.positions[:, :2].max(0)])
         return WindowEntry(k, "done", centre_m=centre, start_m=s_lo, end_m=s_hi, seed=seed, wall_s=wall,
                            finished_mono_ns=time.monotonic_ns(), tiles=tiles, trajectory_xy_box=extent,
                            metrics={x: result.metrics.get(x) for x in keep}, **inputs.provenance,
                            config={"path": self.config_path, "sha256": self.config_sha256})
-
-    def _preview_images(self, bev: dict) -> dict[str, np.ndarray]:
-        return {"rgb": bev["rgb"][self.cam_names[0]], "semantics": semantic_image(bev["labels"]),
-                "elevation": elevation_image(bev["elevation"])}
-
-    def _write_previews(self, bev: dict) -> None:
-        for name, image in self._preview_images(bev).items():
-            atomic_png(self.previews / f"{name}.png", image)
 
     def _error(self, what: str) -> None:
         self.health.count_error(what)

@@ -54,11 +54,13 @@ class WindowEntry:
     wall_s: float | None = None
     tiles: list[str] | None = None  # the tile files it wrote
     trajectory_xy_box: list[float] | None = None  # [x_min, y_min, x_max, y_max] of its track, ENU m
-    metrics: dict[str, float | int | None] | None = None
+    metrics: dict[str, float | int | str | None] | None = None
     host_time_ns: list[int] | None = None
     seq: dict[str, list[int]] | None = None
     segments: list[str] | None = None
     keyframes: int | None = None
+    frames: int | None = None  # camera frames in its time span
+    frames_without_mask: int | None = None  # of them, those with no mask and no segmentation model
     lidar_packets: int | None = None  # the Lidar messages of the window: packets ...
     lidar_point_clouds: int | None = None  # ... or decoded scans (a point-cloud Lidar)
     lidar_ground_points: int | None = None

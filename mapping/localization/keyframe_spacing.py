@@ -5,8 +5,10 @@ trajectory, or horizontal along the reconstruction's track)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import TypeVar
+
+import numpy as np
 
 Frame = TypeVar("Frame")
 
@@ -23,3 +25,22 @@ def spaced_by_distance(frames: Iterable[Frame], distance_m: Callable[[Frame], fl
             continue
         last = s
         yield frame
+
+
+def spaced_preferring(frames: Sequence[Frame], distance_m: Callable[[Frame], float], spacing_m: float,
+                      preferred: Callable[[Frame], bool]) -> list[Frame]:
+    """spaced_by_distance, where a frame that is not `preferred` (one without a mask) is passed over when a
+    preferred one follows within `spacing_m` of it, and kept when none does: where the masks are missing (a
+    segmenter slower than the camera, one that stopped, a car without one) the camera still gets its
+    keyframes, without semantics. All frames preferred: exactly spaced_by_distance."""
+    s = np.array([distance_m(f) for f in frames], np.float64)
+    good = np.array([preferred(f) for f in frames], bool)
+    good_s = np.sort(s[good])
+
+    def usable(i: int) -> bool:
+        if good[i]:
+            return True
+        k = np.searchsorted(good_s, s[i])  # the first preferred frame at or past this one
+        return k == len(good_s) or good_s[k] > s[i] + spacing_m
+
+    return [frames[i] for i in spaced_by_distance(range(len(frames)), lambda i: float(s[i]), spacing_m, usable)]

@@ -61,6 +61,8 @@ class RoadMap:
     lattice_m: float  # > 0: the residual MLP is evaluated on a square lattice this coarse
     z_now: np.ndarray  # (N,) float32 latest elevation of every vertex (no gradient)
     observed: np.ndarray  # (N,) int32 how many training steps supervised each vertex through a pixel
+    labelled: np.ndarray  # (N,) bool: a view with semantics (a mask or a model's labels) trained the vertex's
+    # logits; the others' labels are NO_LABEL wherever the map is read (a view without semantics gives none)
 
     def elevation_of(self, ids: np.ndarray) -> torch.Tensor:
         """Elevation of vertices `ids`, differentiable w.r.t. the elevation MLP."""
@@ -101,7 +103,19 @@ class RoadMap:
             state["elevation_mlp"] = self.elevation.state_dict()
         if self.semantic_logits is not None:
             state["semantic_logits"] = self.semantic_logits
+            state["labelled"] = torch.from_numpy(self.labelled)
         return state
+
+    @torch.no_grad()
+    def labels_at(self, ids: np.ndarray, weights: torch.Tensor) -> np.ndarray:
+        """(M,) uint8 class ids where the map is read through triangles `ids` (M, 3) with barycentric `weights`
+        (M, 3): the argmax of the interpolated logits, NO_LABEL where a vertex is not labelled or the map has
+        no semantics."""
+        out = np.full(len(ids), NO_LABEL, np.uint8)
+        if self.semantic_logits is not None and len(ids):
+            logits = (self.semantic_logits[ids] * weights.to(self.semantic_logits.dtype)[..., None]).sum(1)
+            out[:] = np.where(self.labelled[ids].all(1), logits.argmax(1).numpy(), NO_LABEL)
+        return out
 
 
 def new_road_map(
@@ -130,7 +144,7 @@ def new_road_map(
         origin = (float(mesh.xy[:, 0].mean()), float(mesh.xy[:, 1].mean()))
         elevation = ElevationMLP(origin, encoding_dim, elevation_layers, elevation_width, encoding_scale_m)
     return RoadMap(mesh, variant, elevation, decoder, colour, semantics, lattice_m, mesh.z0.copy(),
-                   np.zeros(n, np.int32))
+                   np.zeros(n, np.int32), np.zeros(n, bool))
 
 
 @dataclass(frozen=True)
@@ -187,11 +201,9 @@ def view_geometry(road_map: RoadMap, faces: np.ndarray, keyframe: Keyframe, came
 
 @torch.no_grad()
 def view_labels(road_map: RoadMap, view: ViewGeometry) -> np.ndarray:
-    """(H', W') uint8 rendered class ids, NO_LABEL where the mesh is not seen or the map has no semantics."""
+    """(H', W') uint8 rendered class ids, NO_LABEL where the mesh is not seen or the map has no semantics there."""
     labels = np.full(view.hit.size, NO_LABEL, np.uint8)
-    if road_map.semantic_logits is not None:
-        logits = (road_map.semantic_logits[view.tri] * view.weights[..., None]).sum(1)
-        labels[view.hit] = logits.argmax(1).numpy().astype(np.uint8)
+    labels[view.hit] = road_map.labels_at(view.tri, view.weights)
     return labels.reshape(view.shape)
 
 

@@ -4,6 +4,10 @@ The car's config comes from the logs' own metadata unless --config names one. Wi
 drive's PATH.gt.npz) the map is also measured against the truth: `elev_mae_gt_cm` against the true
 elevation grid and `miou_pct` against the true semantic grid (bird's-eye view, cells the map observed);
 without it `miou_pct` compares rendered semantics with the segmentation masks of held-out frames.
+
+A log without masks (and no segmentation model configured) still maps: colour and elevation from every frame,
+no semantics (`miou_pct` null, `semantics` says why, no bev_semantics.* files), and a warning on stderr naming
+the frames without a mask. When only some frames have masks, the semantics come from those.
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ from daemon.spine.config import (
 from daemon.spine.health import process_memory_mb
 from daemon.spine.local_frame import LocalFrame
 from mapping.fits.reconstruction import ReconstructionResult, reconstruct
-from mapping.inputs.drive_inputs import DriveInputs, start_loading_drive
+from mapping.inputs.drive_inputs import DriveInputs, missing_masks_warning, start_loading_drive
 from mapping.method.road_map import ABLATIONS, variant_for
 from mapping.method.scene_data import GroundTruth
 
@@ -86,9 +90,13 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
     started = time.perf_counter()
     loading = start_loading_drive(logs, config, config_path, origin=truth.origin if truth else None,
                                   use_lidar=use_lidar)
+    warning = missing_masks_warning(loading.counts["frames"], loading.counts["frames_without_mask"])
+    if warning is not None:
+        print(f"roadlog reconstruct: warning: {warning}", file=sys.stderr, flush=True)
     result = reconstruct(loading.keyframes, loading.cameras, loading.path, loading.lidar_ground_points,
                          config.mapper, config.vehicle.reference_height_m, out_dir=out, ablation=ablation,
-                         gt=truth.elevation if truth else None, faithful=faithful, progress=progress)
+                         gt=truth.elevation if truth else None, faithful=faithful, progress=progress,
+                         lidar_standing=loading.lidar_standing)
     drive = loading.result()
     lidar = drive.lidar_ground_points
     metrics = result.metrics
@@ -136,8 +144,8 @@ def main(argv: list[str] | None = None) -> int:
     truth = DriveTruth.load(args.gt) if args.gt else None
     result, _ = run_reconstruction(args.logs, args.out, config, config_path, truth=truth,  # ConfigError: exit 2
                                    use_lidar=not args.no_lidar, ablation=args.ablation, faithful=args.faithful)
-    keys = ("psnr_db", "psnr_train_db", "miou_pct", "iou_pct", "elev_error_cm", "elev_mae_gt_cm", "drive_s", "wall_s",
-            "rtf", "rtf_mapping", "peak_rss_mb", "vertices")
+    keys = ("psnr_db", "psnr_train_db", "miou_pct", "iou_pct", "semantics", "elev_error_cm", "elev_mae_gt_cm",
+            "drive_s", "wall_s", "rtf", "rtf_mapping", "peak_rss_mb", "vertices")
     print(json.dumps({k: result.metrics.get(k) for k in keys}))
     return 0
 

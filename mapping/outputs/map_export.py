@@ -1,6 +1,6 @@
 """Writing a reconstructed road map to disk: BEV rasters (RGB per camera, semantics, elevation as PNG and
 raw .npy with their origin and resolution), the mesh with vertex colours and labels (PLY, GLB) and a
-state_dict checkpoint."""
+state_dict checkpoint. A map without semantics (no masks and no model) has no semantic files and no labels."""
 
 from __future__ import annotations
 
@@ -22,9 +22,10 @@ _ROWS_PER_CHUNK = 256
 
 
 def vertex_labels(road_map: RoadMap) -> np.ndarray:
+    """(N,) uint8 class id of every vertex, NO_LABEL where it is not labelled (RoadMap.labelled)."""
     if road_map.semantic_logits is None:
         return np.full(road_map.mesh.num_vertices, NO_LABEL, np.uint8)
-    return road_map.semantic_logits.argmax(1).numpy().astype(np.uint8)
+    return np.where(road_map.labelled, road_map.semantic_logits.argmax(1).numpy(), NO_LABEL).astype(np.uint8)
 
 
 def bev_rasters(road_map: RoadMap, cameras: list[str], resolution_m: float, threads: int) -> dict:
@@ -35,8 +36,6 @@ def bev_rasters(road_map: RoadMap, cameras: list[str], resolution_m: float, thre
     lo, hi = np.floor(xy.min(0) / resolution_m) * resolution_m, xy.max(0)
     w, h = (np.ceil((hi - lo) / resolution_m).astype(int) + 1).tolist()
     colours = {c: road_map.vertex_colours(c) for c in cameras}
-    labels_v = vertex_labels(road_map)
-    logits = road_map.semantic_logits
     elevation = np.full((h, w), np.nan, np.float32)
     labels = np.full((h, w), NO_LABEL, np.uint8)
     rgb = {c: np.zeros((h, w, 3), np.uint8) for c in cameras}
@@ -49,10 +48,7 @@ def bev_rasters(road_map: RoadMap, cameras: list[str], resolution_m: float, thre
         ids, wt = ids[ok], wt[ok]
         flat = (ii.ravel()[ok], jj.ravel()[ok])
         elevation[flat] = (road_map.z_now[ids] * wt).sum(1)
-        if logits is not None:
-            labels[flat] = (logits[ids] * torch.from_numpy(wt).float()[..., None]).sum(1).argmax(1).numpy()
-        else:
-            labels[flat] = labels_v[ids[np.arange(len(ids)), wt.argmax(1)]]
+        labels[flat] = road_map.labels_at(ids, torch.from_numpy(wt).float())
         for c in cameras:
             rgb[c][flat] = np.clip((colours[c][ids] * wt[..., None]).sum(1) * 255 + 0.5, 0, 255).astype(np.uint8)
 
@@ -90,12 +86,15 @@ def _export_rasters(road_map: RoadMap, out_dir: Path, cameras: list[str], raster
         cv2.imwrite(str(path), cv2.cvtColor(np.flipud(rgb), cv2.COLOR_RGB2BGR))  # north up
         files[name] = path
 
+    semantics = road_map.semantic_logits is not None  # without: no semantic files (not a raster of NO_LABEL)
     for c in cameras:
         save_png(f"bev_rgb_{c}.png", bev["rgb"][c])
-    save_png("bev_semantics.png", CLASS_COLOURS[np.minimum(bev["labels"], len(CLASS_COLOURS) - 1)]
-             * (bev["labels"] != NO_LABEL)[..., None].astype(np.uint8))
+    if semantics:
+        save_png("bev_semantics.png", CLASS_COLOURS[np.minimum(bev["labels"], len(CLASS_COLOURS) - 1)]
+                 * (bev["labels"] != NO_LABEL)[..., None].astype(np.uint8))
     save_png("bev_elevation.png", elevation_image(bev["elevation"]))
-    for name, array in (("bev_elevation.npy", bev["elevation"]), ("bev_semantics.npy", bev["labels"])):
+    arrays = [("bev_elevation.npy", bev["elevation"])] + ([("bev_semantics.npy", bev["labels"])] if semantics else [])
+    for name, array in arrays:
         np.save(out_dir / name, array)
         files[name] = out_dir / name
     meta = {
@@ -103,6 +102,7 @@ def _export_rasters(road_map: RoadMap, out_dir: Path, cameras: list[str], raster
         "resolution_m": res,
         "shape": list(bev["elevation"].shape),
         "cell": "cell (i, j) of the .npy rasters is centred at (x0 + j*res, y0 + i*res); PNGs are flipped north-up",
+        "semantics": semantics,  # false: the map has no semantics, and no bev_semantics.* files
         "semantics_no_label": NO_LABEL,
         "cameras": cameras,
     }
@@ -119,7 +119,8 @@ def _export_mesh(road_map: RoadMap, out_dir: Path, camera: str) -> dict[str, Pat
     vertices = np.concatenate([road_map.mesh.xy[used], road_map.z_now[used, None]], 1)
     colours = np.clip(road_map.vertex_colours(camera, used) * 255 + 0.5, 0, 255).astype(np.uint8)
     mesh = trimesh.Trimesh(vertices, local.reshape(-1, 3), vertex_colors=colours, process=False)
-    mesh.vertex_attributes["label"] = vertex_labels(road_map)[used]
+    if road_map.semantic_logits is not None:
+        mesh.vertex_attributes["label"] = vertex_labels(road_map)[used]
     files = {}
     for name in ("mesh.ply", "mesh.glb"):
         mesh.export(out_dir / name)

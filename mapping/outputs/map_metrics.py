@@ -146,12 +146,12 @@ def elev_mae_gt_cm(road_map: RoadMap, gt: GroundTruth | None, located: Located |
 
 def bev_confusion(road_map: RoadMap, gt: GroundTruth | None, located: Located | None = None) -> np.ndarray | None:
     """Confusion (truth rows, map columns) of the map's semantics against the true semantic grid (bird's-eye
-    view), over the truth cells (truth_cells) inside the reconstructed area with a map class."""
+    view), over the truth cells (truth_cells) inside the labelled reconstructed area with a map class."""
     if gt is None or gt.semantic is None or road_map.semantic_logits is None:
         return None
     rows, cols, ids, w = _at_truth_cells(road_map, gt, located)
     true = gt.semantic[rows, cols]
-    valid = true < NUM_MAP_CLASSES
+    valid = (true < NUM_MAP_CLASSES) & road_map.labelled[ids].all(1)
     if not valid.any():
         return None
     logits = road_map.semantic_logits.detach().numpy()
@@ -166,8 +166,10 @@ class _ViewSeen:
     camera: str
     geometry: ViewGeometry
     observed: np.ndarray  # (H', W', 3) float32 camera image at the sampled pixels, [0, 1]
-    road_pixels: np.ndarray  # (H', W') bool: pixels that see the mesh and show road surface
-    confusion: np.ndarray  # (C, C) rendered semantics against the view's segmentation mask
+    road_pixels: np.ndarray  # (H', W') bool: pixels that see the mesh and show road surface (without a mask: every
+    # pixel that sees the mesh, whatever stands on it)
+    confusion: np.ndarray  # (C, C) rendered semantics against the view's segmentation mask (zeros without one)
+    masked: bool  # the view has semantics (a mask or a model's labels)
 
 
 def _view_seen(road_map: RoadMap, cameras: dict[str, CameraModel], kf: Keyframe, trajectory: HorizontalTrack,
@@ -179,12 +181,15 @@ def _view_seen(road_map: RoadMap, cameras: dict[str, CameraModel], kf: Keyframe,
     camera = cameras[kf.camera]
     geometry = view_geometry(road_map, faces[mapped[faces]], kf, camera, stride)
     at = sampled_pixels(camera, stride)
-    image, semantics = kf.image.reshape(-1, 3)[at], kf.semantics.ravel()[at]
+    image = kf.image.reshape(-1, 3)[at].astype(np.float32) / 255.0
     hit = geometry.hit.reshape(at.shape)
+    if kf.semantics is None:
+        return _ViewSeen(kf.camera, geometry, image, hit, np.zeros((NUM_MAP_CLASSES, NUM_MAP_CLASSES), np.int64), False)
+    semantics = kf.semantics.ravel()[at]
     labels = view_labels(road_map, geometry)
     labelled = hit & (semantics < NUM_MAP_CLASSES) & (labels != NO_LABEL)
-    return _ViewSeen(kf.camera, geometry, image.astype(np.float32) / 255.0,
-                     hit & np.isin(semantics, np.array(ROAD_SURFACE_CLASSES)), confusion(labels, semantics, labelled))
+    return _ViewSeen(kf.camera, geometry, image, hit & np.isin(semantics, np.array(ROAD_SURFACE_CLASSES)),
+                     confusion(labels, semantics, labelled), True)
 
 
 def _view_psnr(road_map: RoadMap, seen: _ViewSeen) -> float | None:
@@ -245,8 +250,17 @@ def start_evaluation(
                              views(holdout, HOLDOUT_VIEWS_EVALUATED), views(train, TRAIN_VIEWS_EVALUATED))
 
 
+PSNR_PIXELS = {  # which pixels the PSNRs are taken over, by whether the evaluated views have masks
+    frozenset({True}): "road (the masks' road-surface pixels)",
+    frozenset({False}): "mapped surface (no masks: every pixel that sees the mapped road, whatever stands on it)",
+    frozenset({True, False}): "road where a view has a mask, else the mapped surface",
+    frozenset(): "none (no views evaluated)",
+}
+
+
 def finish_evaluation(pending: PendingEvaluation) -> dict:
     """The metrics of a started evaluation, its views shaded with the map's colours as they are now.
+    `psnr_pixels` says which pixels the PSNRs are over (PSNR_PIXELS).
     `miou_mask_pct` compares rendered semantics with the held-out frames' segmentation masks; `miou_pct` is
     the bird's-eye mIoU against the true grid when the truth has one, else `miou_mask_pct`; `iou_pct` holds
     the per-class IoUs `miou_pct` is the mean of."""
@@ -259,12 +273,14 @@ def finish_evaluation(pending: PendingEvaluation) -> dict:
 
         conf = sum((f.result().confusion for f in pending.held), np.zeros((NUM_MAP_CLASSES, NUM_MAP_CLASSES),
                                                                          np.int64))
+        masked = {f.result().masked for f in pending.held + pending.trained}
         labelled = road_map.semantic_logits is not None
         bev = pending.bev_confusion.result()
         scored = bev if bev is not None else conf
         return {
             "psnr_db": mean_psnr(pending.held),
             "psnr_train_db": mean_psnr(pending.trained),
+            "psnr_pixels": PSNR_PIXELS[frozenset(masked)],
             "miou_pct": miou_pct(scored) if labelled else None,
             "iou_pct": iou_pct(scored) if labelled else None,
             "miou_mask_pct": miou_pct(conf) if labelled else None,

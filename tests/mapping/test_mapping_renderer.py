@@ -85,7 +85,7 @@ def test_colour_loss_gradient_reaches_the_elevations():
     T = pose()
     decoder = ColourDecoder("mlps", ["front"], 8)
     rm = RoadMap(mesh, Variant(), None, decoder, torch.randn(mesh.num_vertices, 8), None, 0.0,
-                 mesh.z0.copy(), np.zeros(mesh.num_vertices, np.int32))
+                 mesh.z0.copy(), np.zeros(mesh.num_vertices, np.int32), np.zeros(mesh.num_vertices, bool))
     rng = np.random.default_rng(0)
     image = rng.integers(0, 255, (90, 160, 3), dtype=np.uint8)
     kf = Keyframe("front", 0.0, T, image, np.zeros((90, 160), np.uint8))

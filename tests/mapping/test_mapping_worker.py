@@ -7,6 +7,7 @@ SIGTERM and checks the journal, tiles, previews and map.
 """
 
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -24,12 +25,13 @@ from daemon.processes.replay import replay
 from daemon.spine.messages import CameraFrame, GnssFix
 from daemon.spine.topics import GNSS_FIX, camera_topic, health_topic, topic_table
 from mapping.live import map_tiles
-from mapping.live.final_map import FinalMapMetadata
+from mapping.live.final_map import FinalMapMetadata, map_semantics, write_final_map
 from mapping.live.keyframe_spool import KeyframeSpool
 from mapping.live.window_schedule import window_span, windows_ended, windows_for_drive
 from mapping.live.worker_journal import JOURNAL_NAME, read_journal
 from sim.drive_log import simulate_drive
 from tests.daemon_fixtures import REPO, private_config
+from tests.mapping.fed_worker import worker_fed
 
 SMALL_WINDOWS = {"windows": {"before_m": 10.0, "after_m": 10.0}, "mesh": {"side_m": 0.25, "corridor_half_width_m": 6.0},
                  "inputs": {"keyframe_spacing_m": 2.0}}
@@ -224,3 +226,41 @@ def test_rasters_written_a_row_of_tiles_at_a_time_equal_the_mosaic(tmp_path):
         assert np.array_equal(np.load(paths["labels"]), mos.labels)
     cells = map_tiles.mapped_cells(folder, n, 0.1, "cam", max_cells=10**6)
     assert len(cells.i) == 5 * 30 + 5 * 12 and set(np.unique(cells.elevation)) == {1.0, 2.0}
+
+
+# ---- a drive without masks -----------------------------------------------------------------------------
+def test_the_worker_maps_a_drive_without_masks_and_its_final_map_has_no_semantics(city_drive_without_masks, tmp_path,
+                                                                                   caplog):
+    worker = worker_fed(tmp_path / "run", city_drive_without_masks)
+    with caplog.at_level(logging.WARNING, logger="mapping.live.mapping_worker"):
+        entries = [worker.run_window(0), worker.run_window(1)]
+    warnings = [r.getMessage() for r in caplog.records if "no semantic mask" in r.getMessage()]
+    assert len(warnings) == 1 and warnings[0].startswith("window 0: ")  # once, not per window
+    assert f"{entries[0].frames} of {entries[0].frames} camera frames have no semantic mask" in warnings[0]
+    for entry in entries:
+        assert entry.status == "done" and entry.keyframes > 0 and entry.frames_without_mask == entry.frames > 0
+        assert entry.metrics["miou_pct"] is None and entry.metrics["semantics"].startswith("unavailable: ")
+        assert entry.metrics["keyframes_without_semantics"] == entry.keyframes
+        assert 10 < entry.metrics["maskless_hidden_pct"] < 90  # the cars in view, left out by the Lidar's test
+    previews = worker.previews
+    assert (previews / "rgb.png").stat().st_size > 0 and (previews / "elevation.png").stat().st_size > 0
+    assert not (previews / "semantics.png").exists()
+    tile = map_tiles.load_tile(worker.tiles_dir / entries[0].tiles[0], worker.tile_cells, worker.cam_names)
+    assert np.isfinite(tile["elevation"]).sum() > 100 and (tile["labels"] == 255).all()
+    final = write_final_map(tmp_path / "final", worker.tile_store, FinalMapMetadata(
+        windows=[e.to_json() for e in entries], config={}, distance_m=worker.state.distance_m,
+        origin_lat_lon_alt=None))
+    meta = FinalMapMetadata.read(final)
+    assert meta.semantics.startswith("unavailable: ") and meta.semantics_no_label is None
+    assert not list(final.glob("bev_semantics*"))
+    for name in ("bev_elevation.npy", "bev_elevation.png", "bev_rgb_front_wide.png", "mesh.ply"):
+        assert (final / name).stat().st_size > 0
+
+
+def test_a_final_map_has_semantics_when_some_windows_had_them():
+    done = lambda semantics: {"status": "done", "metrics": {"semantics": semantics}}  # noqa: E731
+    assert map_semantics([done("available"), {"status": "failed"}]) == "available"
+    assert map_semantics([{"status": "done", "metrics": {}}]) == "available"  # journalled before the field
+    assert map_semantics([done("unavailable: x"), done("available")]).startswith("partial: 1 of 2 windows")
+    assert map_semantics([done("partial: x")]).startswith("partial: 0 of 1")
+    assert map_semantics([done("unavailable: x"), done("unavailable: y")]).startswith("unavailable: ")

@@ -36,3 +36,73 @@ def test_reconstruct_a_recorded_drive_against_its_truth(city_drive, tmp_path):
     assert len(mesh.faces) > 1000
     assert (out / "config.yaml").read_text().startswith("vehicle:")
     assert (out / "checkpoint.pt").stat().st_size > 0 and (out / "bev_semantics.png").stat().st_size > 0
+
+
+def _reconstruct(logs, out, *extra):
+    return subprocess.run([sys.executable, "-m", "daemon.commands.cli", "reconstruct", *map(str, logs),
+                           "--out", str(out), *extra], cwd=REPO, capture_output=True, text=True, timeout=600)
+
+
+def test_a_drive_without_masks_maps_colour_and_elevation_and_says_semantics_are_unavailable(
+        city_drive_without_masks, tmp_path):
+    out = tmp_path / "map"
+    run = _reconstruct([city_drive_without_masks], out, "--gt", city_drive_without_masks.with_name("city.gt.npz"))
+    assert run.returncode == 0, run.stderr[-3000:]
+    frames = 150  # 3 cameras x 5 s x 10 Hz
+    assert ("roadlog reconstruct: warning: 150 of 150 camera frames have no semantic mask and no segmentation "
+            "model is configured (mapper.segmentation.provider: log)") in run.stderr
+    printed = json.loads(run.stdout.strip().splitlines()[-1])
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert printed["miou_pct"] is None and metrics["miou_pct"] is None and metrics["iou_pct"] is None
+    assert metrics["semantics"] == printed["semantics"]
+    assert metrics["semantics"].startswith(f"unavailable: {metrics['keyframes_train']} of "
+                                           f"{metrics['keyframes_train']} training keyframes have no mask")
+    assert metrics["inputs"]["frames"] == frames and metrics["inputs"]["frames_without_mask"] == frames
+    assert metrics["inputs"]["keyframes_without_mask"] == metrics["inputs"]["keyframes"] > 20
+    assert metrics["psnr_pixels"].startswith("mapped surface") and metrics["psnr_db"] > 15
+    # what stands on the road in view (parked and oncoming cars, the lead car) is left out by the Lidar's test
+    assert metrics["maskless_rejection"].startswith("lidar occlusion") and metrics["maskless_views_unchecked"] == 0
+    assert 20 < metrics["maskless_hidden_pct"] < 80
+    assert metrics["elev_error_cm"] < 3 and metrics["elev_mae_gt_cm"] < 5  # the Lidar's elevation, as with masks
+    for name in ("bev_rgb_front_wide.png", "bev_rgb_front_left.png", "bev_rgb_front_right.png", "bev_elevation.png",
+                 "bev_elevation.npy", "mesh.ply", "mesh.glb", "checkpoint.pt"):
+        assert (out / name).stat().st_size > 0, name
+    assert np.isfinite(np.load(out / "bev_elevation.npy")).sum() > 1000
+    assert not list(out.glob("bev_semantics*")) and json.loads((out / "bev.json").read_text())["semantics"] is False
+    header = (out / "mesh.ply").read_bytes()[:1000].split(b"end_header")[0]
+    assert b"property uchar red" in header and b"label" not in header  # no vertex labels either
+
+
+def test_a_drive_with_some_masks_takes_semantics_from_those_frames(city_drive, tmp_path):
+    """The front_left camera's masks are all missing and front_wide's after the drive's first half (a segmenter
+    that stopped): every frame still maps, the semantics come from the frames with masks."""
+    from daemon.log_format.reader import read_log
+    from daemon.log_format.writer import LogWriter
+    from daemon.spine.config import load_config
+
+    records = list(read_log([city_drive]))
+    middle = (records[0].log_time_ns + records[-1].log_time_ns) // 2
+    dropped = {"mask/front_left"}
+    mixed = tmp_path / "mixed.mcap"
+    writer = LogWriter(mixed, load_config(REPO / "configs" / "sim.yaml"))
+    left_out = 0
+    for r in records:
+        if r.topic in dropped or (r.topic == "mask/front_wide" and r.log_time_ns > middle):
+            left_out += 1
+            continue
+        writer.write(r.topic, r.message)
+    writer.close()
+    out = tmp_path / "map"
+    run = _reconstruct([mixed], out, "--config", REPO / "configs" / "sim.yaml",
+                       "--gt", city_drive.with_name("city.gt.npz"))
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert (f"warning: {left_out} of 150 camera frames have no semantic mask" in run.stderr
+            and "semantics come from the frames with a mask only" in run.stderr), run.stderr[-2000:]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["inputs"]["frames_without_mask"] == left_out > 60
+    assert metrics["semantics"].startswith("partial: ") and metrics["keyframes_without_semantics"] > 20
+    assert metrics["inputs"]["keyframes"] > 40  # as many as with every mask: none is dropped for want of one
+    assert 40 < metrics["miou_pct"] <= 100 and metrics["iou_pct"]["road"] > 80
+    labels = np.load(out / "bev_semantics.npy")
+    mapped = np.isfinite(np.load(out / "bev_elevation.npy"))
+    assert 0.3 < (labels[mapped] != 255).mean() <= 1.0

@@ -168,3 +168,14 @@ def test_live_mode_plays_the_drive_into_udp_pty_and_can(drive):
     logged_fixes = [r.message for r in read_log([drive], topics=[GNSS_FIX])]
     assert fixes[0].latitude_deg == pytest.approx(logged_fixes[0].latitude_deg, abs=1e-8)
     assert len(out) - len(fixes) == pytest.approx(SECONDS * 100, abs=3)  # IMU samples
+
+
+def test_a_drive_without_masks_has_the_same_frames_and_no_mask_topic(city_drive, city_drive_without_masks):
+    with_masks = [(r.topic, r.log_time_ns, bytes(r.message.data)) for r in read_log([city_drive])
+                  if r.topic.startswith("camera/")]
+    records = list(read_log([city_drive_without_masks]))
+    without = [(r.topic, r.log_time_ns, bytes(r.message.data)) for r in records if r.topic.startswith("camera/")]
+    assert len(without) == 150 and without == with_masks  # the same images at the same times
+    assert not any(r.topic.startswith("mask/") for r in records)
+    assert {r.topic for r in records if not r.topic.startswith("camera/")} == \
+        {r.topic for r in read_log([city_drive]) if not r.topic.startswith(("camera/", "mask/"))}
