@@ -30,10 +30,10 @@ from daemon.spine.config import (
     load_config,
     parse_config,
     reports_config_errors,
-    sectioned_recorded_config,
 )
 from daemon.spine.health import process_memory_mb
 from daemon.spine.local_frame import LocalFrame
+from daemon.spine.recorded_config import sectioned_recorded_config
 from mapping.fits.reconstruction import ReconstructionResult, reconstruct
 from mapping.inputs.drive_inputs import DriveInputs, missing_masks_warning, start_loading_drive
 from mapping.method.road_map import ABLATIONS, variant_for
