@@ -117,12 +117,20 @@ def _runnable(tmp_path, mutate) -> Path:
     return path
 
 
+def test_wheel_speeds_in_rad_s_pass_check_config(tmp_path, capsys):
+    """speed_unit rad/s (a wheel's angular rate, times wheel_radius_m) is a unit the CAN driver takes (it raised
+    KeyError: 'rad/s' in check-config and in the driver)."""
+    config = _runnable(tmp_path, lambda d: d["sensors"]["can"]["signals"].update(speed_unit="rad/s"))
+    assert check_config_main([str(config), "--quiet"]) == 0, capsys.readouterr().err
+
+
 @pytest.mark.parametrize(
     "mutate, names",
     [
         (lambda d: d["sensors"]["can"].update(dbc_file="absent.dbc"), ["can:", "absent.dbc"]),
         (lambda d: d["sensors"]["can"]["signals"].update(wheel_speed_fl="WHEEL_SPEEDS.NO_SUCH_SIGNAL"),
          ["can:", "NO_SUCH_SIGNAL"]),
+        (lambda d: d["sensors"]["can"]["signals"].update(speed_unit="furlong/s"), ["sensors.can.signals.speed_unit"]),
         (lambda d: d["sensors"]["lidar"].update(metadata_file="junk.json"), ["lidar:", "mapper:", "junk.json"]),
         (lambda d: d["mapper"].update(segmentation={"provider": "onnx", "model": "absent.onnx",
                                                     "class_map": {0: "road"}}), ["mapper:", "absent.onnx"]),
