@@ -92,3 +92,54 @@ def _sim_config_elsewhere(tmp: Path) -> Path:
 def test_a_config_naming_what_is_not_there_exits_2(module, args, expected, tmp_path):
     run = run_process(module, args, _sim_config_elsewhere(tmp_path), tmp_path)
     assert_config_error(run, expected)
+
+
+def _not_utf8(tmp: Path) -> Path:
+    path = tmp / "latin1.yaml"
+    path.write_bytes(SIM_CONFIG.read_bytes().replace(b"# every key", "# caf\u00e9: every key".encode("latin-1"), 1))
+    return path
+
+
+def _alias_bomb(tmp: Path) -> Path:
+    """A billion laughs (9^9 values) as the camera list: it hung the loader."""
+    lines = ['a0: &a0 ["x", "x", "x", "x", "x", "x", "x", "x", "x"]']
+    lines += [f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 9)}]" for i in range(1, 9)]
+    path = tmp / "bomb.yaml"
+    path.write_text("\n".join(lines) + "\nsensors: {cameras: *a8}\n")
+    return path
+
+
+def _recursive_alias(tmp: Path) -> Path:
+    path = tmp / "recursive.yaml"
+    path.write_text("sensors: &s {cameras: [*s]}\n")
+    return path
+
+
+def _deep(tmp: Path) -> Path:
+    path = tmp / "deep.yaml"
+    path.write_text("sensors: " + "[" * 20_000 + "]" * 20_000 + "\n")
+    return path
+
+
+def _long_integer(tmp: Path) -> Path:
+    path = tmp / "long.yaml"
+    path.write_text(SIM_CONFIG.read_text().replace("segment_seconds: 60", "segment_seconds: " + "9" * 5000, 1))
+    return path
+
+
+UNREADABLE = {"not UTF-8": (_not_utf8, "not UTF-8 text (byte"), "alias bomb": (_alias_bomb, "through its aliases"),
+              "recursive alias": (_recursive_alias, "refers to its own anchor"), "deep": (_deep, "nested too deeply"),
+              "5000-digit integer": (_long_integer, "unreadable value")}
+
+
+@pytest.mark.parametrize("module", ["daemon.commands.cli check-config", "daemon.commands.cli run"])
+@pytest.mark.parametrize("bad", UNREADABLE)
+def test_a_config_file_the_loader_cannot_take_exits_2_at_once(bad, module, tmp_path):
+    """Non-UTF-8 bytes were a UnicodeDecodeError traceback, an alias bomb hung the loader (check-config too), deep
+    nesting a RecursionError, a 5000-digit integer a ValueError: now one line each, exit 2, in well under a second
+    of loading."""
+    make, expected = UNREADABLE[bad]
+    config = make(tmp_path)
+    cmd = [sys.executable, "-m", *module.split(), *(["--config"] if module.endswith("run") else []), str(config)]
+    run = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert_config_error(run, expected)
