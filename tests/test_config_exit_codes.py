@@ -4,8 +4,11 @@ stderr, no traceback, and exit status EXIT_CONFIG_ERROR (which the supervisor do
 
 from __future__ import annotations
 
+import os
+import signal
 import subprocess
 import sys
+import uuid
 from pathlib import Path
 
 import pytest
@@ -143,3 +146,59 @@ def test_a_config_file_the_loader_cannot_take_exits_2_at_once(bad, module, tmp_p
     cmd = [sys.executable, "-m", *module.split(), *(["--config"] if module.endswith("run") else []), str(config)]
     run = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert_config_error(run, expected)
+
+
+def _run_briefly(argv: list[str], env: dict[str, str] | None = None,
+                 timeout_s: float = 60) -> subprocess.CompletedProcess:
+    """A command that must exit by itself: if it starts a daemon instead, its whole process group is killed."""
+    proc = subprocess.Popen([sys.executable, "-m", "daemon.commands.cli", *argv], cwd=ROOT, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+                            env=dict(os.environ, **(env or {})))
+    try:
+        out, err = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        raise AssertionError(f"{argv[0]} did not exit by itself within {timeout_s} s: {err[-2000:]}") from None
+    return subprocess.CompletedProcess(argv, proc.returncode, out, err)
+
+
+def _runnable(tmp: Path, bus: dict | None = None, output_dir: str | None = None) -> Path:
+    """sim.yaml with the files it names absolute (so every other check passes), a private bus, the given changes."""
+    data = yaml.safe_load(SIM_CONFIG.read_text())
+    data["sensors"]["can"]["dbc_file"] = str(ROOT / "configs" / "sim_car.dbc")
+    data["sensors"]["lidar"]["metadata_file"] = str(ROOT / "configs" / "sim_os128_metadata.json")
+    data["bus"] = {"shm_prefix": f"t{uuid.uuid4().hex[:12]}", **(bus or {})}
+    data["recorder"]["output_dir"] = output_dir or str(tmp / "logs")
+    path = tmp / "car.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.mark.parametrize("case, bus, env, expected", [
+    ("Lidar ring too small", {"ring_bytes": {"lidar/packets": 1000}}, {},
+     "bus.ring_bytes['lidar/packets'] = 1000 cannot hold 2 of its 65535 B messages"),
+    ("unknown topic", {"ring_bytes": {"lidar/pakets": 1 << 20}}, {},
+     "bus.ring_bytes names unknown topics 'lidar/pakets'"),
+    ("Docker's 64 MiB /dev/shm", {}, {"ROADLOG_SIMULATED_SHM_BYTES": str(64 << 20)},
+     "rings need 416 MiB of /dev/shm, which holds 64 MiB"),
+])
+def test_rings_that_cannot_work_are_refused_by_check_config_and_by_the_daemon_before_it_starts(case, bus, env, expected,
+                                                                                               tmp_path):
+    """A ring smaller than its topic's messages (the driver died publishing), a ring for a topic that does not
+    exist (a KeyError traceback in every process) and rings beyond /dev/shm (SIGBUS when the writer reached the
+    60th MB, no message): check-config refuses them and `roadlog run` exits 2 before starting anything."""
+    config = _runnable(tmp_path, bus=bus)
+    assert_config_error(_run_briefly(["check-config", str(config), "--quiet"], env), expected)
+    assert_config_error(_run_briefly(["run", "--config", str(config)], env), expected)
+    assert not (tmp_path / "logs").exists()  # nothing started
+
+
+def test_a_recorder_folder_that_cannot_be_made_is_refused_by_check_config_and_the_recorder(tmp_path):
+    (tmp_path / "a_file").write_text("")
+    config = _runnable(tmp_path, output_dir=str(tmp_path / "a_file" / "logs"))
+    expected = "recorder.output_dir"
+    assert_config_error(_run_briefly(["check-config", str(config), "--quiet"]), expected)
+    run = subprocess.run([sys.executable, "-m", "daemon.processes.recorder", "--config", str(config)], cwd=ROOT,
+                         capture_output=True, text=True, timeout=60)
+    assert_config_error(run, "is not a folder")

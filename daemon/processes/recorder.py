@@ -44,13 +44,14 @@ from daemon.log_format.writer import LogWriter
 from daemon.processes import disk_policy
 from daemon.processes.segment_files import (
     OPEN_SUFFIX,
+    check_output_dir,
     closed_segments,
     next_segment_index,
     oldest_first,
     recover_unclosed,
     segment_name,
 )
-from daemon.spine.config import CarConfig, data_dir, load_config, reports_config_errors
+from daemon.spine.config import CarConfig, load_config, reports_config_errors
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import TimeAnchor
 from daemon.spine.process_table import RESTARTS_ENV
@@ -387,7 +388,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s recorder %(levelname)s %(message)s")
     config = load_config(args.config)
-    output_dir = data_dir(config, args.config, args.output_dir)
+    output_dir = check_output_dir(config, args.config, args.output_dir)
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from daemon.log_format.recovery import recover_log
 from daemon.processes import disk_policy
-from daemon.spine.config import CarConfig
+from daemon.spine.config import CarConfig, ConfigError, data_dir
 
 SEGMENT_PREFIX = "roadlog_"
 SEGMENT_SUFFIX = ".mcap"
@@ -129,3 +129,17 @@ def quarantine(src: Path, dst: Path) -> Path:
         n += 1
     os.replace(src, target)
     return target
+
+
+def check_output_dir(config: CarConfig, config_path: str | Path, override: str | Path | None = None) -> Path:
+    """The recorder's folder (recorder.output_dir, or the override), once it is sure it can be made and written
+    (the recorder's start-up check, also run by `roadlog check-config`): ConfigError otherwise."""
+    folder = data_dir(config, config_path, override).absolute()
+    existing = folder
+    while not existing.exists() and existing.parent != existing:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ConfigError(f"recorder.output_dir {str(folder)!r}: {str(existing)!r} is not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ConfigError(f"recorder.output_dir {str(folder)!r}: {str(existing)!r} is not writable by this user")
+    return folder
