@@ -24,6 +24,7 @@ from daemon.log_format.record_scan import (
     check_closed_file,
     read_chunk_at,
     read_record_at,
+    resync,
     scan_records,
     trusted_summary,
 )
@@ -79,6 +80,7 @@ class ReadReport:
 
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+MAGICLESS_SCAN_BYTES = 64 * 1024 * 1024  # how far a file without the magic is searched for an intact MCAP record
 
 
 def not_a_log(path: str | Path) -> str | None:
@@ -92,10 +94,12 @@ def not_a_log(path: str | Path) -> str | None:
         return f"{path}: no such file"
     with open(path, "rb") as f:
         head = f.read(16)
-    if head.startswith(MCAP_MAGIC):
-        return None
-    if head.startswith(b"SQLite format 3"):
-        return f"{path} is a ROS 2 bag's sqlite3 storage: import its bag folder first (roadlog import ros2)"
+        if head.startswith(MCAP_MAGIC):
+            return None
+        if head.startswith(b"SQLite format 3"):
+            return f"{path} is a ROS 2 bag's sqlite3 storage: import its bag folder first (roadlog import ros2)"
+        if resync(f, 0, min(os.fstat(f.fileno()).st_size, MAGICLESS_SCAN_BYTES)) is not None:
+            return None  # an MCAP file whose first block was torn: read_log reads what is intact and says so
     return f"{path} is not an MCAP file"
 
 

@@ -46,10 +46,11 @@ MAX_RECORD_BYTES = 64 << 20  # any other record (ours are metadata of a few hund
 SCAN_WINDOW = 4 << 20  # bytes searched at a time for the next intact record after damage
 FOOTER_BYTES = 1 + 8 + 20  # opcode, length, summary_start, summary_offset_start, summary_crc
 CHUNK_FIXED = struct.Struct("<QQQII")  # message_start_time, message_end_time, uncompressed_size, crc, len(compression)
+MESSAGE_FIXED = struct.Struct("<HIQQ")  # channel_id, sequence, log_time, publish_time (then the data)
 # Where an intact record may start after damage: a chunk (length < 1 GiB) or a metadata record (< 16 MiB); each
 # candidate is then checked in full (a chunk by its CRC), so these only keep the checking rare.
 _RESYNC = re.compile(rb"(?=\x06[\x00-\xff]{3}[\x00-\x3f]\x00{4}|\x0c[\x00-\xff]{3}\x00{5})", re.DOTALL)
-# Records read with the library's parser from exactly their own bytes (a chunk is parsed here, see chunk_records).
+# Records read with the library's parser from exactly their own bytes (a chunk is parsed here, see read_chunk).
 _RECORD_TYPES: dict[int, type] = {
     Opcode.HEADER: Header, Opcode.FOOTER: Footer, Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel,
     Opcode.MESSAGE: Message, Opcode.MESSAGE_INDEX: MessageIndex, Opcode.CHUNK_INDEX: ChunkIndex,
@@ -120,28 +121,33 @@ def _decompress(compression: str, data: bytes, size: int) -> bytes:
         raise DamagedRecord(f"{compression} chunk does not decompress ({type(exc).__name__})") from None
 
 
-def chunk_records(body: bytes, strict: bool = False) -> list[McapRecord]:
-    """The schemas, channels and messages of one chunk record's body, once its size and CRC check out.
-    strict (when looking for an intact record after damage): the CRC must be there and the record exactly full."""
-    if len(body) < CHUNK_FIXED.size:
+def read_chunk(f: BinaryIO, offset: int, length: int, strict: bool = False) -> list[McapRecord]:
+    """The schemas, channels and messages of the chunk record at `offset` (its body `length` bytes), once its size
+    and CRC check out. strict (when looking for an intact record after damage): the CRC must be there and the
+    record exactly full."""
+    head = _read_at(f, offset + 9, min(length, CHUNK_FIXED.size + 4 + 8))
+    if len(head) < CHUNK_FIXED.size:
         raise DamagedRecord("chunk record too short")
-    _, _, size, crc, comp_len = CHUNK_FIXED.unpack_from(body)
+    _, _, size, crc, comp_len = CHUNK_FIXED.unpack_from(head)
     at = CHUNK_FIXED.size
-    compression = body[at:at + comp_len]
+    compression = head[at:at + comp_len] if comp_len <= 4 else b"?"
     if compression not in (b"", b"lz4", b"zstd"):
         raise DamagedRecord("chunk with an unknown compression")
     at += comp_len
-    if at + 8 > len(body):
+    if at + 8 > len(head):
         raise DamagedRecord("chunk record too short")
-    (data_len,) = struct.unpack_from("<Q", body, at)
+    (data_len,) = struct.unpack_from("<Q", head, at)
     at += 8
-    if at + data_len > len(body) or (strict and at + data_len != len(body)):
+    if at + data_len > length or (strict and at + data_len != length):
         raise DamagedRecord("chunk data does not fit its record")
     if size > MAX_CHUNK_BYTES:
         raise DamagedRecord(f"chunk claims {size} bytes uncompressed")
     if strict and crc == 0:
         raise DamagedRecord("chunk without a CRC")
-    data = _decompress(compression.decode(), body[at:at + data_len], size)
+    stored = _read_at(f, offset + 9 + at, data_len)
+    if len(stored) != data_len:
+        raise DamagedRecord("chunk cut off by the end of the file")
+    data = _decompress(compression.decode(), stored, size)
     if len(data) != size:
         raise DamagedRecord(f"chunk decompresses to {len(data)} bytes, not its declared {size}")
     if crc and zlib.crc32(data) != crc:
@@ -151,20 +157,27 @@ def chunk_records(body: bytes, strict: bool = False) -> list[McapRecord]:
     while pos < len(data):
         if pos + 9 > len(data):
             raise DamagedRecord("chunk ends inside a record header")
-        opcode, length = struct.unpack_from("<BQ", data, pos)
-        end = pos + 9 + length
+        opcode, record_length = struct.unpack_from("<BQ", data, pos)
+        end = pos + 9 + record_length
         if end > len(data):
             raise DamagedRecord("record runs past the end of its chunk")
-        if opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
+        if opcode == Opcode.MESSAGE:  # the bulk of every chunk: parsed here, without the library's stream
+            if record_length < MESSAGE_FIXED.size:
+                raise DamagedRecord("message record too short")
+            channel_id, sequence, log_time, publish_time = MESSAGE_FIXED.unpack_from(data, pos + 9)
+            records.append(Message(channel_id=channel_id, sequence=sequence, log_time=log_time,
+                                   publish_time=publish_time, data=data[pos + 9 + MESSAGE_FIXED.size:end]))
+        elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
             records.append(parse_record(opcode, data[pos + 9:end]))
         pos = end  # other records inside a chunk are skipped, as the MCAP spec says
     return records
 
 
-def _top_level(opcode: int, body: bytes, strict: bool = False) -> list[McapRecord]:
+def _record_at(f: BinaryIO, offset: int, opcode: int, length: int, strict: bool = False) -> list[McapRecord]:
+    """The records of the top-level record at `offset`: a chunk's contents, or the record itself."""
     if opcode == Opcode.CHUNK:
-        return chunk_records(body, strict)
-    return [parse_record(opcode, body)]
+        return read_chunk(f, offset, length, strict)
+    return [parse_record(opcode, _read_at(f, offset + 9, length))]
 
 
 def _checked_at(f: BinaryIO, offset: int, size: int) -> bool:
@@ -188,7 +201,7 @@ def _checked_at(f: BinaryIO, offset: int, size: int) -> bool:
     elif length > MAX_RECORD_BYTES:
         return False
     try:
-        records = _top_level(opcode, _read_at(f, offset + 9, length), strict=True)
+        records = _record_at(f, offset, opcode, length, strict=True)
     except DamagedRecord:
         return False
     return opcode == Opcode.CHUNK or records[0].name.startswith("roadlog")
@@ -231,7 +244,7 @@ def scan_records(f: BinaryIO, size: int, damage: Damage, chunks: bool = True) ->
                 problem, truncated = "file ends inside a record", True
             elif chunks or opcode != Opcode.CHUNK:
                 try:
-                    records = _top_level(opcode, _read_at(f, pos + 9, length))
+                    records = _record_at(f, pos, opcode, length)
                 except DamagedRecord as exc:
                     problem = str(exc)
         if problem:
@@ -300,10 +313,11 @@ def check_closed_file(f: BinaryIO, summary: Summary, damage: Damage) -> None:
 
 def read_chunk_at(f: BinaryIO, offset: int, length: int) -> list[McapRecord]:
     """The records of the chunk the summary's index puts at `offset` (DamagedRecord when it does not check out)."""
-    raw = _read_at(f, offset, length)
-    if len(raw) != length or length < 9 or raw[0] != Opcode.CHUNK or struct.unpack_from("<Q", raw, 1)[0] != length - 9:
+    header = _read_at(f, offset, 9)
+    if length < 9 or len(header) != 9 or header[0] != Opcode.CHUNK or struct.unpack_from("<Q", header, 1)[0] != \
+            length - 9:
         raise DamagedRecord("chunk index does not point at a chunk")
-    return chunk_records(raw[9:])
+    return read_chunk(f, offset, length - 9)
 
 
 def read_record_at(f: BinaryIO, offset: int, length: int) -> McapRecord:

@@ -200,3 +200,23 @@ def test_log_info_reports_a_damaged_segment_instead_of_a_traceback(tmp_path):
     assert not info["complete"] and info["damaged_chunks"] == 1 and info["error"]
     assert info["messages"] == len(messages_in(spans, len(open_bytes)) - spans[2][2])
     assert "damaged log" in done.stderr
+
+
+def test_log_info_reads_a_segment_whose_first_block_was_torn(tmp_path):
+    """Without its magic the file was "not an MCAP file" (exit 1); its chunks are intact, so it is a damaged log."""
+    open_bytes, closed, _ = write_open_and_closed(tmp_path)
+    torn = bytearray(open_bytes)
+    torn[:BLOCK] = bytes(BLOCK)
+    path = tmp_path / "seg.mcap.open"
+    path.write_bytes(torn)
+    done = subprocess.run([sys.executable, "-m", "daemon.commands.cli", "log-info", str(path)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    info = json.loads(done.stdout)["files"][0]
+    lost = {k for start, _, keys in chunk_spans(closed) if start < BLOCK for k in keys}
+    assert not info["complete"] and "no MCAP magic" in info["error"]
+    assert info["messages"] == len(messages_in(chunk_spans(closed), len(open_bytes)) - lost)
+    (tmp_path / "text.mcap").write_text("hello")
+    done = subprocess.run([sys.executable, "-m", "daemon.commands.cli", "log-info", str(tmp_path / "text.mcap")],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1 and "is not an MCAP file" in done.stderr
