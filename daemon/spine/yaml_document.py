@@ -58,8 +58,9 @@ def load_yaml(data: bytes) -> object:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise UnusableYaml(f"not UTF-8 text (byte {exc.start}: 0x{data[exc.start]:02x})") from None
-    loader = yaml.SafeLoader(text)
+    loader = None
     try:
+        loader = yaml.SafeLoader(text)  # its reader refuses control characters at once
         node = loader.get_single_node()
         if node is None:
             return None
@@ -74,4 +75,5 @@ def load_yaml(data: bytes) -> object:
     except ValueError as exc:  # PyYAML's constructors: an integer of too many digits, a bad timestamp, ...
         raise UnusableYaml(f"unreadable value: {exc}") from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()

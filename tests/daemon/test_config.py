@@ -74,6 +74,9 @@ def test_not_yaml_and_missing_file(tmp_path):
     bad.write_text("sensors: [unclosed\n")
     with pytest.raises(ConfigError, match="not valid YAML"):
         load_config(bad)
+    bad.write_bytes(b"sensors:\n  cameras: []\n\x05\n")  # a control character: the YAML reader refuses it at once
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(bad)
     with pytest.raises(ConfigError, match="cannot read config file"):
         load_config(tmp_path / "missing.yaml")
     scalar = tmp_path / "scalar.yaml"
