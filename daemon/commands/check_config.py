@@ -1,6 +1,7 @@
-"""`roadlog check-config`: validate a car config, run every start-up check its processes would make (the process
-table names each process's check: Lidar metadata, DBC signals and units, the segmentation model, ...), and print
-the config resolved (defaults filled in). Exit 2 when any check fails, with one line per problem."""
+"""`roadlog check-config`: validate a car config, run every start-up check the daemon and its processes would make
+(the process table names them: the rings against their messages and /dev/shm, Lidar metadata, DBC signals and units,
+the segmentation model, ...), and print the config resolved (defaults filled in). Exit 2 when any check fails, with
+one line per problem."""
 
 from __future__ import annotations
 
@@ -16,21 +17,22 @@ from daemon.spine.config import (
     load_config,
     reports_config_errors,
 )
-from daemon.spine.process_table import process_table
+from daemon.spine.process_table import DAEMON_CHECK, process_table
 
 
 def start_up_problems(config: CarConfig, config_path: str) -> list[str]:
     """What each process of a live run would refuse at start, one line each (empty: all would start)."""
     problems, checked = [], set()
-    for spec in process_table(config, config_path, "live"):
-        if not spec.check or spec.check in checked:  # one check may serve several processes (the cameras')
+    checks = [("bus", DAEMON_CHECK)] + [(s.name, s.check) for s in process_table(config, config_path, "live")]
+    for name, check in checks:
+        if not check or check in checked:  # one check may serve several processes (the cameras')
             continue
-        checked.add(spec.check)
-        module, _, function = spec.check.partition(":")
+        checked.add(check)
+        module, _, function = check.partition(":")
         try:
             getattr(importlib.import_module(module), function)(config, config_path)
         except ConfigError as exc:
-            problems.append(f"{spec.name}: {exc}")
+            problems.append(f"{name}: {exc}")
     return problems
 
 

@@ -35,7 +35,8 @@ def summarise(paths: list[str]) -> dict:
         last = rec.log_time_ns
     return {
         "files": [{"path": str(f.path), "complete": f.complete, "messages": f.messages,
-                   "bytes": f.bytes_total, "bytes_skipped": f.bytes_skipped, "undecodable": f.undecodable}
+                   "bytes": f.bytes_total, "bytes_skipped": f.bytes_skipped, "damaged_chunks": f.damaged_chunks,
+                   "undecodable": f.undecodable, **({"error": f.error} if f.error else {})}
                   for f in report.files],
         "messages_per_topic": dict(sorted(counts.items())),
         "duration_s": (last - first) / 1e9 if first is not None else 0.0,

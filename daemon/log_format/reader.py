@@ -1,24 +1,33 @@
-"""Reading: `read_log` iterates chosen topics of several files in log-time order; a truncated file (a writer killed
-mid-write) is read up to its last complete chunk and the bytes skipped are reported in a `ReadReport`."""
+"""Reading: `read_log` iterates chosen topics of several files in log-time order. Every chunk is checked against its
+CRC; a closed file is read through its summary (when that matches the footer's CRC), any other file (a writer killed
+mid-write, a power cut, damage) record by record past its damaged stretches (record_scan). What was skipped, and why,
+is reported per file in a `ReadReport`; a damaged file never raises."""
 
 from __future__ import annotations
 
 import heapq
-import io
 import logging
-import struct
+import os
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import BinaryIO
 
-from mcap.data_stream import ReadDataStream
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
-from mcap.records import Channel, Chunk, Message, Schema
-from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.records import Channel, Message, Metadata, Schema
 from mcap.summary import Summary
 
 from daemon.log_format.foxglove_schemas import FROM_WELL_KNOWN, TYPE_OF_FOREIGN_SCHEMA
+from daemon.log_format.metadata_records import CHANNEL_METADATA_NAME, channel_from_record
+from daemon.log_format.record_scan import (
+    Damage,
+    DamagedRecord,
+    check_closed_file,
+    read_chunk_at,
+    read_record_at,
+    resync,
+    scan_records,
+    trusted_summary,
+)
 from daemon.spine import message_codec
 from daemon.spine.messages import MESSAGE_TYPE_BY_NAME
 
@@ -35,18 +44,29 @@ class LogRecord:
 
 @dataclass
 class FileReport:
+    """One file as read: complete = closed and every byte of it read; otherwise `error` says what was met first."""
+
     path: Path
     complete: bool = True
     messages: int = 0
     bytes_total: int = 0
-    bytes_skipped: int = 0
-    undecodable: int = 0
+    bytes_skipped: int = 0  # bytes that could not be read (damaged stretches, a truncated end)
+    damaged_chunks: int = 0  # damaged stretches skipped: a chunk that failed its CRC or decompression, garbage
+    undecodable: int = 0  # messages read but not decoded (a bad payload, their channel lost with a damaged chunk)
     error: str = ""
+    damage: Damage = field(default_factory=Damage, repr=False)
+
+    def settle(self) -> None:
+        """Fold what the walk met (`damage`) into the report."""
+        self.bytes_skipped, self.damaged_chunks = self.damage.bytes_skipped, self.damage.stretches
+        if self.damage.bytes_skipped or self.damage.stretches or self.damage.first_error:
+            self.complete = False
+            self.error = "; ".join(e for e in (self.error, self.damage.first_error) if e)
 
 
 @dataclass
 class ReadReport:
-    """What `read_log` met in each file: truncation, bytes skipped, messages it could not decode."""
+    """What `read_log` met in each file: truncation, damage, bytes skipped, messages it could not decode."""
 
     files: list[FileReport] = field(default_factory=list)
 
@@ -60,6 +80,7 @@ class ReadReport:
 
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+MAGICLESS_SCAN_BYTES = 64 * 1024 * 1024  # how far a file without the magic is searched for an intact MCAP record
 
 
 def not_a_log(path: str | Path) -> str | None:
@@ -73,10 +94,12 @@ def not_a_log(path: str | Path) -> str | None:
         return f"{path}: no such file"
     with open(path, "rb") as f:
         head = f.read(16)
-    if head.startswith(MCAP_MAGIC):
-        return None
-    if head.startswith(b"SQLite format 3"):
-        return f"{path} is a ROS 2 bag's sqlite3 storage: import its bag folder first (roadlog import ros2)"
+        if head.startswith(MCAP_MAGIC):
+            return None
+        if head.startswith(b"SQLite format 3"):
+            return f"{path} is a ROS 2 bag's sqlite3 storage: import its bag folder first (roadlog import ros2)"
+        if resync(f, 0, min(os.fstat(f.fileno()).st_size, MAGICLESS_SCAN_BYTES)) is not None:
+            return None  # an MCAP file whose first block was torn: read_log reads what is intact and says so
     return f"{path} is not an MCAP file"
 
 
@@ -98,102 +121,116 @@ def decode_record(schema: Schema | None, channel: Channel, message: Message) -> 
     return None
 
 
-def _iter_complete_file(path: Path, summary: Summary, topics: set[str] | None, start_ns, end_ns):
+def _iter_complete_file(f: BinaryIO, summary: Summary, report: FileReport, topics: set[str] | None, start_ns,
+                        end_ns):
     """Messages of a closed file in log-time order: chunks taken by start time, each chunk's messages
-    released once no later chunk can hold an earlier one (a plain tuple heap: cheaper than mcap's own)."""
-    with open(path, "rb") as f:
-        chunks = sorted((c for c in summary.chunk_indexes
-                         if (start_ns is None or c.message_end_time >= start_ns)
-                         and (end_ns is None or c.message_start_time < end_ns)),
-                        key=lambda c: (c.message_start_time, c.chunk_start_offset))
-        wanted = {cid for cid, ch in summary.channels.items() if topics is None or ch.topic in topics}
-        heap: list = []
-        counter = 0
-        for k, index in enumerate(chunks):
-            f.seek(index.chunk_start_offset + 1 + 8)
-            for record in breakup_chunk(Chunk.read(ReadDataStream(f))):
-                if not isinstance(record, Message) or record.channel_id not in wanted:
-                    continue
-                if (start_ns is not None and record.log_time < start_ns) or (
-                        end_ns is not None and record.log_time >= end_ns):
-                    continue
-                heapq.heappush(heap, (record.log_time, counter, record))
-                counter += 1
-            release_before = chunks[k + 1].message_start_time if k + 1 < len(chunks) else None
-            while heap and (release_before is None or heap[0][0] < release_before):
-                record = heapq.heappop(heap)[2]
-                channel = summary.channels[record.channel_id]
-                yield summary.schemas.get(channel.schema_id), channel, record
+    released once no later chunk can hold an earlier one (a plain tuple heap: cheaper than mcap's own). A chunk
+    that fails its CRC or does not decompress is skipped and counted."""
+    chunks = sorted((c for c in summary.chunk_indexes
+                     if (start_ns is None or c.message_end_time >= start_ns)
+                     and (end_ns is None or c.message_start_time < end_ns)),
+                    key=lambda c: (c.message_start_time, c.chunk_start_offset))
+    wanted = {cid for cid, ch in summary.channels.items() if topics is None or ch.topic in topics}
+    heap: list = []
+    counter = 0
+    for k, index in enumerate(chunks):
+        try:
+            records = read_chunk_at(f, index.chunk_start_offset, index.chunk_length)
+        except DamagedRecord as exc:
+            report.damage.skip(index.chunk_start_offset, index.chunk_length, str(exc))
+            records = []
+        for record in records:
+            if not isinstance(record, Message) or record.channel_id not in wanted:
+                continue
+            if (start_ns is not None and record.log_time < start_ns) or (
+                    end_ns is not None and record.log_time >= end_ns):
+                continue
+            heapq.heappush(heap, (record.log_time, counter, record))
+            counter += 1
+        release_before = chunks[k + 1].message_start_time if k + 1 < len(chunks) else None
+        while heap and (release_before is None or heap[0][0] < release_before):
+            record = heapq.heappop(heap)[2]
+            channel = summary.channels[record.channel_id]
+            yield summary.schemas.get(channel.schema_id), channel, record
 
 
-def _iter_truncated_file(path: Path, report: FileReport, topics: set[str] | None, start_ns, end_ns,
-                         reorder_window: int = 20000):
-    """Stream the complete records of a damaged file, re-ordered by log time within a window."""
+def _iter_scanned_file(f: BinaryIO, report: FileReport, topics: set[str] | None, start_ns, end_ns,
+                       reorder_window: int = 20000):
+    """Every intact message of a file without a trusted summary (never closed, or damaged), re-ordered by log time
+    within a window; damaged stretches are skipped (record_scan) and counted, as are messages whose channel
+    was lost with them."""
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
     heap: list = []
     counter = 0
-    with open(path, "rb") as f:
-        reader = StreamReader(f, record_size_limit=1 << 31)
-        good_offset = 0
-        try:
-            for record in reader.records:
-                good_offset = f.tell()
-                if isinstance(record, Schema):
-                    schemas[record.id] = record
-                elif isinstance(record, Channel):
-                    channels[record.id] = record
-                elif isinstance(record, Message):
-                    channel = channels.get(record.channel_id)
-                    if channel is None or (topics is not None and channel.topic not in topics):
-                        continue
-                    if (start_ns is not None and record.log_time < start_ns) or (
-                            end_ns is not None and record.log_time >= end_ns):
-                        continue
-                    heapq.heappush(heap, (record.log_time, counter, schemas.get(channel.schema_id), channel, record))
-                    counter += 1
-                    if len(heap) > reorder_window:
-                        yield heapq.heappop(heap)[2:]
-        except (McapError, EOFError, ValueError, OSError, KeyError, struct.error) as exc:
-            report.complete = False
-            report.error = f"{type(exc).__name__}: {exc}"
-        report.bytes_skipped = max(0, report.bytes_total - good_offset) if not report.complete else 0
+    for record in scan_records(f, report.bytes_total, report.damage):
+        if isinstance(record, Schema):
+            schemas[record.id] = record
+        elif isinstance(record, Channel):
+            channels[record.id] = record
+        elif isinstance(record, Metadata) and record.name == CHANNEL_METADATA_NAME:
+            described = channel_from_record(record.metadata)
+            if described is not None:
+                channels.setdefault(described[0].id, described[0])
+                schemas.setdefault(described[1].id, described[1])
+        elif isinstance(record, Message):
+            channel = channels.get(record.channel_id)
+            if channel is None:
+                report.undecodable += 1
+                continue
+            if topics is not None and channel.topic not in topics:
+                continue
+            if (start_ns is not None and record.log_time < start_ns) or (
+                    end_ns is not None and record.log_time >= end_ns):
+                continue
+            heapq.heappush(heap, (record.log_time, counter, schemas.get(channel.schema_id), channel, record))
+            counter += 1
+            if len(heap) > reorder_window:
+                yield heapq.heappop(heap)[2:]
     while heap:
         yield heapq.heappop(heap)[2:]
 
 
-def _closed_file_summary(path: Path) -> Summary | None:
-    """The summary of a file that ends with a valid footer (it was closed properly), else None."""
-    try:
-        with open(path, "rb") as f:
-            summary = make_reader(f).get_summary()
-            f.seek(-8, io.SEEK_END)
-            return summary if f.read(8) == b"\x89MCAP0\r\n" else None
-    except Exception:  # noqa: BLE001 - any failure means "read it the careful way"
-        return None
-
-
 def _iter_file(path: Path, report: FileReport, topics, start_ns, end_ns) -> Iterator[LogRecord]:
-    report.bytes_total = path.stat().st_size
-    summary = _closed_file_summary(path)
-    if summary is not None:
-        source = _iter_complete_file(path, summary, topics, start_ns, end_ns)
-    else:
-        report.complete = False
-        source = _iter_truncated_file(path, report, topics, start_ns, end_ns)
-    for schema, channel, message in source:
-        try:
-            decoded = decode_record(schema, channel, message)
-        except Exception:  # noqa: BLE001 - a corrupt message is counted, not fatal
-            report.undecodable += 1
-            continue
-        if decoded is None:
-            continue
-        report.messages += 1
-        yield LogRecord(channel.topic, decoded, message.log_time, path)
-    if not report.complete:
-        log.warning("%s: truncated log, read up to the last complete chunk, skipped %d of %d bytes (%s)",
-                    path, report.bytes_skipped, report.bytes_total, report.error or "no footer")
+    try:
+        f = open(path, "rb")  # noqa: SIM115 - closed below, also when the consumer stops early
+    except OSError as exc:
+        report.complete, report.error = False, f"cannot open: {exc.strerror}"
+        log.error("%s: %s", path, report.error)
+        return
+    try:
+        report.bytes_total = os.fstat(f.fileno()).st_size
+        summary, why = trusted_summary(f, report.bytes_total)
+        if summary is not None:
+            check_closed_file(f, summary, report.damage)
+            source = _iter_complete_file(f, summary, report, topics, start_ns, end_ns)
+        else:
+            report.complete, report.error = False, why
+            source = _iter_scanned_file(f, report, topics, start_ns, end_ns)
+        for schema, channel, message in source:
+            try:
+                decoded = decode_record(schema, channel, message)
+            except Exception:  # noqa: BLE001 - a corrupt message is counted, not fatal
+                report.undecodable += 1
+                continue
+            if decoded is None:
+                continue
+            report.messages += 1
+            yield LogRecord(channel.topic, decoded, message.log_time, path)
+    except OSError as exc:  # a disk read error: what came before stands, the rest of the file is lost
+        report.damage.skip(0, 0, f"read error: {exc.strerror}")
+    finally:
+        f.close()
+    report.settle()
+    if report.damage.stretches:
+        log.error("%s: damaged log: %d damaged stretches skipped, %d of %d bytes unread (%s)", path,
+                  report.damage.stretches, report.bytes_skipped, report.bytes_total, report.error)
+    elif report.bytes_skipped:
+        log.warning("%s: truncated log, read up to its last complete record, skipped %d of %d bytes (%s)",
+                    path, report.bytes_skipped, report.bytes_total, report.error)
+    elif not report.complete:
+        log.warning("%s: unclosed log (%s), read record by record, nothing skipped", path,
+                    report.error or "no footer")
 
 
 def read_log(paths: Iterable[str | Path] | str | Path, topics: Iterable[str] | None = None,
@@ -213,28 +250,41 @@ def read_log(paths: Iterable[str | Path] | str | Path, topics: Iterable[str] | N
 
 
 def read_metadata(path: str | Path, until: str | None = None) -> dict[str, dict[str, str]]:
-    """The metadata records of one file (name -> key/value), also from a truncated file (scanned, up to the
-    record named `until` if given: the writer puts METADATA_NAME first; a closed file's are found through
-    its summary)."""
+    """The metadata records of one file (name -> key/value), also from a truncated or damaged file (scanned, up to
+    the record named `until` if given: the writer puts METADATA_NAME first; a closed file's are found through its
+    summary). The per-channel records (CHANNEL_METADATA_NAME) are the reader's own and are left out."""
     out: dict[str, dict[str, str]] = {}
-    with open(path, "rb") as f:
-        try:
-            summary = make_reader(f).get_summary()
-        except Exception:  # noqa: BLE001 - no footer: a truncated file
-            summary = None
-        if summary is not None and summary.metadata_indexes:
-            for index in summary.metadata_indexes:
-                f.seek(index.offset)
-                record = next(StreamReader(f, skip_magic=True, record_size_limit=1 << 31).records)
-                out[record.name] = dict(record.metadata)
-            return out
-        f.seek(0)
-        try:
-            for record in StreamReader(f, record_size_limit=1 << 31).records:
-                if type(record).__name__ == "Metadata":
+    try:
+        with open(path, "rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            summary, _ = trusted_summary(f, size)
+            if summary is not None:
+                for index in summary.metadata_indexes:
+                    if index.name == CHANNEL_METADATA_NAME:
+                        continue
+                    try:
+                        record = read_record_at(f, index.offset, index.length)
+                    except DamagedRecord:
+                        continue
+                    if isinstance(record, Metadata):
+                        out[record.name] = dict(record.metadata)
+                return out
+            for record in scan_records(f, size, Damage(), chunks=False):
+                if isinstance(record, Metadata) and record.name != CHANNEL_METADATA_NAME:
                     out[record.name] = dict(record.metadata)
                     if record.name == until:
                         break
-        except Exception:  # noqa: BLE001 - a truncated tail just ends the scan
-            pass
+    except OSError:  # unreadable: no metadata
+        pass
     return out
+
+
+def last_log_time(path: str | Path) -> int | None:
+    """The file's last log time from its (trusted) summary; None for a file without one."""
+    try:
+        with open(path, "rb") as f:
+            summary, _ = trusted_summary(f, os.fstat(f.fileno()).st_size)
+    except OSError:
+        return None
+    stats = summary.statistics if summary is not None else None
+    return stats.message_end_time if stats is not None else None

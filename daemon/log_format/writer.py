@@ -2,7 +2,8 @@
 and every other message to its `roadlog.<Name>` schema derived from `daemon.spine.messages`. Each MCAP message record
 carries sequence = the message's per-topic seq, log_time = host_mono_ns and publish_time = sensor_time_ns, so every
 field round-trips. Each file starts with a `roadlog` metadata record and holds a CameraCalibration channel per
-camera."""
+camera; each channel is also described by a `roadlog.channel` metadata record outside the chunks
+(metadata_records)."""
 
 from __future__ import annotations
 
@@ -14,10 +15,17 @@ from collections.abc import Callable
 from pathlib import Path
 
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from mcap.records import Channel, Schema
 from mcap.writer import CompressionType, Writer
 
 from daemon.log_format.foxglove_schemas import file_descriptor_set, to_well_known
-from daemon.log_format.metadata_records import COUNTS_METADATA_NAME, METADATA_NAME, SOFTWARE_VERSION
+from daemon.log_format.metadata_records import (
+    CHANNEL_METADATA_NAME,
+    COUNTS_METADATA_NAME,
+    METADATA_NAME,
+    SOFTWARE_VERSION,
+    channel_record,
+)
 from daemon.spine import message_codec
 from daemon.spine.config import CarConfig, config_to_yaml, resolve_path
 from daemon.spine.topics import LOG_ONLY_CHANNELS, calibration_topic, topic_table
@@ -59,6 +67,8 @@ class LogWriter:
         self.last_seq: dict[str, int] = {}  # per topic, the highest message seq written
         self.bytes_written_estimate = 0
         self._closed = False
+        self._channel_records_pending: list[dict[str, str]] = []  # channels whose first chunk is not written yet
+        self._file_position = 0
         meta = {
             "software_version": SOFTWARE_VERSION,
             "config": config_to_yaml(config),
@@ -85,10 +95,26 @@ class LogWriter:
         cid = self._channels.get(topic)
         if cid is None:
             sid = self._schema_id(schema_name, schema_bytes())
+            metadata = {"roadlog.type": type_name}
             cid = self._writer.register_channel(topic=topic, message_encoding="protobuf", schema_id=sid,
-                                                metadata={"roadlog.type": type_name})
+                                                metadata=metadata)
             self._channels[topic] = cid
+            # outside the chunks too, now and again once the chunk holding the channel's own record is written: that
+            # chunk may be the one a power cut tears, and the chunks after it still need the channel
+            record = channel_record(
+                Channel(id=cid, topic=topic, message_encoding="protobuf", schema_id=sid, metadata=metadata),
+                Schema(id=sid, name=schema_name, encoding="protobuf", data=b""))
+            self._writer.add_metadata(CHANNEL_METADATA_NAME, record)
+            self._channel_records_pending.append(record)
+            self._file_position = self._file.tell()
         return cid
+
+    def _add_message(self, cid: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0) -> None:
+        self._writer.add_message(cid, log_time=log_time, data=data, publish_time=publish_time, sequence=sequence)
+        if self._channel_records_pending and self._file.tell() != self._file_position:  # a chunk was written
+            for record in self._channel_records_pending:
+                self._writer.add_metadata(CHANNEL_METADATA_NAME, record)
+            self._channel_records_pending.clear()
 
     def _write_calibrations(self) -> None:
         for cam in self.config.sensors.cameras:
@@ -101,7 +127,7 @@ class LogWriter:
             topic = calibration_topic(cam.name)
             cid = self._channel_id(topic, "foxglove.CameraCalibration",
                                    lambda: file_descriptor_set(CameraCalibration.DESCRIPTOR.file), "CameraCalibration")
-            self._writer.add_message(cid, log_time=0, data=proto.SerializeToString(), publish_time=0)
+            self._add_message(cid, log_time=0, data=proto.SerializeToString(), publish_time=0)
 
     def write(self, topic: str, message: object) -> None:
         """Append one message; its topic must be in the car's topic table (or be a log-only channel) with a
@@ -123,8 +149,8 @@ class LogWriter:
             cid = self._channel_id(
                 topic, message_codec.schema_name(type(message)),
                 lambda: message_codec.schema_data(type(message)), type_name)
-        self._writer.add_message(cid, log_time=int(message.host_mono_ns), data=data,
-                                 publish_time=int(message.sensor_time_ns), sequence=int(message.seq) & 0xFFFFFFFF)
+        self._add_message(cid, log_time=int(message.host_mono_ns), data=data, publish_time=int(message.sensor_time_ns),
+                          sequence=int(message.seq) & 0xFFFFFFFF)
         self.counts[topic] = self.counts.get(topic, 0) + 1
         self.last_seq[topic] = max(self.last_seq.get(topic, -1), int(message.seq))
         self.bytes_written_estimate += len(data) + 32

@@ -7,6 +7,7 @@ import signal
 import sys
 
 from daemon.bus.pubsub import open_publisher, unlink_all
+from daemon.bus.ring_space import check_rings
 from daemon.processes.supervisor import Supervisor
 from daemon.spine.config import load_config, reports_config_errors
 from daemon.spine.process_table import process_table
@@ -16,7 +17,9 @@ from daemon.spine.topics import topic_table
 def create_rings(config) -> None:
     """Make every topic's ring afresh before any process starts (rings left by a crashed run are removed
     first: their messages are in the recovered segments), so consumers can subscribe, and register as
-    lossless readers, before their producers exist."""
+    lossless readers, before their producers exist. Rings that cannot work (too small for their messages,
+    more than /dev/shm holds) are a ConfigError first."""
+    check_rings(config)
     unlink_all(config)
     for name in topic_table(config):
         try:

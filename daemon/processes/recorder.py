@@ -3,16 +3,18 @@
 A segment is written as `roadlog_<UTC start>_<index>.mcap.open` and renamed to `.mcap` once closed; it
 is rotated every `recorder.segment_seconds` or `recorder.segment_bytes`; its complete chunks are fsynced
 once a second. At start-up every `.open` segment that a crash or power cut left behind is recovered into
-a readable `.mcap` (log_format.recovery.recover_log). A recorder the supervisor restarted then resumes each topic
-after the last message that its daemon run's segments hold (`daemon_run` in their metadata, the highest
-seq per topic in their closing metadata), so what was published while it was down, or torn off with the
-crash's unfinished chunk, is recorded once, as long as the ring still holds it (older messages count as
-lost).
-The disk policy (daemon/processes/disk_policy.py) deletes the oldest closed segments to keep the configured free
-space; when that is not enough the recorder closes its segment, counts what it cannot write per topic,
-and resumes once space returns. Messages written, lost to bus overtaking and dropped for lack of disk
-go per topic into each segment's closing metadata and, as JSON, into the `detail` of the recorder's
-health. Once a second it publishes a TimeAnchor (host monotonic + UTC), which it logs like any topic.
+a readable `.mcap` holding each of its intact chunks (segment_files.recover_unclosed); one with bytes that
+could not be read is also kept whole as `.mcap.damaged` (quarantined), counted and reported in the health
+detail. A recorder the supervisor restarted then resumes each topic after the last message that its daemon
+run's segments hold (`daemon_run` in their metadata, the highest seq per topic in their closing metadata),
+so what was published while it was down, or torn off with the crash's unfinished chunk, is recorded once,
+as long as the ring still holds it (older messages count as lost).
+The disk policy (daemon/processes/disk_policy.py) deletes the oldest closed (or quarantined) segments to
+keep the configured free space; when that is not enough the recorder closes its segment, counts what it
+cannot write per topic, and resumes once space returns. Messages written, lost to bus overtaking and dropped
+for lack of disk go per topic into each segment's closing metadata and, as JSON, into the `detail` of the
+recorder's health. Once a second it publishes a TimeAnchor (host monotonic + UTC), which it logs like any
+topic.
 
 The recorder is a normal (non-lossless) bus reader: one thread polls every subscriber in turn, so it
 can never slow a driver down; if it falls behind a ring, it loses (and counts) the oldest messages.
@@ -32,27 +34,30 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
 from pathlib import Path
 
 from daemon.bus import pubsub
 from daemon.bus.ring_layout import process_start_ticks
 from daemon.log_format.metadata_records import COUNTS_METADATA_NAME, METADATA_NAME
 from daemon.log_format.reader import read_metadata
-from daemon.log_format.recovery import recover_log
 from daemon.log_format.writer import LogWriter
 from daemon.processes import disk_policy
-from daemon.spine.config import CarConfig, data_dir, load_config, reports_config_errors
+from daemon.processes.segment_files import (
+    OPEN_SUFFIX,
+    check_output_dir,
+    closed_segments,
+    next_segment_index,
+    oldest_first,
+    recover_unclosed,
+    segment_name,
+)
+from daemon.spine.config import CarConfig, load_config, reports_config_errors
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import TimeAnchor
 from daemon.spine.process_table import RESTARTS_ENV
 from daemon.spine.topics import TIME_ANCHOR, health_topic, topic_table
 
 PROCESS = "recorder"
-SEGMENT_PREFIX = "roadlog_"
-SEGMENT_SUFFIX = ".mcap"
-OPEN_SUFFIX = ".open"
-RECOVERING_SUFFIX = ".recovering"
 HEALTH_PERIOD_S = 1.0
 SYNC_PERIOD_S = 1.0  # the open segment's complete chunks reach the disk at least this often (power cuts)
 DISK_CHECK_PERIOD_S = 0.5
@@ -62,58 +67,6 @@ IDLE_SLEEP_S = 0.005
 DRAIN_LIMIT_S = 10.0  # at stop: longest time spent writing what is still waiting in the rings
 READ_BURST = 256  # most messages taken from one topic before the next topic gets its turn
 log = logging.getLogger(__name__)
-
-
-def segment_name(utc_ns: int, index: int) -> str:
-    """`roadlog_20261123T101500Z_0003.mcap`: names sort by start time, then by index."""
-    stamp = datetime.fromtimestamp(utc_ns / 1e9, UTC).strftime("%Y%m%dT%H%M%SZ")
-    return f"{SEGMENT_PREFIX}{stamp}_{index:04d}{SEGMENT_SUFFIX}"
-
-
-def _segment_index(name: str) -> int | None:
-    stem = name.split(SEGMENT_SUFFIX)[0]
-    tail = stem.rsplit("_", 1)[-1]
-    return int(tail) if name.startswith(SEGMENT_PREFIX) and tail.isdigit() else None
-
-
-def closed_segments(output_dir: Path) -> list[disk_policy.Segment]:
-    """The closed segments in `output_dir`, oldest first: by index, which a clock set back cannot reorder."""
-    paths = output_dir.glob(f"{SEGMENT_PREFIX}*{SEGMENT_SUFFIX}")
-    out = []
-    for p in sorted(paths, key=lambda p: (_segment_index(p.name) or 0, p.name)):
-        try:
-            out.append(disk_policy.Segment(p, p.stat().st_size))
-        except FileNotFoundError:
-            continue
-    return out
-
-
-def next_segment_index(output_dir: Path) -> int:
-    """One past the highest index of any segment (open, closed or being recovered) in the folder."""
-    indices = [_segment_index(p.name) for p in output_dir.glob(f"{SEGMENT_PREFIX}*")]
-    return 1 + max((i for i in indices if i is not None), default=-1)
-
-
-def recover_unclosed(output_dir: Path, config: CarConfig) -> list[dict]:
-    """Turn every `.mcap.open` left by a crash into a readable `.mcap`; one report per file."""
-    reports = []
-    for src in sorted(output_dir.glob(f"{SEGMENT_PREFIX}*{SEGMENT_SUFFIX}{OPEN_SUFFIX}")):
-        dst = src.with_name(src.name[: -len(OPEN_SUFFIX)])
-        tmp = dst.with_name(dst.name + RECOVERING_SUFFIX)
-        try:
-            fr = recover_log(src, tmp, config)
-            os.replace(tmp, dst)
-            src.unlink()
-        except (OSError, ValueError) as exc:  # keep the original: a later start may manage it
-            log.error("cannot recover %s: %s", src, exc)
-            reports.append({"from": str(src), "to": None, "error": f"{type(exc).__name__}: {exc}"})
-            continue
-        report = {"from": str(src), "to": str(dst), "messages": fr.messages, "bytes_skipped": fr.bytes_skipped,
-                  "error": fr.error}
-        log.warning("recovered unclosed segment %s -> %s: %d messages, %d bytes skipped (%s)",
-                    src.name, dst.name, fr.messages, fr.bytes_skipped, fr.error or "no footer")
-        reports.append(report)
-    return reports
 
 
 @dataclass
@@ -162,7 +115,9 @@ class Recorder:
         self.output_dir = output_dir
         self.run = daemon_run()
         output_dir.mkdir(parents=True, exist_ok=True)
-        self.recovered = recover_unclosed(output_dir, config)
+        self.health = HealthCounters(PROCESS)
+        self.recovered: list[dict] = []
+        self.recover()
         self.next_index = next_segment_index(output_dir)
         self.writer: LogWriter | None = None
         self.open_path: Path | None = None
@@ -173,7 +128,6 @@ class Recorder:
         self.segments_deleted = 0
         self.tally = TopicTally()
         self._at_last_close = TopicTally()
-        self.health = HealthCounters(PROCESS)
         self.disk_full = False
         self.disk_free_bytes = 0
         self._bytes_at_disk_check = 0
@@ -181,6 +135,15 @@ class Recorder:
         self.check_disk(force=True)
 
     # --- segments ----------------------------------------------------------------------------
+
+    def recover(self) -> None:
+        """Recover the unclosed segments in the folder; a quarantined or unrecoverable one counts as an error."""
+        for report in recover_unclosed(self.output_dir, self.config):
+            self.recovered.append(report)
+            if report["quarantined"]:
+                self.health.count_error(f"quarantined {Path(report['quarantined']).name}: {report['error']}")
+            elif report["to"] is None:
+                self.health.count_error(f"cannot recover {Path(report['from']).name}: {report['error']}")
 
     def _open_segment(self) -> None:
         name = segment_name(time.time_ns(), self.next_index)
@@ -249,7 +212,8 @@ class Recorder:
         required = disk_policy.required_free_bytes(usage.total_bytes, self.rc.min_free_gib, self.rc.min_free_pct)
         if usage.free_bytes >= required:
             return usage.free_bytes, required
-        for seg in disk_policy.segments_to_delete(closed_segments(self.output_dir), usage.free_bytes, required):
+        # a quarantined segment goes when its turn comes, like the closed segments of its time
+        for seg in disk_policy.segments_to_delete(oldest_first(self.output_dir), usage.free_bytes, required):
             try:
                 seg.path.unlink()
             except FileNotFoundError:
@@ -281,7 +245,7 @@ class Recorder:
         elif not full and self.disk_full:
             log.warning("disk space is back (%d bytes free): writing resumes", free)
             self.disk_full = False
-            self.recovered += recover_unclosed(self.output_dir, self.config)
+            self.recover()
 
     # --- messages ------------------------------------------------------------------------------
 
@@ -333,6 +297,7 @@ class Recorder:
             "lost_bus": dict(sorted(self.tally.lost_bus.items())),
             "dropped_disk_full": dict(sorted(self.tally.dropped_disk_full.items())),
             "recovered": self.recovered,
+            "segments_quarantined": sum(1 for r in self.recovered if r["quarantined"]),
             "last_error": self.health.last_error,
         })
         return msg
@@ -423,7 +388,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s recorder %(levelname)s %(message)s")
     config = load_config(args.config)
-    output_dir = data_dir(config, args.config, args.output_dir)
+    output_dir = check_output_dir(config, args.config, args.output_dir)
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())

@@ -28,10 +28,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mcap.reader import make_reader
-
 from daemon.bus import pubsub
-from daemon.log_format.reader import LogRecord, ReadReport, read_log
+from daemon.log_format.reader import LogRecord, ReadReport, last_log_time, read_log
 from daemon.spine.config import CarConfig, ConfigError, load_config, reports_config_errors
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import HOST_CLOCK_WITHIN_NS
@@ -60,16 +58,6 @@ def _first_log_time(path: Path) -> int | None:
     return None if first is None else first.log_time_ns
 
 
-def _last_log_time(path: Path) -> int | None:
-    """The file's last log time from its summary (None for a file without one)."""
-    try:
-        with open(path, "rb") as f:
-            stats = make_reader(f).get_summary().statistics
-    except Exception:  # noqa: BLE001 - no usable summary: the caller falls back to the first time
-        return None
-    return stats.message_end_time if stats is not None else None
-
-
 @dataclass
 class LogSpan:
     """Files ordered by their first message, and the time span they cover (host monotonic ns)."""
@@ -87,7 +75,7 @@ def log_span(paths: list[Path]) -> LogSpan:
         if first is None:
             continue
         files.append((first, p))
-        end = max(end, _last_log_time(p) or first)
+        end = max(end, last_log_time(p) or first)
     files.sort()
     start = files[0][0] if files else 0
     return LogSpan(files, start, max(end, start))
@@ -139,6 +127,7 @@ class ReplayProgress:
             "published_per_topic": dict(sorted(self.published.items())),
             "skipped_per_topic": dict(sorted(self.skipped.items())),
             "incomplete_files": [str(p) for p in self.report.incomplete_files],
+            "damaged_chunks": sum(f.damaged_chunks for f in self.report.files),
             "bytes_skipped": self.report.bytes_skipped,
         })
 

@@ -159,6 +159,8 @@ class _BoardCollector:
         lost = GaugeMetricFamily("roadlog_recorder_lost_messages", "messages the recorder lost", labels=["topic"])
         written = GaugeMetricFamily("roadlog_recorder_written_messages", "messages written to the log",
                                     labels=["topic"])
+        quarantined = GaugeMetricFamily("roadlog_recorder_quarantined_segments", "unclosed segments that could not "
+                                        "be read in full, kept as .mcap.damaged (since the recorder started)")
         restarts = GaugeMetricFamily("roadlog_process_restarts", "restarts by the supervisor", labels=["process"])
         malformed = CounterMetricFamily("roadlog_status_malformed_details", "health detail entries of the wrong "
                                         "shape, skipped (in the latest health of each process)", labels=["process"])
@@ -176,6 +178,10 @@ class _BoardCollector:
                     bad += wrong
                     for topic, n in figures.items():
                         family.add_metric([topic], n)
+                figures, wrong = _numbers({"": detail.get("segments_quarantined", 0)})
+                bad += wrong
+                for n in figures.values():
+                    quarantined.add_metric([], n)
             if name == "supervisor":
                 figures, bad = _restarts(detail)
                 for proc, n in figures.items():
@@ -183,7 +189,7 @@ class _BoardCollector:
             malformed.add_metric([name], bad)
         yield from gauges.values()
         yield from counters.values()
-        yield from (lost, written, restarts, malformed)
+        yield from (lost, written, quarantined, restarts, malformed)
 
 
 def make_handler(config: CarConfig, board: HealthBoard, registry: CollectorRegistry, data_folder: Path,

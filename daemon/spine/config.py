@@ -20,6 +20,8 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from daemon.spine.yaml_document import UnusableYaml, load_yaml
+
 P = ParamSpec("P")
 
 
@@ -451,13 +453,13 @@ def load_config(path: str | Path) -> CarConfig:
     """Read and validate a YAML car config; any problem raises ConfigError with one clear message."""
     path = Path(path)
     try:
-        text = path.read_text()
+        raw = path.read_bytes()
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read config file: {exc.strerror}") from None
     try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+        data = load_yaml(raw)
+    except UnusableYaml as exc:
+        raise ConfigError(f"{path}: {exc}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: (top level): expected a mapping of sections, got {type(data).__name__}")
     return parse_config(data, str(path))

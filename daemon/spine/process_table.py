@@ -14,6 +14,8 @@ from daemon.spine.topics import camera_process
 Mode = Literal["live", "replay"]
 MAPPER_NICE = 10  # the mapper's CPU priority below the drivers' and the recorder's
 RESTARTS_ENV = "ROADLOG_RESTARTS"  # set by the supervisor: how many times it restarted this process (0: first start)
+# What the daemon itself checks before it starts any process (as ProcessSpec.check): the rings it makes fit
+DAEMON_CHECK = "daemon.bus.ring_space:check_rings"
 
 
 @dataclass(frozen=True)
@@ -85,7 +87,8 @@ def process_table(
         # replaying as fast as the consumers allow: the player waits for the recorder too, or it would overrun it
         lossless = ("--lossless",) if mode == "replay" and replay_rate == "max" else ()
         table.append(ProcessSpec("recorder", "daemon.processes.recorder", cfg + out + anchors + lossless,
-                                 heartbeat_s=15.0, stop_timeout_s=30.0))
+                                 heartbeat_s=15.0, stop_timeout_s=30.0,
+                                 check="daemon.processes.segment_files:check_output_dir"))
     if config.mapper.enabled:
         # the log comes first: on a busy machine the drivers and the recorder get the CPU before the mapper
         table.append(ProcessSpec("mapper", "mapping.live.mapping_worker", cfg + out, heartbeat_s=120.0,

@@ -6,9 +6,10 @@ config by `topic_table`.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
-from daemon.spine.config import CarConfig
+from daemon.spine.config import CarConfig, ConfigError
 from daemon.spine.messages import (
     CameraFrame,
     CanFrame,
@@ -24,6 +25,8 @@ from daemon.spine.messages import (
 )
 
 MB = 1024 * 1024
+SMALL_MESSAGE_BYTES = 64 * 1024  # the largest of the small messages (IMU, fixes, CAN, health with its JSON detail)
+UDP_DATAGRAM_BYTES = 65_535  # a Lidar packet is one datagram
 
 
 @dataclass(frozen=True)
@@ -34,6 +37,7 @@ class Topic:
     ring_bytes: int
     logged: bool = True
     source: str = ""  # the process that writes it (a process table name, or "supervisor")
+    max_message_bytes: int = SMALL_MESSAGE_BYTES  # the largest payload it carries (a ring must hold a few)
 
 
 def camera_topic(camera: str) -> str:
@@ -85,9 +89,9 @@ def topic_table(config: CarConfig) -> dict[str, Topic]:
         raw_bytes = cam.width * cam.height * 3
         ring = max(64 * MB, 4 * raw_bytes + MB)
         process = camera_process(cam.name)
-        topics.append(Topic(camera_topic(cam.name), CameraFrame, cam.rate_hz, ring, True, process))
+        topics.append(Topic(camera_topic(cam.name), CameraFrame, cam.rate_hz, ring, True, process, raw_bytes))
         topics.append(Topic(mask_topic(cam.name), SemanticMask, cam.rate_hz, max(16 * MB, 2 * raw_bytes), True,
-                            process))
+                            process, cam.width * cam.height + SMALL_MESSAGE_BYTES))  # a PNG of class ids, worst case
         topics.append(Topic(health_topic(process), DriverHealth, 1.0, 1 * MB, True, process))
     if sensors.lidar is not None and sensors.lidar.point_clouds:
         # a 128-beam scan of 1024 columns is ~2.6 MB of points: the ring holds ~5 s of them at 10 Hz, as the packet
@@ -95,7 +99,7 @@ def topic_table(config: CarConfig) -> dict[str, Topic]:
         topics.append(Topic(LIDAR_POINTS, PointCloud, sensors.lidar.rate_hz, 128 * MB, True, "lidar"))
     elif sensors.lidar is not None:
         packets_per_s = sensors.lidar.columns_per_frame / 16 * sensors.lidar.rate_hz
-        topics.append(Topic(LIDAR_PACKETS, LidarPacket, packets_per_s, 128 * MB, True, "lidar"))
+        topics.append(Topic(LIDAR_PACKETS, LidarPacket, packets_per_s, 128 * MB, True, "lidar", UDP_DATAGRAM_BYTES))
         topics.append(Topic(LIDAR_IMU, ImuSample, 100.0, 4 * MB, True, "lidar"))
     if sensors.gnss is not None:
         topics.append(Topic(GNSS_FIX, GnssFix, sensors.gnss.rate_hz, 4 * MB, True, "gnss"))
@@ -107,9 +111,10 @@ def topic_table(config: CarConfig) -> dict[str, Topic]:
     for process in HEALTH_PROCESSES:
         topics.append(Topic(health_topic(process), DriverHealth, 1.0, 1 * MB, True, process))
     table = {t.name: t for t in topics}
+    unknown = sorted(set(config.bus.ring_bytes) - set(table))
+    if unknown:
+        raise ConfigError(f"bus.ring_bytes names unknown topics {', '.join(map(repr, unknown))} "
+                          f"(known: {', '.join(sorted(table))})")
     for name, size in config.bus.ring_bytes.items():
-        if name not in table:
-            raise KeyError(f"bus.ring_bytes names unknown topic {name!r}")
-        t = table[name]
-        table[name] = Topic(t.name, t.message_type, t.rate_hz, size, t.logged, t.source)
+        table[name] = dataclasses.replace(table[name], ring_bytes=size)
     return table

@@ -19,7 +19,7 @@ from cantools.database import Database, Message
 from daemon.spine.config import CanSignals
 from daemon.spine.messages import WheelSpeeds
 
-SPEED_TO_MPS = {"m/s": 1.0, "km/h": 1.0 / 3.6}
+SPEED_TO_MPS = {"m/s": 1.0, "km/h": 1.0 / 3.6}  # "rad/s" (a wheel's angular rate) scales by its radius instead
 YAW_TO_RPS = {"rad/s": 1.0, "deg/s": math.pi / 180.0}
 YAW_STALE_NS = 1_000_000_000  # a yaw rate older than this (frame time) is not paired with wheel speeds
 COUNTER_SIGNAL = "COUNTER"
@@ -76,9 +76,14 @@ def wheel_speed_layout(db: Database, signals: CanSignals) -> WheelSpeedLayout:
         wheel_signals=(wheels[0][1], wheels[1][1], wheels[2][1], wheels[3][1]),
         yaw_message=yaw_message,
         yaw_signal=yaw_signal,
-        speed_to_mps=SPEED_TO_MPS[signals.speed_unit],
+        speed_to_mps=speed_to_mps(signals),
         yaw_to_rps=YAW_TO_RPS[signals.yaw_rate_unit],
     )
+
+
+def speed_to_mps(signals: CanSignals) -> float:
+    """The factor from the DBC's wheel-speed unit to m/s: an angular rate (rad/s) times the wheel's radius."""
+    return signals.wheel_radius_m if signals.speed_unit == "rad/s" else SPEED_TO_MPS[signals.speed_unit]
 
 
 def toyota_checksum(frame_id: int, data: bytes) -> int:

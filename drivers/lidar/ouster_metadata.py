@@ -4,6 +4,8 @@ dataclass, and write the JSON of a simulated OS-128 that ouster-sdk accepts."""
 from __future__ import annotations
 
 import json
+import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -56,19 +58,68 @@ class OusterMetadata:
         return 1 << 32 if self.header_type == "FUSA" else 1 << 16
 
 
-def _get(d: dict, *keys: str) -> Any:
-    for key in keys:
+MAX_PIXELS_PER_COLUMN = 1024  # beams (Ouster's are 16 to 128)
+MAX_COLUMNS_PER_FRAME = 1 << 16  # Ouster's are 512 to 4096
+_LIDAR_MODE = re.compile(r"^([1-9][0-9]{0,5})x([1-9][0-9]{0,3})$")
+
+
+def _fail(name: str, what: str) -> ValueError:
+    return ValueError(f"Ouster metadata: {name} {what}")
+
+
+def _get(d: Any, *keys: str) -> Any:
+    for i, key in enumerate(keys):
+        if not isinstance(d, dict):
+            raise _fail(".".join(keys[:i]) or "the document", f"must be an object, not {type(d).__name__}")
         if key not in d:
             raise ValueError(f"Ouster metadata: missing key {'.'.join(keys)!r}")
         d = d[key]
     return d
 
 
+def _object(value: Any, name: str) -> dict:
+    if not isinstance(value, dict):
+        raise _fail(name, f"must be an object, not {type(value).__name__}")
+    return value
+
+
+def _int(value: Any, name: str, low: int, high: int) -> int:
+    """An integer in [low, high] (JSON may write it as 16.0; a bool is not one)."""
+    if isinstance(value, float) and math.isfinite(value) and value.is_integer():
+        value = int(value)
+    if not isinstance(value, int) or isinstance(value, bool) or not low <= value <= high:
+        raise _fail(name, f"must be an integer from {low} to {high}, not {value!r:.40}")
+    return value
+
+
+def _float(value: Any, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise _fail(name, f"must be a finite number, not {value!r:.40}")
+    return float(value)
+
+
+def _array(values: Any, name: str, size: int, dtype: type = np.float64) -> np.ndarray:
+    """A flat array of `size` finite numbers."""
+    if not isinstance(values, list) or not all(isinstance(v, int | float) and not isinstance(v, bool)
+                                               for v in values):
+        raise _fail(name, "must be a list of numbers")
+    if len(values) != size:
+        raise _fail(name, f"must have {size} values, has {len(values)}")
+    try:
+        array = np.asarray(values, dtype=np.float64)
+    except OverflowError:
+        raise _fail(name, "holds a number out of range") from None
+    if not np.isfinite(array).all():
+        raise _fail(name, "must hold finite numbers")
+    if dtype is not np.float64:
+        if (np.abs(array) > 2**31).any() or (array != np.round(array)).any():
+            raise _fail(name, "must hold integers")
+        array = array.astype(dtype)
+    return array
+
+
 def _matrix(values: Any, name: str) -> np.ndarray:
-    m = np.asarray(values, dtype=np.float64)
-    if m.size != 16:
-        raise ValueError(f"Ouster metadata: {name} must have 16 values, has {m.size}")
-    return m.reshape(4, 4)
+    return _array(values, name, 16).reshape(4, 4)
 
 
 def _beam_to_lidar(origin_mm: float) -> np.ndarray:
@@ -77,70 +128,84 @@ def _beam_to_lidar(origin_mm: float) -> np.ndarray:
     return m
 
 
+def _document(source: str | bytes | dict | Path) -> dict:
+    if isinstance(source, Path):
+        source = source.read_bytes()
+    if isinstance(source, str | bytes):
+        try:
+            source = json.loads(source)
+        except RecursionError:
+            raise ValueError("Ouster metadata: JSON nested too deeply") from None
+        except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError
+            raise ValueError(f"Ouster metadata: not JSON ({exc})") from None
+    return _object(source, "the document")
+
+
 def parse_metadata(source: str | bytes | dict | Path) -> OusterMetadata:
     """Parse sensor metadata from JSON text, a decoded dict or a file path.
 
     Accepts both the legacy flat layout (firmware 2.x: "data_format", "beam_altitude_angles" at top
     level) and the non-legacy sectioned one ("lidar_data_format", "beam_intrinsics", ...). Raises
-    ValueError naming the first missing or unusable key."""
-    if isinstance(source, Path):
-        source = source.read_text()
-    d = json.loads(source) if isinstance(source, (str, bytes)) else source
+    ValueError naming the first missing or unusable key (of the wrong type, size or range), and nothing else."""
+    d = _document(source)
     if "lidar_data_format" in d:
-        fmt = d["lidar_data_format"]
-        beams = _get(d, "beam_intrinsics")
-        info = d.get("sensor_info", {})
-        config = d.get("config_params", {})
+        fmt = _object(d["lidar_data_format"], "lidar_data_format")
+        beams = _object(_get(d, "beam_intrinsics"), "beam_intrinsics")
+        info = _object(d.get("sensor_info", {}), "sensor_info")
+        config = _object(d.get("config_params", {}), "config_params")
         lidar_to_sensor = _get(d, "lidar_intrinsics", "lidar_to_sensor_transform")
-        imu_to_sensor = d.get("imu_intrinsics", {}).get("imu_to_sensor_transform", np.eye(4).ravel())
+        imu_to_sensor = _object(d.get("imu_intrinsics", {}), "imu_intrinsics").get("imu_to_sensor_transform")
         lidar_mode = config.get("lidar_mode") or f"{_get(fmt, 'columns_per_frame')}x{fmt.get('fps', 10)}"
         ports = (config.get("udp_port_lidar", 7502), config.get("udp_port_imu", 7503))
     else:
-        fmt = _get(d, "data_format")
+        fmt = _object(_get(d, "data_format"), "data_format")
         beams, info = d, d
         lidar_to_sensor = _get(d, "lidar_to_sensor_transform")
-        imu_to_sensor = d.get("imu_to_sensor_transform", np.eye(4).ravel())
+        imu_to_sensor = d.get("imu_to_sensor_transform")
         lidar_mode = _get(d, "lidar_mode")
         ports = (d.get("udp_port_lidar", 7502), d.get("udp_port_imu", 7503))
 
     profile = str(fmt.get("udp_profile_lidar", "LEGACY"))
-    header_type = fmt.get("header_type") or ("FUSA" if profile.startswith("FUSA_") else "STANDARD")
-    h = int(_get(fmt, "pixels_per_column"))
-    w = int(_get(fmt, "columns_per_frame"))
-    origin_mm = float(_get(beams, "lidar_origin_to_beam_origin_mm"))
+    header_type = str(fmt.get("header_type") or ("FUSA" if profile.startswith("FUSA_") else "STANDARD"))
+    h = _int(_get(fmt, "pixels_per_column"), "pixels_per_column", 1, MAX_PIXELS_PER_COLUMN)
+    w = _int(_get(fmt, "columns_per_frame"), "columns_per_frame", 1, MAX_COLUMNS_PER_FRAME)
+    columns_per_packet = _int(_get(fmt, "columns_per_packet"), "columns_per_packet", 1, w)
+    if w % columns_per_packet:
+        raise ValueError("Ouster metadata: columns_per_frame must be a multiple of columns_per_packet")
+    if not isinstance(lidar_mode, str) or not _LIDAR_MODE.match(lidar_mode):
+        raise _fail("lidar_mode", f"must be COLUMNSxFPS such as '1024x10', not {lidar_mode!r:.40}")
+    window = fmt.get("column_window", [0, w - 1])
+    if not isinstance(window, list) or len(window) != 2:
+        raise _fail("column_window", "must be [first, last]")
+    origin_mm = _float(_get(beams, "lidar_origin_to_beam_origin_mm"), "lidar_origin_to_beam_origin_mm")
     if "beam_to_lidar_transform" in beams:
         beam_to_lidar = _matrix(beams["beam_to_lidar_transform"], "beam_to_lidar_transform")
     else:
         beam_to_lidar = _beam_to_lidar(origin_mm)
-    meta = OusterMetadata(
+    return OusterMetadata(
         prod_line=str(info.get("prod_line", "")),
         prod_sn=str(info.get("prod_sn", "")),
         firmware=str(info.get("image_rev") or info.get("build_rev", "")),
-        init_id=int(info.get("initialization_id", 0)),
-        lidar_mode=str(lidar_mode),
+        init_id=_int(info.get("initialization_id", 0), "initialization_id", 0, 2**63 - 1),
+        lidar_mode=lidar_mode,
         udp_profile_lidar=profile,
         udp_profile_imu=str(fmt.get("udp_profile_imu", "LEGACY")),
-        header_type=str(header_type),
+        header_type=header_type,
         columns_per_frame=w,
-        columns_per_packet=int(_get(fmt, "columns_per_packet")),
+        columns_per_packet=columns_per_packet,
         pixels_per_column=h,
-        column_window=tuple(int(v) for v in fmt.get("column_window", (0, w - 1))),
-        pixel_shift_by_row=np.asarray(_get(fmt, "pixel_shift_by_row"), dtype=np.int64),
-        beam_altitude_angles=np.asarray(_get(beams, "beam_altitude_angles"), dtype=np.float64),
-        beam_azimuth_angles=np.asarray(_get(beams, "beam_azimuth_angles"), dtype=np.float64),
+        column_window=(_int(window[0], "column_window", 0, w - 1), _int(window[1], "column_window", 0, w - 1)),
+        pixel_shift_by_row=_array(_get(fmt, "pixel_shift_by_row"), "pixel_shift_by_row", h, np.int64),
+        beam_altitude_angles=_array(_get(beams, "beam_altitude_angles"), "beam_altitude_angles", h),
+        beam_azimuth_angles=_array(_get(beams, "beam_azimuth_angles"), "beam_azimuth_angles", h),
         lidar_origin_to_beam_origin_mm=origin_mm,
         beam_to_lidar_transform=beam_to_lidar,
         lidar_to_sensor_transform=_matrix(lidar_to_sensor, "lidar_to_sensor_transform"),
-        imu_to_sensor_transform=_matrix(imu_to_sensor, "imu_to_sensor_transform"),
-        udp_port_lidar=int(ports[0]),
-        udp_port_imu=int(ports[1]),
+        imu_to_sensor_transform=np.eye(4) if imu_to_sensor is None else _matrix(imu_to_sensor,
+                                                                               "imu_to_sensor_transform"),
+        udp_port_lidar=_int(ports[0], "udp_port_lidar", 0, 65535),
+        udp_port_imu=_int(ports[1], "udp_port_imu", 0, 65535),
     )
-    for name in ("pixel_shift_by_row", "beam_altitude_angles", "beam_azimuth_angles"):
-        if getattr(meta, name).shape != (h,):
-            raise ValueError(f"Ouster metadata: {name} must have pixels_per_column={h} values")
-    if w % meta.columns_per_packet:
-        raise ValueError("Ouster metadata: columns_per_frame must be a multiple of columns_per_packet")
-    return meta
 
 
 def simulated_os128_metadata(

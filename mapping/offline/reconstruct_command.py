@@ -34,6 +34,7 @@ from daemon.spine.config import (
 from daemon.spine.health import process_memory_mb
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.recorded_config import sectioned_recorded_config
+from daemon.spine.yaml_document import UnusableYaml, load_yaml
 from mapping.fits.reconstruction import ReconstructionResult, reconstruct
 from mapping.inputs.drive_inputs import DriveInputs, missing_masks_warning, start_loading_drive
 from mapping.method.road_map import ABLATIONS, variant_for
@@ -67,9 +68,10 @@ def config_from_logs(paths: list[str]) -> tuple[CarConfig, Path]:
     meta = read_metadata(paths[0]).get("roadlog", {})
     if "config" not in meta:
         raise ConfigError(f"{paths[0]}: no recorded config in the log metadata; pass --config")
-    import yaml
-
-    recorded = sectioned_recorded_config(yaml.safe_load(meta["config"]))
+    try:
+        recorded = sectioned_recorded_config(load_yaml(meta["config"].encode()))
+    except UnusableYaml as exc:
+        raise ConfigError(f"{paths[0]}: recorded config: {exc}") from None
     config = parse_config(recorded, f"{paths[0]} (recorded config)")
     folder = Path(tempfile.mkdtemp(prefix="roadlog-reconstruct-"))
     packets = config.sensors.lidar is not None and not config.sensors.lidar.point_clouds  # decoded with metadata
@@ -131,11 +133,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--epochs", type=int,
                         help="epochs of the faithful fit (default: the config's mapper.faithful_fit.epochs)")
     args = parser.parse_args(argv)
+    given = load_config(args.config) if args.config else None  # the config's own error first, as every process
     problems = [why for why in map(not_a_log, args.logs) if why]
     if problems:
         raise ConfigError("; ".join(problems))
-    if args.config:
-        config, config_path = load_config(args.config), Path(args.config)
+    if given is not None:
+        config, config_path = given, Path(args.config)
     else:
         config, config_path = config_from_logs(args.logs)
     if args.epochs is not None:

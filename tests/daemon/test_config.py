@@ -1,5 +1,6 @@
 """The car config: shipped configs load; bad configs fail with one message naming file, key and expectation."""
 
+import json
 from pathlib import Path
 
 import pytest
@@ -80,6 +81,9 @@ def test_not_yaml_and_missing_file(tmp_path):
     bad.write_text("sensors: [unclosed\n")
     with pytest.raises(ConfigError, match="not valid YAML"):
         load_config(bad)
+    bad.write_bytes(b"sensors:\n  cameras: []\n\x05\n")  # a control character: the YAML reader refuses it at once
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(bad)
     with pytest.raises(ConfigError, match="cannot read config file"):
         load_config(tmp_path / "missing.yaml")
     scalar = tmp_path / "scalar.yaml"
@@ -124,12 +128,49 @@ def _runnable(tmp_path, mutate) -> Path:
     return path
 
 
+def test_wheel_speeds_in_rad_s_pass_check_config(tmp_path, capsys):
+    """speed_unit rad/s (a wheel's angular rate, times wheel_radius_m) is a unit the CAN driver takes (it raised
+    KeyError: 'rad/s' in check-config and in the driver)."""
+    config = _runnable(tmp_path, lambda d: d["sensors"]["can"]["signals"].update(speed_unit="rad/s"))
+    assert check_config_main([str(config), "--quiet"]) == 0, capsys.readouterr().err
+
+
+def _metadata(change) -> dict:
+    doc = json.loads((CONFIGS / "sim_os128_metadata.json").read_text())
+    change(doc)
+    return doc
+
+
+@pytest.mark.parametrize("doc, expected", [
+    (_metadata(lambda d: d.update(lidar_data_format=[])), "lidar_data_format must be an object"),  # AttributeError
+    (_metadata(lambda d: d["lidar_data_format"].update(column_window=[0])), "column_window"),  # IndexError
+    (_metadata(lambda d: d["lidar_data_format"].update(columns_per_packet=0)), "columns_per_packet"),  # ZeroDivision
+    (_metadata(lambda d: d["lidar_data_format"].update(pixel_shift_by_row=None)), "pixel_shift_by_row"),  # TypeError
+    (_metadata(lambda d: d["beam_intrinsics"].update(beam_altitude_angles=["up"] * 128)), "beam_altitude_angles"),
+    (_metadata(lambda d: d["config_params"].update(lidar_mode="1024")), "lidar_mode"),  # IndexError in the driver
+    (_metadata(lambda d: d["config_params"].update(udp_port_lidar=70000)), "udp_port_lidar"),
+    ([1, 2, 3], "the document must be an object"),
+    ("[" * 100_000, "JSON nested too deeply"),  # RecursionError
+    ("{\"lidar_data_format\": ", "not JSON"),
+])
+def test_broken_lidar_metadata_is_one_config_error_line(tmp_path, capsys, doc, expected):
+    """Mutated Ouster metadata files raised TypeError/AttributeError/IndexError/ZeroDivisionError from check-config
+    (or, for lidar_mode, from the driver right after its start-up check): now the parser names the key."""
+    (tmp_path / "meta.json").write_text(doc if isinstance(doc, str) else json.dumps(doc))
+    config = _runnable(tmp_path, lambda d: d["sensors"]["lidar"].update(metadata_file=str(tmp_path / "meta.json")))
+    assert check_config_main([str(config), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "lidar: " in err and "sensors.lidar.metadata_file" in err and expected in err, err
+    assert "Traceback" not in err
+
+
 @pytest.mark.parametrize(
     "mutate, names",
     [
         (lambda d: d["sensors"]["can"].update(dbc_file="absent.dbc"), ["can:", "absent.dbc"]),
         (lambda d: d["sensors"]["can"]["signals"].update(wheel_speed_fl="WHEEL_SPEEDS.NO_SUCH_SIGNAL"),
          ["can:", "NO_SUCH_SIGNAL"]),
+        (lambda d: d["sensors"]["can"]["signals"].update(speed_unit="furlong/s"), ["sensors.can.signals.speed_unit"]),
         (lambda d: d["sensors"]["lidar"].update(metadata_file="junk.json"), ["lidar:", "mapper:", "junk.json"]),
         (lambda d: d["mapper"].update(segmentation={"provider": "onnx", "model": "absent.onnx",
                                                     "class_map": {0: "road"}}), ["mapper:", "absent.onnx"]),

@@ -24,6 +24,7 @@ import pytest
 import yaml
 
 from daemon.bus import pubsub
+from daemon.log_format.reader import ReadReport, read_log
 from daemon.log_format.writer import LogWriter
 from daemon.processes.replay import replay, replayed_topics
 from daemon.spine.config import load_config
@@ -49,6 +50,7 @@ from daemon.spine.topics import (
     camera_topic,
     health_topic,
 )
+from tests.daemon.test_log_damage import second_lz4_block_header
 from tests.daemon_fixtures import private_config
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -278,6 +280,46 @@ def test_segments_merge_in_log_time_order_start_end_and_skipped_topics(configs, 
     full = replay(config, logs, rate=None)
     assert full.skipped == {camera_topic("rear"): 1, health_topic("lidar"): 1, POSE: 1}
     assert full.published == {IMU: 200, TIME_ANCHOR: 1} and full.fraction() == 1.0
+
+
+def test_a_torn_unclosed_segment_replays_its_intact_chunks_once(configs, tmp_path):
+    """replay on a segment left by a power cut with a torn block in its first chunk: the process plays every
+    message of the intact chunks, once, reports the damage and exits 0 (it died on the lz4 error: a crash loop
+    under the supervisor, which re-recorded the log several times over)."""
+    config_path = configs(tmp_path)
+    config = load_config(config_path)
+    rng = random.Random(8)
+    writer = LogWriter(tmp_path / "writing.mcap.open", config)
+    for i in range(400):  # ~10 MB: two 4 MiB chunks reach the disk
+        writer.write(LIDAR_PACKETS, LidarPacket(seq=i, sensor_time_ns=i * 100, host_mono_ns=10**9 + i * 10**6,
+                                                data=rng.randbytes(24_896)))
+        writer.write(IMU, ImuSample(seq=i, sensor_time_ns=i * 100 + 1, host_mono_ns=10**9 + i * 10**6 + 1,
+                                    accel_mps2=(rng.random(), 0.0, 9.8)))
+    writer.flush()  # the writer dies here: its written chunks, no footer
+    torn = bytearray((tmp_path / "writing.mcap.open").read_bytes())
+    block = second_lz4_block_header(bytes(torn)) // 4096 * 4096
+    torn[block:block + 4096] = bytes(4096)
+    segment = tmp_path / "torn.mcap.open"
+    segment.write_bytes(torn)
+    report = ReadReport()
+    expected = {t: [r.message for r in read_log([segment], topics=[t], report=report)] for t in (LIDAR_PACKETS, IMU)}
+    assert report.files[0].damaged_chunks == 1 and len(expected[LIDAR_PACKETS]) > 100
+    seqs = [m.seq for m in expected[LIDAR_PACKETS]]
+    assert seqs[0] > 0 and seqs == list(range(seqs[0], seqs[-1] + 1))  # the second chunk, whole
+
+    for t in expected:
+        pubsub.open_publisher(config, t).close()
+    subs = {t: pubsub.open_subscriber(config, t, lossless=True) for t in expected}
+    proc = run_replay(config_path, [segment], "--rate", "max")
+    got = collect(subs, {t: len(m) for t, m in expected.items()}, proc)
+    assert proc.wait(timeout=30) == 0, proc.stderr.read()
+    for topic, msgs in expected.items():
+        assert [without_bus_stamps(m) for _, m in got[topic]] == [without_bus_stamps(m) for m in msgs], topic
+        assert subs[topic].read(timeout_s=0.2) is None  # once
+    with pubsub.open_subscriber(config, health_topic("replay"), start="latest") as replay_health:
+        detail = json.loads(replay_health.read(timeout_s=1).detail)
+    assert detail["damaged_chunks"] == 1 and detail["incomplete_files"] == [str(segment)]
+    assert detail["published"] == sum(len(m) for m in expected.values())
 
 
 def test_replayed_topics_are_the_drivers_topics(configs, tmp_path):

@@ -1,7 +1,7 @@
 """Real Ford Fusion candump logs played (as fast as possible) through the CAN driver on a virtual bus.
 
-The opendbc Ford DBC gives wheel speeds as wheel angular rate (rad/s): the config says "m/s" (no
-scaling) and the test turns rad/s into road speed with the car's rolling radius (235/45R18 tyres).
+The opendbc Ford DBC gives wheel speeds as wheel angular rate (rad/s): the config says so (`speed_unit: rad/s`)
+with the car's rolling radius (235/45R18 tyres), and the driver publishes road speed.
 """
 
 from __future__ import annotations
@@ -28,7 +28,8 @@ FORD_SIGNALS = CanSignals(
     wheel_speed_rl="WheelSpeed_CG1.WhlRl_W_Meas",
     wheel_speed_rr="WheelSpeed_CG1.WhlRr_W_Meas",
     yaw_rate="Yaw_Data.VehYaw_W_Actl",
-    speed_unit="m/s",
+    speed_unit="rad/s",
+    wheel_radius_m=ROLLING_RADIUS_M,
     yaw_rate_unit="rad/s",
 )
 
@@ -57,7 +58,7 @@ def road_speed_kmh(published) -> tuple[np.ndarray, np.ndarray]:
     speeds = [m for t, m in published if t == WHEEL_SPEEDS]
     t = np.array([s.sensor_time_ns for s in speeds]) / 1e9
     w = np.array([[s.front_left_mps, s.front_right_mps, s.rear_left_mps, s.rear_right_mps] for s in speeds])
-    return t - t[0], w * ROLLING_RADIUS_M * 3.6
+    return t - t[0], w * 3.6
 
 
 def latest_yaw_per_wheel_frame(log: Path) -> np.ndarray:

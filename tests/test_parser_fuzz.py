@@ -1,0 +1,28 @@
+"""bench/parser_fuzz.py's mutations, a few hundred of them in the default suite (the bench runs thousands): mutated
+Ouster metadata through the Lidar driver's start-up check raises nothing but ValueError, mutated car configs through
+load_config and every start-up check of check-config nothing but ConfigError, and no case hangs. The MCAP reader and
+recovery have their own fuzz test (tests/daemon/test_log_damage.py)."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def parser_fuzz():
+    spec = importlib.util.spec_from_file_location("parser_fuzz", REPO / "bench" / "parser_fuzz.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("parser, cases", [("ouster_metadata", 300), ("config", 120)])
+def test_fuzzed_metadata_and_configs_raise_only_their_own_errors(parser_fuzz, parser, cases):
+    result = parser_fuzz.run([parser], cases, seed=7)[parser]
+    assert result["uncaught"] == 0 and result["hangs"] == 0, result.get("examples")
+    assert result["cases"] == cases and len(result["outcomes"]) > 1  # some accepted, some refused
