@@ -122,12 +122,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--epochs", type=int,
                         help="epochs of the faithful fit (default: the config's mapper.faithful_fit.epochs)")
     args = parser.parse_args(argv)
+    if args.config:  # a config given is checked first, as every process checks its own (exit 2)
+        config, config_path = load_config(args.config), Path(args.config)
     problems = [why for why in map(not_a_log, args.logs) if why]
     if problems:
         raise ConfigError("; ".join(problems))
-    if args.config:
-        config, config_path = load_config(args.config), Path(args.config)
-    else:
+    if not args.config:
         config, config_path = config_from_logs(args.logs)
     if args.epochs is not None:
         faithful_fit = config.mapper.faithful_fit.model_copy(update={"epochs": args.epochs})
