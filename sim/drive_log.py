@@ -15,7 +15,8 @@ Ground truth (PATH.gt.npz), all in the scenario's local ENU frame:
   trajectory_quaternion_xyzw (N, 4) vehicle -> ENU, at 200 Hz on the log's host monotonic clock;
   lidar_points_enu (M, 3) float32 true road-surface points hit by the Lidar inside the grids' corridor
   (noise-free, every LIDAR_GT_EVERY-th scan) and lidar_points_class (M,); host_mono_at_start_ns,
-  utc_start_ns (the log's host monotonic and UTC clocks at the drive's start).
+  utc_start_ns (the log's host monotonic and UTC clocks at the drive's start); scenario_yaml, the whole
+  scenario, for a world that is not one of configs/scenarios/ (a random world: `--scenario random --seed N`).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import yaml
 
 from daemon.log_format.writer import LogWriter
 from daemon.spine.config import CarConfig, load_config, resolve_path
@@ -68,8 +70,9 @@ from sim.sensors.sensor_clocks import (
     sensor_stamp_ns,
     utc_start_ns,
 )
+from sim.world.random_world import scenario_for
 from sim.world.road_world import ground_truth_grids, is_road_surface
-from sim.world.scenarios import load_scenario
+from sim.world.scenarios import Scenario, scenario_names
 from sim.world.scene import Scene, build_scene
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "sim.yaml"
@@ -100,10 +103,18 @@ class SimulationSummary:
     render_s: float = 0.0  # cameras and Lidar rendered, everything written to the log
     ground_truth_s: float = 0.0
     bytes_written: int = 0
+    world: dict | None = None  # the whole scenario, for a world not in configs/scenarios/ (a random one)
 
     def as_json(self) -> str:
         d = dict(self.__dict__, out=str(self.out), ground_truth=str(self.ground_truth))
+        if d["world"] is None:
+            del d["world"]
         return json.dumps(d)
+
+
+def scenario_yaml(scenario: Scenario) -> str:
+    """The scenario as a file `--scenario PATH.yaml` reads back to the same world."""
+    return yaml.safe_dump(scenario.model_dump(mode="json"), sort_keys=False)
 
 
 # --- worker tasks -------------------------------------------------------------------------------
@@ -251,11 +262,12 @@ def simulate_drive(scenario: str, seconds: float | None, out: Path, config: CarC
                    config_dir: Path | None = None, workers: int = 2, masks: bool = True) -> SimulationSummary:
     """Simulate a drive and write `out` (MCAP) and its ground truth beside it; relative sensor files of the
     config (Lidar metadata, DBC) are taken from config_dir (default: the repository's configs/). `masks`
-    False leaves the mask topics out (the frames are the same)."""
+    False leaves the mask topics out (the frames are the same). `scenario` `random` draws the world of `seed`
+    (sim/world/random_world.py)."""
     global _SCENE, _CLOCKS, _LIDAR_METADATA, _MASKS
     started = time.monotonic()
     cv2.setNumThreads(1)  # OpenCV's thread pool does not survive fork(): the workers would hang
-    sc = load_scenario(scenario)
+    sc = scenario_for(scenario, seed, [cam.name for cam in config.sensors.cameras])
     seconds = sc.drive.default_seconds if seconds is None else float(seconds)
     if not 0 < seconds <= sc.max_seconds():
         raise ValueError(f"scenario {sc.name}: seconds must be in (0, {sc.max_seconds():.1f}], got {seconds}")
@@ -263,6 +275,7 @@ def simulate_drive(scenario: str, seconds: float | None, out: Path, config: CarC
     config_file = (config_dir or DEFAULT_CONFIG.parent) / "car.yaml"
     out = Path(out)
     scene = build_scene(sc, config, seconds, seed)
+    config = scene.config  # with the scenario's camera responses
     rng = np.random.default_rng([seed, 4])
     clocks = drive_clocks(config, sc, rng)
     frame = LocalFrame(sc.origin.latitude_deg, sc.origin.longitude_deg, sc.origin.altitude_m)
@@ -298,6 +311,9 @@ def simulate_drive(scenario: str, seconds: float | None, out: Path, config: CarC
     metadata = {"start_time_utc_ns": str(utc0), "start_mono_ns": str(HOST_MONO_AT_START_NS),
                 "simulator": "sim", "scenario": sc.name, "seed": str(seed), "seconds": str(seconds),
                 "ground_truth": summary.ground_truth.name, "host": "simulated"}
+    if sc.name not in scenario_names():  # a named scenario is its file in configs/scenarios/
+        summary.world = sc.model_dump(mode="json")
+        metadata["scenario_yaml"] = scenario_yaml(sc)
     tasks = _tasks(scene, np.random.default_rng([seed, 7]))
     summary.setup_s = time.monotonic() - started
     cam_rng = np.random.default_rng([seed, 8])
@@ -354,14 +370,15 @@ def simulate_drive(scenario: str, seconds: float | None, out: Path, config: CarC
     summary.messages = dict(writer.counts)
     summary.bytes_written = out.stat().st_size
     summary.render_s = time.monotonic() - started - summary.setup_s
-    _write_ground_truth(scene, frame, summary.ground_truth, gt_points, gt_classes, utc0)
+    _write_ground_truth(scene, frame, summary.ground_truth, gt_points, gt_classes, utc0,
+                        metadata.get("scenario_yaml"))
     summary.wall_s = time.monotonic() - started
     summary.ground_truth_s = summary.wall_s - summary.setup_s - summary.render_s
     return summary
 
 
 def _write_ground_truth(scene: Scene, frame: LocalFrame, path: Path, points: list[np.ndarray],
-                        classes: list[np.ndarray], utc0: int) -> None:
+                        classes: list[np.ndarray], utc0: int, world_yaml: str | None) -> None:
     ego = scene.ego
     s_lo = max(float(ego.s[0]) - 50.0, 0.0)
     s_hi = min(float(ego.s[-1]) + 60.0, scene.world.length_m)
@@ -375,6 +392,7 @@ def _write_ground_truth(scene: Scene, frame: LocalFrame, path: Path, points: lis
     inside[inside] = np.isfinite(grids.elevation[i[inside], j[inside]])  # within the mapped corridor
     times = np.arange(0.0, scene.seconds, 1.0 / TRAJECTORY_HZ)
     _, pos = ego.pose(times)
+    extra = {} if world_yaml is None else {"scenario_yaml": np.array(world_yaml)}
     np.savez(
         path,
         scenario=np.array(scene.scenario.name),
@@ -392,21 +410,35 @@ def _write_ground_truth(scene: Scene, frame: LocalFrame, path: Path, points: lis
         lidar_points_class=hit_classes[inside],
         host_mono_at_start_ns=np.array(HOST_MONO_AT_START_NS),
         utc_start_ns=np.array(utc0),
+        **extra,
     )
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="roadlog simulate", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--scenario", required=True, help="scenario name (configs/scenarios/NAME.yaml) or file")
+    parser.add_argument("--scenario", required=True,
+                        help="scenario name (configs/scenarios/NAME.yaml), file, or `random` (a world drawn "
+                             "from --seed)")
     parser.add_argument("--seconds", type=float, default=None, help="drive length (default: the scenario's)")
-    parser.add_argument("--out", required=True, type=Path, help="output drive log, PATH.mcap")
+    parser.add_argument("--out", type=Path, help="output drive log, PATH.mcap")
     parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="the simulated car's config")
-    parser.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="override the scenario's seed; with `random`, the world's (default 0)")
     parser.add_argument("--workers", type=int, default=2, help="rendering processes")
     parser.add_argument("--no-masks", action="store_true",
                         help="leave the segmentation masks out of the log (a car without a segmenter)")
+    parser.add_argument("--print-scenario", action="store_true",
+                        help="print the scenario (a random world's drawn parameters) as YAML and exit")
     args = parser.parse_args(argv)
     config = load_config(args.config)
+    if args.print_scenario:
+        sc = scenario_for(args.scenario, args.seed, [cam.name for cam in config.sensors.cameras])
+        if args.seed is not None:
+            sc = sc.model_copy(update={"seed": args.seed})
+        print(scenario_yaml(sc), end="")
+        return 0
+    if args.out is None:
+        parser.error("--out is required (unless --print-scenario)")
     summary = simulate_drive(args.scenario, args.seconds, args.out, config, args.seed,
                              config_dir=args.config.resolve().parent, workers=args.workers,
                              masks=not args.no_masks)

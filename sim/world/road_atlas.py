@@ -1,6 +1,7 @@
 """The painted road surface in road coordinates (s along the centre line, t to its left): albedo and
 semantic class at ATLAS_RES_M, drawn procedurally: textured asphalt with patches, cracks and stains,
-solid and dashed lane markings, painted arrows, manholes, curbs, paved sidewalks and grass verges."""
+solid and dashed lane markings (faded or partly worn away), painted arrows, manholes, curbs (plain or in
+alternating painted blocks), paved sidewalks and grass verges, in the materials of the scenario's surface."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import cv2
 import numpy as np
 
 from daemon.spine.semantic_classes import SemanticClass
-from sim.world.scenarios import RoadSpec
+from sim.world.scenarios import RoadSpec, SurfaceSpec
 
 ATLAS_RES_M = 0.025
 HALF_WIDTH_M = 20.0
@@ -19,19 +20,27 @@ MANHOLE_RADIUS_M = 0.32
 PAVER_M = 0.3
 DRAW_SHIFT = 4  # cv2 sub-pixel drawing bits
 
-# Materials: linear RGB albedo of each.
-ASPHALT, PATCH_DARK, PATCH_LIGHT, MARKING, CURB, SIDEWALK, VERGE, MANHOLE = range(8)
-PALETTE = np.array([
-    [0.125, 0.125, 0.13],   # asphalt
-    [0.075, 0.075, 0.08],   # fresh patch
-    [0.18, 0.175, 0.17],    # worn patch
-    [0.70, 0.70, 0.66],     # paint
-    [0.36, 0.35, 0.33],     # curb concrete
-    [0.30, 0.26, 0.24],     # paving stones
-    [0.09, 0.15, 0.05],     # grass
-    [0.10, 0.095, 0.09],    # cast iron
-], np.float32)
-TEXTURE_STRENGTH = np.array([0.16, 0.12, 0.14, 0.10, 0.10, 0.12, 0.35, 0.10], np.float32)
+# Materials (indices into the palette of a scenario's surface, sim/world/scenarios.py SurfaceSpec).
+ASPHALT, PATCH_DARK, PATCH_LIGHT, MARKING, CURB, SIDEWALK, VERGE, MANHOLE, CURB_STRIPE = range(9)
+TEXTURE_STRENGTH = np.array([0.16, 0.12, 0.14, 0.10, 0.10, 0.12, 0.35, 0.10], np.float32)  # asphalt, curb: surface's
+
+
+def palette(surface: SurfaceSpec) -> np.ndarray:
+    """(9, 3) float32 linear RGB albedo of each material; the paint faded towards the asphalt by its contrast."""
+    paint = surface.paint_rgb
+    if surface.paint_contrast != 1.0:
+        paint = tuple(a + surface.paint_contrast * (p - a) for a, p in zip(surface.asphalt_rgb, paint, strict=True))
+    stripe = surface.curb_stripe_rgb if surface.curb_stripe_rgb is not None else surface.curb_rgb
+    return np.array([surface.asphalt_rgb, surface.patch_dark_rgb, surface.patch_light_rgb, paint, surface.curb_rgb,
+                     surface.sidewalk_rgb, surface.verge_rgb, surface.manhole_rgb, stripe], np.float32)
+
+
+def texture_strength(surface: SurfaceSpec) -> np.ndarray:
+    """(9,) float32 relative albedo variation of each material."""
+    strength = np.append(TEXTURE_STRENGTH, np.float32(surface.curb_texture))
+    strength[ASPHALT] = surface.asphalt_texture
+    strength[CURB] = surface.curb_texture
+    return strength
 
 
 @dataclass
@@ -160,6 +169,21 @@ def _paint_wear(road: RoadSpec, length: float, material: np.ndarray, shade: np.n
                     float(rng.uniform(0.6, 0.8)), -1, cv2.LINE_AA, DRAW_SHIFT)
 
 
+def _wear_paint(surface: SurfaceSpec, material: np.ndarray, classes: np.ndarray, rng: np.random.Generator) -> None:
+    """Wear `paint_missing` of the painted area away in fragments about `paint_wear_m` across: asphalt and
+    road there (a worn-off marking is no marking, in the truth as in the images)."""
+    painted = material == MARKING
+    if surface.paint_missing <= 0 or not painted.any():
+        return
+    cols = np.flatnonzero(painted.any(axis=0))  # only the columns markings cross
+    lo, hi = int(cols[0]), int(cols[-1]) + 1
+    noise = _noise(rng, (material.shape[0], hi - lo), max(1, round(surface.paint_wear_m / ATLAS_RES_M)))
+    band = painted[:, lo:hi]
+    gone = band & (noise < np.quantile(noise[band], surface.paint_missing))
+    material[:, lo:hi][gone] = ASPHALT
+    classes[:, lo:hi][gone] = SemanticClass.ROAD
+
+
 def _noise(rng: np.random.Generator, shape: tuple[int, int], scale_texels: int) -> np.ndarray:
     """Smooth unit-variance noise with features of about scale_texels."""
     small = rng.standard_normal((shape[0] // scale_texels + 2, shape[1] // scale_texels + 2), dtype=np.float32)
@@ -168,7 +192,7 @@ def _noise(rng: np.random.Generator, shape: tuple[int, int], scale_texels: int) 
     return big[: shape[0], : shape[1]]
 
 
-def paint_atlas(road: RoadSpec, length: float, rng: np.random.Generator) -> RoadAtlas:
+def paint_atlas(road: RoadSpec, surface: SurfaceSpec, length: float, rng: np.random.Generator) -> RoadAtlas:
     rows = int(np.ceil(length / ATLAS_RES_M)) + 1
     cols = int(round(2 * HALF_WIDTH_M / ATLAS_RES_M))
     t = -HALF_WIDTH_M + ATLAS_RES_M * (np.arange(cols) + 0.5)
@@ -186,6 +210,11 @@ def paint_atlas(road: RoadSpec, length: float, rng: np.random.Generator) -> Road
     _paint_wear(road, length, material, shade, rng)
     _paint_markings(road, length, material, classes, rng)
     _paint_manholes(road, length, material, classes, shade, rng)
+    _wear_paint(surface, material, classes, rng)
+    if surface.curb_stripe_rgb is not None:
+        curb_cols = band_material == CURB
+        stripe_rows = (ATLAS_RES_M * (np.arange(rows) + 0.5) // surface.curb_stripe_m) % 2 == 1
+        material[np.ix_(stripe_rows, curb_cols)] = CURB_STRIPE
 
     # Paving-stone joints on the sidewalks.
     walk_cols = (a > w + CURB_WIDTH_M) & (a <= walk_end)
@@ -198,14 +227,15 @@ def paint_atlas(road: RoadSpec, length: float, rng: np.random.Generator) -> Road
     texture = rng.random((rows, cols), dtype=np.float32)
     texture -= 0.5
     texture *= 2.0
-    texture += _noise(rng, (rows, cols), 16) * 0.6
-    texture += _noise(rng, (rows, cols), 160) * 0.5
-    texture *= TEXTURE_STRENGTH[material]
+    texture += _noise(rng, (rows, cols), max(1, round(surface.texture_fine_m / ATLAS_RES_M))) * 0.6
+    texture += _noise(rng, (rows, cols), max(1, round(surface.texture_coarse_m / ATLAS_RES_M))) * 0.5
+    texture *= texture_strength(surface)[material]
     texture += 1.0
     texture *= shade
     albedo = np.empty((rows, cols, 3), np.uint8)
+    colours = palette(surface)
     for c in range(3):
-        channel = PALETTE[:, c][material]
+        channel = colours[:, c][material]
         channel *= texture
         albedo[..., c] = cv2.convertScaleAbs(channel, alpha=255.0, beta=0.5)
     return RoadAtlas(s0=0.0, t0=-HALF_WIDTH_M, res=ATLAS_RES_M, albedo=albedo, semantic=classes)

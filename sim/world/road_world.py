@@ -175,7 +175,7 @@ def build_world(scenario: Scenario, seed: int | None = None) -> RoadWorld:
     cl = build_centreline(scenario.road)
     cross = build_cross_section(scenario.road)
     origin, st = _build_lookup(cl)
-    atlas = paint_atlas(scenario.road, float(cl.s[-1]), np.random.default_rng([seed, 1]))
+    atlas = paint_atlas(scenario.road, scenario.surface, float(cl.s[-1]), np.random.default_rng([seed, 1]))
     return RoadWorld(scenario, cl, cross, origin, st, atlas, _height_atlas(cl, cross, atlas))
 
 

@@ -1,5 +1,6 @@
-"""Named simulator scenarios (configs/scenarios/NAME.yaml): the road, traffic, light and GNSS quality of
-one simulated drive, validated once by a pydantic schema."""
+"""Named simulator scenarios (configs/scenarios/NAME.yaml): the road, its surface's materials, traffic, light,
+the cameras' response and GNSS quality of one simulated drive, validated once by a pydantic schema. The
+ranges a random world draws each value from are sim/world/random_world.py's (docs/simulator.md)."""
 
 from __future__ import annotations
 
@@ -9,13 +10,16 @@ from typing import Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from daemon.spine.config import ConfigError
+from daemon.spine.config import CameraPhotometry, CarConfig, ConfigError
 
 SCENARIO_DIR = Path(__file__).resolve().parents[2] / "configs" / "scenarios"
 
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+Rgb = tuple[float, float, float]  # linear RGB albedo (reflectance), each channel in [0, 1]
 
 
 class ProfilePoint(_Strict):
@@ -64,6 +68,42 @@ class RoadSpec(_Strict):
         return self.lanes * self.lane_width_m / 2 + self.gutter_m
 
 
+def _albedo(rgb: Rgb) -> Rgb:
+    if not all(0.0 <= c <= 1.0 for c in rgb):
+        raise ValueError(f"albedo {rgb}: every channel must lie in [0, 1]")
+    return rgb
+
+
+class SurfaceSpec(_Strict):
+    """The painted surface's materials: linear RGB albedo, texture strength (relative albedo variation) and
+    grain. The defaults are the city's (the values the atlas had built in)."""
+
+    asphalt_rgb: Rgb = (0.125, 0.125, 0.13)
+    asphalt_texture: float = Field(0.16, ge=0, le=0.5)
+    texture_fine_m: float = Field(0.4, ge=0.05, le=2.0)  # feature size of the fine grain noise
+    texture_coarse_m: float = Field(4.0, ge=0.5, le=20.0)  # ... and of the large-scale blotches
+    patch_dark_rgb: Rgb = (0.075, 0.075, 0.08)  # fresh patches
+    patch_light_rgb: Rgb = (0.18, 0.175, 0.17)  # worn patches
+    paint_rgb: Rgb = (0.70, 0.70, 0.66)  # markings and arrows
+    paint_contrast: float = Field(1.0, ge=0.2, le=1.0)  # 1: fresh paint; less: faded towards the asphalt
+    paint_missing: float = Field(0.0, ge=0, le=0.6)  # fraction of the paint worn away (road there, in the truth too)
+    paint_wear_m: float = Field(0.3, ge=0.05, le=2.0)  # size of the worn-away fragments
+    curb_rgb: Rgb = (0.36, 0.35, 0.33)
+    curb_texture: float = Field(0.10, ge=0, le=0.5)
+    curb_stripe_rgb: Rgb | None = None  # a second colour in alternating blocks (red/white painted kerbs)
+    curb_stripe_m: float = Field(1.0, ge=0.2, le=5.0)  # length of each block
+    sidewalk_rgb: Rgb = (0.30, 0.26, 0.24)  # paving stones
+    verge_rgb: Rgb = (0.09, 0.15, 0.05)  # grass
+    manhole_rgb: Rgb = (0.10, 0.095, 0.09)  # cast iron
+
+    @model_validator(mode="after")
+    def _colours(self) -> SurfaceSpec:
+        for name in type(self).model_fields:
+            if name.endswith("_rgb") and getattr(self, name) is not None:
+                _albedo(getattr(self, name))
+        return self
+
+
 class TrafficSpec(_Strict):
     parking_lanes: list[int] = []  # lane indices (0 = rightmost) holding parked cars
     parked_cars_per_100m: float = Field(0.0, ge=0, le=20)
@@ -82,6 +122,11 @@ class LightingSpec(_Strict):
     exposure: float = Field(1.0, gt=0)
     noise_scale: float = Field(1.0, ge=0)  # multiplies every camera's noise_sigma (sensor gain noise)
     fog_distance_m: float = Field(250.0, gt=10)
+    # Roadside trees beyond the sidewalks, both sides: only their shadows are drawn (on the road, by day).
+    trees_per_100m: float = Field(0.0, ge=0, le=30)
+    tree_height_m: float = Field(8.0, gt=1, le=30)  # crown centre above the ground (each tree +-25 %)
+    tree_crown_radius_m: float = Field(2.5, gt=0.3, le=8)  # (each tree +-30 %)
+    tree_setback_m: float = Field(1.0, ge=0, le=10)  # from the sidewalk's outer edge to the trunk
 
 
 class DriveSpec(_Strict):
@@ -113,6 +158,9 @@ class Scenario(_Strict):
     lighting: LightingSpec = LightingSpec()
     drive: DriveSpec = DriveSpec()
     gnss: GnssSpec = GnssSpec()
+    surface: SurfaceSpec = SurfaceSpec()
+    # Per-camera photometric response by camera name, in place of the car config's `photometry`.
+    cameras: dict[str, CameraPhotometry] = {}
 
     @model_validator(mode="after")
     def _lanes(self) -> Scenario:
@@ -131,6 +179,21 @@ class Scenario(_Strict):
         """The longest drive the road allows (leaving 100 m of road ahead for the sensors to see)."""
         return (self.road.length_m - self.drive.start_s_m - 100.0) / (
             self.drive.speed_mps + self.drive.speed_variation_mps)
+
+
+def with_camera_response(config: CarConfig, scenario: Scenario) -> CarConfig:
+    """The car config with the scenario's per-camera photometric responses in place of its own (the same
+    config when the scenario names none); a camera the car does not have is a ConfigError."""
+    if not scenario.cameras:
+        return config
+    cameras = config.sensors.cameras
+    unknown = sorted(set(scenario.cameras) - {cam.name for cam in cameras})
+    if unknown:
+        raise ConfigError(f"scenario {scenario.name}: cameras {', '.join(unknown)} are not in the car config "
+                          f"(it has {', '.join(cam.name for cam in cameras)})")
+    cameras = [cam.model_copy(update={"photometry": scenario.cameras[cam.name]}) if cam.name in scenario.cameras
+               else cam for cam in cameras]
+    return config.model_copy(update={"sensors": config.sensors.model_copy(update={"cameras": cameras})})
 
 
 def scenario_names() -> list[str]:

@@ -11,8 +11,9 @@ import numpy as np
 from daemon.spine.config import CarConfig
 from sim.world.ego_trajectory import EgoTrajectory, drive_trajectory
 from sim.world.road_world import CROSS_STEP_M, RoadWorld, build_world
-from sim.world.scenarios import Scenario
+from sim.world.scenarios import Scenario, with_camera_response
 from sim.world.traffic import Traffic, place_traffic
+from sim.world.tree_shadows import tree_shadow
 
 HEADLIGHT_POSITION = np.array([3.7, 0.0, 0.2])  # vehicle frame (reference point at the rear axle)
 HEADLIGHT_DIP_DEG = 1.5
@@ -21,7 +22,7 @@ HEADLIGHT_DIP_DEG = 1.5
 @dataclass
 class Scene:
     scenario: Scenario
-    config: CarConfig
+    config: CarConfig  # with the scenario's camera responses
     seconds: float
     seed: int
     world: RoadWorld
@@ -36,8 +37,9 @@ def sun_direction(scenario: Scenario) -> np.ndarray:
     return np.array([np.cos(el) * np.sin(az), np.cos(el) * np.cos(az), np.sin(el)])  # azimuth from north
 
 
-def _daylight_atlas(world: RoadWorld, sun: np.ndarray) -> np.ndarray:
-    """Albedo times (ambient + sun * cos incidence), the surface normal from grade, crossfall and curbs."""
+def _daylight_atlas(world: RoadWorld, sun: np.ndarray, shadow: np.ndarray | None = None) -> np.ndarray:
+    """Albedo times (ambient + sun * cos incidence * (1 - shadow)), the surface normal from grade, crossfall
+    and curbs; `shadow` is the fraction of direct sunlight each texel loses (sim/world/tree_shadows.py)."""
     light = world.scenario.lighting
     atlas = world.atlas
     rows, cols = atlas.semantic.shape
@@ -57,15 +59,20 @@ def _daylight_atlas(world: RoadWorld, sun: np.ndarray) -> np.ndarray:
     norm = 1.0 / np.sqrt(np.float32(1.0) + (grade.astype(np.float32) ** 2)[:, None] + slope32 ** 2)
     np.multiply(dot, norm, out=dot)
     np.maximum(dot, 0, out=dot)
+    if shadow is not None:
+        np.multiply(dot, np.float32(1) - shadow, out=dot)
     shade = cv2.convertScaleAbs(dot, alpha=128.0 * light.sun, beta=128.0 * light.ambient)  # 128 = 1.0
     return cv2.multiply(atlas.albedo, cv2.merge([shade, shade, shade]), scale=1.0 / 128)
 
 
 def build_scene(scenario: Scenario, config: CarConfig, seconds: float, seed: int | None = None) -> Scene:
     seed = scenario.seed if seed is None else seed
+    config = with_camera_response(config, scenario)
     world = build_world(scenario, seed)
     ego = drive_trajectory(world, config.vehicle, seconds, np.random.default_rng([seed, 2]))
     traffic = place_traffic(world, ego, seconds, np.random.default_rng([seed, 3]))
     sun = sun_direction(scenario)
-    lit = _daylight_atlas(world, sun) if scenario.lighting.mode == "day" else None
+    lit = None
+    if scenario.lighting.mode == "day":
+        lit = _daylight_atlas(world, sun, tree_shadow(world, sun, np.random.default_rng([seed, 11])))
     return Scene(scenario, config, seconds, seed, world, ego, traffic, sun, lit)
