@@ -5,6 +5,8 @@ The OXTS unit's records become GNSS fixes (its position, with its stated accurac
 (body-frame specific force and angular rate), so pose fusion runs on them like on any car's GNSS/IMU. The vehicle
 frame is the OXTS frame (x forward, y left, z up), `--reference-height-m` (KITTI's setup: 0.93 m) above the road; the
 camera's extrinsics follow from calib_imu_to_velo, calib_velo_to_cam and the rectification (P_rect_02, R_rect_00).
+The Velodyne scans (velodyne_points/, when present) become point clouds of a `point-cloud` Lidar mounted as
+calib_imu_to_velo says.
 Frames carry their PNG bytes unchanged; every stamp is KITTI's UTC time, on one clock, with time anchors saying so.
 
 `--poses oxts` (the default) also writes the unit's own INS solution (its position and roll/pitch/yaw, KITTI's
@@ -24,14 +26,16 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from daemon.log_format.metadata_records import POSE_ENU_ORIGIN_KEY
-from daemon.spine.config import reports_config_errors
+from daemon.spine.config import POINT_CLOUD_LIDAR, reports_config_errors
 from daemon.spine.local_frame import LocalFrame
-from daemon.spine.messages import CameraFrame, GnssFix, ImuSample, TimeAnchor, VehiclePose
-from daemon.spine.topics import GNSS_FIX, IMU, POSE, TIME_ANCHOR, camera_topic
+from daemon.spine.messages import CameraFrame, GnssFix, ImuSample, PointCloud, TimeAnchor, VehiclePose
+from daemon.spine.point_cloud_codec import pack_points
+from daemon.spine.topics import GNSS_FIX, IMU, LIDAR_POINTS, POSE, TIME_ANCHOR, camera_topic
 from importers.imported_log import ImportSummary, imported_log
 from importers.kitti_files import (
     DatasetError,
     calibration_matrix,
+    extrinsics,
     imported_car_config,
     numbered_files,
     png_size,
@@ -45,6 +49,37 @@ CAMERA = "image_02"
 OXTS_FIELDS = ("lat lon alt roll pitch yaw vn ve vf vl vu ax ay az af al au wx wy wz wf wl wu pos_accuracy "
                "vel_accuracy navstat numsats posmode velmode orimode").split()
 _FIELD = {name: i for i, name in enumerate(OXTS_FIELDS)}
+
+
+def velodyne_scans(folder: Path) -> list[PointCloud]:
+    """velodyne_points/: each .bin scan (float32 x, y, z, reflectance, Lidar frame) as a point cloud starting at its
+    timestamps_start time. KITTI gives no time per point: the HDL-64E turns clockwise seen from above from the back
+    (timestamps_start) through the front (timestamps.txt, mid-scan) to the back again (timestamps_end), so a point's
+    time is the fraction of that turn its azimuth has swept."""
+    base = folder / "velodyne_points"
+    if not base.is_dir():
+        return []
+    files = numbered_files(base / "data", ".bin")
+    starts, ends = read_timestamps(base / "timestamps_start.txt"), read_timestamps(base / "timestamps_end.txt")
+    if not len(files) <= min(len(starts), len(ends)):
+        raise DatasetError(f"{base}: {len(files)} scans for {len(starts)} start and {len(ends)} end times")
+    clouds = []
+    for path in files:
+        raw = np.fromfile(path, np.float32)
+        if raw.size % 4:
+            raise DatasetError(f"{path}: {raw.size * 4} bytes, not whole (x, y, z, reflectance) float32 points")
+        points = raw.reshape(-1, 4)
+        k = int(path.stem)
+        swept = (np.pi - np.arctan2(points[:, 1], points[:, 0])) / (2 * np.pi)  # 0 at the back, 0.5 ahead
+        clouds.append(PointCloud(seq=k, sensor_time_ns=int(starts[k]), host_mono_ns=int(ends[k]),
+                                 data=pack_points(points[:, :3], points[:, 3], swept * (ends[k] - starts[k]) * 1e-9)))
+    return clouds
+
+
+def imu_to_velodyne(folder: Path) -> np.ndarray:
+    path = folder / "calib_imu_to_velo.txt"
+    values = read_calibration(path)
+    return rigid(calibration_matrix(values, "R", (3, 3), path), calibration_matrix(values, "T", (3, 1), path)[:, 0])
 
 
 def imu_to_camera(folder: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -122,7 +157,10 @@ def import_raw(folder: Path, out: Path, *, reference_height_m: float = 0.93, pos
     camera = recorded_camera(CAMERA, width, height, k, np.linalg.inv(t_cam_imu), round(rate_hz, 3), "png")
     oxts_rate = round(float((len(oxts_times) - 1) / ((oxts_times[-1] - oxts_times[0]) * 1e-9)), 3)
     gnss = {"port": "", "rate_hz": oxts_rate, "imu_rate_hz": oxts_rate}  # the OXTS unit: position at the IMU
-    config = imported_car_config("kitti-raw", [camera], reference_height_m, folder, gnss=gnss)
+    clouds = velodyne_scans(folder)
+    lidar = {"lidar": {"model": POINT_CLOUD_LIDAR, "extrinsics": extrinsics(np.linalg.inv(imu_to_velodyne(folder)))}}
+    config = imported_car_config("kitti-raw", [camera], reference_height_m, folder, gnss=gnss,
+                                 **(lidar if clouds else {}))
     metadata = {"source": f"KITTI raw {folder.resolve()}",
                 "import": json.dumps({"reference_height_m": reference_height_m, "poses": poses})}
     if poses == "oxts":
@@ -136,6 +174,8 @@ def import_raw(folder: Path, out: Path, *, reference_height_m: float = 0.93, pos
             writer.write(IMU, sample)
         for pose in oxts_poses(oxts_times, records) if poses == "oxts" else ():
             writer.write(POSE, pose)
+        for cloud in clouds:
+            writer.write(LIDAR_POINTS, cloud)
         for i, (path, t) in enumerate(zip(images, frame_times.tolist(), strict=True)):
             data = first if i == 0 else path.read_bytes()
             if png_size(data, path) != (width, height):

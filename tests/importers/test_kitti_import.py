@@ -15,6 +15,7 @@ from daemon.commands.cli import main as roadlog
 from daemon.commands.log_info import summarise
 from daemon.log_format.reader import read_log
 from daemon.spine.local_frame import LocalFrame
+from daemon.spine.point_cloud_codec import point_array
 from daemon.spine.topics import POSE, camera_topic
 from importers.kitti_raw import read_oxts
 from mapping.inputs.drive_inputs import start_loading_drive
@@ -85,8 +86,16 @@ def test_kitti_raw_imports_frames_oxts_and_a_calibration_that_projects_like_the_
     log, printed = imported(tmp_path, capsys, "kitti-raw", str(RAW))
     assert {k: printed["messages"][k] for k in ("camera/image_02", "gnss/fix", "imu", "pose")} == {
         "camera/image_02": 91, "gnss/fix": 91, "imu": 91, "pose": 91}
-    assert printed["drive_s"] == pytest.approx(9.3, abs=0.05)
+    assert printed["drive_s"] == pytest.approx(9.3, abs=0.05) and printed["messages"]["lidar/points"] == 5
     config, _ = config_from_logs([str(log)])
+    assert config.sensors.lidar.model == "point-cloud"
+    clouds = [r.message for r in read_log([log], topics=["lidar/points"])]
+    scan0 = np.fromfile(RAW / "velodyne_points/data/0000000000.bin", np.float32).reshape(-1, 4)
+    cloud0 = point_array(clouds[0])
+    np.testing.assert_array_equal(cloud0[:, :4], scan0)  # x, y, z, reflectance as KITTI gives them
+    ahead = np.abs(np.degrees(np.arctan2(scan0[:, 1], scan0[:, 0]))) < 2.0
+    span_s = (clouds[0].host_mono_ns - clouds[0].sensor_time_ns) * 1e-9
+    assert np.abs(cloud0[ahead, 4] - span_s / 2).max() < 0.01 * span_s  # mid-turn when facing forward
     (camera,) = config.sensors.cameras
     # a Velodyne point, through our vehicle frame (the OXTS unit) into the camera, lands where the devkit puts it
     imu_velo = dict(zip(("R", "T"), (np.array(line.split(":")[1].split(), float) for line in
