@@ -20,8 +20,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 ROADLOG = str(ROOT / ".venv" / "bin" / "roadlog")
 DATA = ROOT.parent / "shared" / "data"
-KEYS = ("psnr_db", "psnr_train_db", "psnr_by_distance_db", "elev_error_cm", "saturation_ratio", "semantics",
-        "drive_s", "wall_s", "rtf", "vertices")
+KEYS = ("psnr_db", "psnr_train_db", "psnr_pixels", "elev_error_cm", "maskless_hidden_pct", "semantics", "wall_s",
+        "rtf", "vertices")
 
 
 def imported(fmt: str, folder: Path, out: Path, *extra: str) -> dict:

@@ -152,3 +152,22 @@ def test_a_damaged_drive_is_a_clear_error_and_leaves_no_log(tmp_path, capsys, da
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err
     assert not out.exists() and not list(tmp_path.glob("*.partial"))
+
+
+@pytest.mark.parametrize("fmt, folder, extra, psnr_floor_db", [
+    ("kitti-odometry", ODOMETRY, ("--no-lidar",), 18.0),  # measured 20.6 dB (bench/kitti.py)
+    ("kitti-raw", RAW, (), 12.0),  # measured 13.4 dB with the Velodyne ground, 0.20 cm Elev-error
+])
+def test_an_imported_kitti_drive_maps_end_to_end(tmp_path, capsys, fmt, folder, extra, psnr_floor_db):
+    """Imported and mapped with nothing else: no masks (maskless mode), the recorded config, the real images."""
+    log, _ = imported(tmp_path, capsys, fmt, str(folder))
+    out = tmp_path / "map"
+    assert roadlog(["reconstruct", str(log), "--out", str(out), *extra]) == 0
+    assert "have no semantic mask" in capsys.readouterr().err
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["semantics"].startswith("unavailable") and metrics["miou_pct"] is None
+    assert metrics["psnr_db"] > psnr_floor_db, metrics["psnr_db"]
+    if fmt == "kitti-raw":
+        assert metrics["lidar_supervision"] and metrics["elev_error_cm"] < 1.0
+        assert metrics["inputs"]["lidar_point_clouds"] == 5
+    assert (out / "bev_elevation.npy").exists() and not list(out.glob("bev_semantics*"))
