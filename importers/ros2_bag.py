@@ -3,11 +3,13 @@ log that `roadlog reconstruct LOG` maps with nothing else.
 
 Imported: sensor_msgs Image (rgb8, bgr8, mono8) and CompressedImage (jpeg, png) as camera frames, each camera's
 CameraInfo as its intrinsics (a camera without one is skipped: a map needs them), NavSatFix and Imu as GNSS fixes
-and IMU samples, nav_msgs Odometry as the `pose` topic (the base frame in the odometry's frame), tf_static (and /tf
-between sensor frames) as the sensors' extrinsics in the base frame (`--base-frame`, default: the Odometry's
-child frame, else base_link). Every other topic, and every message that cannot be used, is listed with its count
-and reason on stderr and in the printed summary, never dropped silently. Stamps: header.stamp is the sensor time,
-the bag's receive time the host time (ROS time: UTC, so time anchors pair it with itself).
+and IMU samples, PointCloud2 as the scans of a point-cloud Lidar (x, y, z, intensity, and a per-point `time`, `t` or
+`timestamp` field where the driver gives one), nav_msgs Odometry as the `pose` topic (the base frame in the
+odometry's frame), tf_static (and /tf between sensor frames) as the sensors' extrinsics in the base frame
+(`--base-frame`, default: the Odometry's child frame, else base_link). Every other topic, and every message that
+cannot be used, is listed with its count and reason on stderr and in the printed summary, never dropped silently.
+Stamps: header.stamp is the sensor time, the bag's receive time the host time (ROS time: UTC, so time anchors pair
+it with itself).
 """
 
 from __future__ import annotations
@@ -22,9 +24,9 @@ from pathlib import Path
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from daemon.spine.config import reports_config_errors
+from daemon.spine.config import POINT_CLOUD_LIDAR, reports_config_errors
 from daemon.spine.messages import TimeAnchor
-from daemon.spine.topics import GNSS_FIX, IMU, POSE, TIME_ANCHOR, camera_topic
+from daemon.spine.topics import GNSS_FIX, IMU, LIDAR_POINTS, POSE, TIME_ANCHOR, camera_topic
 from importers import ros2_messages as ros
 from importers.imported_log import ImportSummary, imported_log
 from importers.kitti_files import DatasetError, extrinsics, imported_car_config, recorded_camera
@@ -32,7 +34,8 @@ from importers.kitti_files import DatasetError, extrinsics, imported_car_config,
 IMAGE, COMPRESSED, INFO = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/CameraInfo"
 NAVSAT, IMU_MSG, ODOMETRY, TF = "sensor_msgs/msg/NavSatFix", "sensor_msgs/msg/Imu", "nav_msgs/msg/Odometry", \
     "tf2_msgs/msg/TFMessage"
-IMPORTED_TYPES = {IMAGE, COMPRESSED, INFO, NAVSAT, IMU_MSG, ODOMETRY, TF}
+CLOUD = "sensor_msgs/msg/PointCloud2"
+IMPORTED_TYPES = {IMAGE, COMPRESSED, INFO, NAVSAT, IMU_MSG, ODOMETRY, TF, CLOUD}
 
 
 def _open(bag: Path) -> AnyReader:
@@ -121,12 +124,23 @@ def import_bag(bag: Path, out: Path, *, base_frame: str | None = None, reference
         imus = [c for c in reader.connections if c.msgtype == IMU_MSG]
         if navsat or imus:
             sensors["gnss"] = _gnss_config(reader, navsat[:1], imus[:1], tree, base)
-        for extra in navsat[1:] + imus[1:] + odometry[1:]:
+        clouds = [c for c in reader.connections if c.msgtype == CLOUD]
+        if clouds:
+            first = reader.deserialize(next(reader.messages(connections=clouds[:1]))[2], CLOUD)
+            t_base_lidar = tree.lookup(base, first.header.frame_id)
+            if t_base_lidar is None:
+                for conn in clouds:
+                    skipped[conn.topic][f"{CLOUD}: no transform from {base!r} to {first.header.frame_id!r}"] += \
+                        conn.msgcount
+                clouds = []
+            else:
+                sensors["lidar"] = {"model": POINT_CLOUD_LIDAR, "extrinsics": extrinsics(t_base_lidar)}
+        for extra in navsat[1:] + imus[1:] + odometry[1:] + clouds[1:]:
             skipped[extra.topic][f"{extra.msgtype}: a second {extra.msgtype.rsplit('/', 1)[-1]} topic "
                                  f"(the first is imported)"] += extra.msgcount
         config = imported_car_config(f"ros2-{bag.name}", cameras, reference_height_m, bag, **sensors)
         metadata = {"source": f"ROS 2 bag {bag.resolve()}", "import": json.dumps({"base_frame": base})}
-        chosen = image_conns + navsat[:1] + imus[:1] + odometry[:1]
+        chosen = image_conns + navsat[:1] + imus[:1] + odometry[:1] + clouds[:1]
         with imported_log(out, config, metadata) as writer:
             seq, frame_times, next_anchor = Counter(), [], None
             for conn, host_ns, raw in reader.messages(connections=chosen):
@@ -181,6 +195,8 @@ def _convert(msg, conn, host_ns: int, camera_of: dict[str, str], tree: ros.Frame
         return GNSS_FIX, *ros.gnss_fix(msg, host_ns)
     if conn.msgtype == IMU_MSG:
         return IMU, *ros.imu_sample(msg, host_ns)
+    if conn.msgtype == CLOUD:
+        return LIDAR_POINTS, *ros.point_cloud(msg, host_ns)
     t_child_base = tree.lookup(msg.child_frame_id, base)  # Odometry: the child frame's pose -> the base's
     if t_child_base is None:
         return POSE, None, f"no transform from Odometry's child frame {msg.child_frame_id!r} to {base!r}"

@@ -1,6 +1,6 @@
 """ROS 2 messages (as rosbags deserialises them) -> roadlog messages: sensor_msgs Image / CompressedImage /
-CameraInfo / NavSatFix / Imu, nav_msgs Odometry, and tf2 transforms into one static frame tree. Each conversion
-returns None (and says why) for a message it cannot use, so the importer counts it instead of failing."""
+CameraInfo / NavSatFix / Imu / PointCloud2, nav_msgs Odometry, and tf2 transforms into one static frame tree. Each
+conversion returns None (and says why) for a message it cannot use, so the importer counts it instead of failing."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from daemon.spine.messages import RAW_FORMAT_CHANNELS, CameraFrame, GnssFix, ImuSample, VehiclePose
+from daemon.spine.messages import RAW_FORMAT_CHANNELS, CameraFrame, GnssFix, ImuSample, PointCloud, VehiclePose
+from daemon.spine.point_cloud_codec import pack_points
 
 # trailing topic parts that name the stream, not the camera: /front/image_raw/compressed -> camera "front"
 _STREAM_PARTS = {"image_raw", "image", "image_rect", "image_rect_color", "image_color", "image_mono", "compressed",
@@ -132,3 +133,40 @@ class FrameTree:
                     best[neighbour] = best[frame] @ t
                     todo.append(neighbour)
         return best.get(source)
+
+
+_POINT_FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}  # PointField.datatype
+# per-point time fields of the common drivers: seconds after the stamp (Velodyne), ns after it (Ouster), absolute
+# seconds (Hesai, RoboSense)
+_TIME_FIELDS = (("time", 1.0, False), ("t", 1e-9, False), ("timestamp", 1.0, True))
+
+
+def point_cloud(msg, host_ns: int) -> tuple[PointCloud | None, str]:
+    """sensor_msgs/PointCloud2 with x, y, z (and intensity, a per-point time when it has one) as a PointCloud."""
+    order = ">" if msg.is_bigendian else "<"
+    fields = {f.name: (f.offset, _POINT_FIELD_TYPES.get(f.datatype)) for f in msg.fields if f.count == 1}
+    if not all(fields.get(k, (0, None))[1] for k in ("x", "y", "z")):
+        return None, "PointCloud2 without numeric x, y, z fields"
+    count, step = int(msg.width) * int(msg.height), int(msg.point_step)
+    data = np.asarray(msg.data, np.uint8)
+    if step <= 0 or len(data) < count * step or any(o + np.dtype(t).itemsize > step for o, t in fields.values() if t):
+        return None, f"PointCloud2 of {len(data)} bytes for {count} points of {step} bytes"
+    rows = data[: count * step].reshape(count, step)
+
+    def column(name: str) -> np.ndarray:
+        offset, kind = fields[name]
+        dtype = np.dtype(order + kind)
+        return rows[:, offset:offset + dtype.itemsize].copy().view(dtype).ravel().astype(np.float64)
+
+    xyz = np.column_stack([column(k) for k in ("x", "y", "z")])
+    keep = np.all(np.isfinite(xyz), axis=1)  # unorganised gaps (NaN) are not points
+    intensity = column("intensity") if fields.get("intensity", (0, None))[1] else None
+    start_ns, time_s = stamp_ns(msg.header), None
+    for name, scale, absolute in _TIME_FIELDS:
+        if fields.get(name, (0, None))[1]:
+            time_s = column(name)[keep] * scale
+            if absolute and len(time_s):
+                start_ns, time_s = int(round(time_s.min() * 1e9)), time_s - time_s.min()
+            break
+    return PointCloud(sensor_time_ns=start_ns, host_mono_ns=host_ns, sensor=msg.header.frame_id or "lidar",
+                      data=pack_points(xyz[keep], None if intensity is None else intensity[keep], time_s)), ""

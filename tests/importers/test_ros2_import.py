@@ -16,7 +16,8 @@ from scipy.spatial.transform import Rotation
 from daemon.commands.cli import main as roadlog
 from daemon.log_format.reader import read_log
 from daemon.spine.messages import CameraFrame, GnssFix, ImuSample
-from daemon.spine.topics import GNSS_FIX, IMU, POSE, camera_topic
+from daemon.spine.point_cloud_codec import point_array
+from daemon.spine.topics import GNSS_FIX, IMU, LIDAR_POINTS, POSE, camera_topic
 from mapping.offline.reconstruct_command import config_from_logs
 
 TS = get_typestore(Stores.ROS2_HUMBLE)
@@ -57,7 +58,7 @@ def sim_bag(city_drive, tmp_path_factory):
     wide, left, right = config.sensors.cameras
     records = list(read_log([city_drive], topics=[camera_topic(c.name) for c in (wide, left, right)] + [GNSS_FIX, IMU]))
     path = tmp_path_factory.mktemp("bag") / "sim_bag"
-    sent = {"wide": [], "left": [], "gnss": [], "imu": [], "odom": []}
+    sent = {"wide": [], "left": [], "gnss": [], "imu": [], "odom": [], "clouds": []}
     with Writer(path) as writer:
         bag = Bag(writer)
         statics = [transform("base_link", f"{c.name}_optical", c.extrinsics.matrix()) for c in (wide, left, right)]
@@ -124,6 +125,27 @@ def sim_bag(city_drive, tmp_path_factory):
                 sent["imu"].append(m)
         for i in range(3):
             bag.write("/chatter", "std_msgs/msg/String", 10 + i, T["std_msgs/msg/String"](data=f"hello {i}"))
+        rng = np.random.default_rng(4)
+        lidar_mount = config.sensors.lidar.extrinsics.matrix()
+        bag.write("/tf_static", "tf2_msgs/msg/TFMessage", 3, T["tf2_msgs/msg/TFMessage"](
+            transforms=[transform("base_link", "os_lidar", lidar_mount)]))
+        point = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("pad", "<u4"), ("intensity", "<f4"),
+                          ("t", "<u4")])  # an Ouster ROS driver's layout: t in ns after the stamp
+        fields = [T["sensor_msgs/msg/PointField"](name=n, offset=point.fields[n][1], datatype=d, count=1)
+                  for n, d in (("x", 7), ("y", 7), ("z", 7), ("intensity", 7), ("t", 6))]
+        start = records[0].message.host_mono_ns
+        for k in range(3):
+            cloud = np.zeros(500, point)
+            for axis in ("x", "y", "z", "intensity"):
+                cloud[axis] = rng.normal(0, 5, 500)
+            cloud["t"] = rng.integers(0, 100_000_000, 500)
+            bag.write("/ouster/points", "sensor_msgs/msg/PointCloud2", start + k * 100_000_000,
+                      T["sensor_msgs/msg/PointCloud2"](header=header(start + k * 100_000_000, "os_lidar"), height=1,
+                                                       width=500, fields=fields, is_bigendian=False,
+                                                       point_step=point.itemsize, row_step=point.itemsize * 500,
+                                                       data=np.frombuffer(cloud.tobytes(), np.uint8),
+                                                       is_dense=True))
+            sent["clouds"].append((start + k * 100_000_000, cloud))
     return path, config, sent
 
 
@@ -164,6 +186,15 @@ def test_a_ros2_bag_imports_message_for_message(sim_bag, tmp_path, capsys):
         np.testing.assert_allclose(cam.extrinsics.matrix(), original.extrinsics.matrix(), atol=1e-9)
         assert (cam.width, cam.height, cam.distortion, cam.backend) == (original.width, original.height,
                                                                          original.distortion, "recorded")
+    clouds = by_topic[LIDAR_POINTS]
+    assert len(clouds) == 3 and imported.sensors.lidar.model == "point-cloud"
+    np.testing.assert_allclose(imported.sensors.lidar.extrinsics.matrix(), config.sensors.lidar.extrinsics.matrix(),
+                               atol=1e-9)
+    for cloud, (stamp, points) in zip(clouds, sent["clouds"], strict=True):
+        got = point_array(cloud)
+        assert cloud.sensor_time_ns == stamp
+        np.testing.assert_array_equal(got[:, :4], np.column_stack([points[k] for k in ("x", "y", "z", "intensity")]))
+        np.testing.assert_allclose(got[:, 4], points["t"] * 1e-9, rtol=1e-6)
     gnss = imported.sensors.gnss
     assert gnss.antenna_lever_arm_m == pytest.approx(config.sensors.gnss.antenna_lever_arm_m)
     assert gnss.imu_extrinsics.rotation_rpy_deg == pytest.approx((0.0, 0.0, 90.0))
@@ -190,3 +221,20 @@ def test_reconstruct_and_log_info_given_a_bag_say_to_import_it(sim_bag, tmp_path
     err = capsys.readouterr().err
     assert err.count("is a ROS 2 bag: import it first (roadlog import ros2") == 2
     assert "sqlite3 storage" in err and "Traceback" not in err
+
+
+def test_a_point_cloud2_without_xyz_or_with_torn_data_is_refused_with_a_reason():
+    from importers.ros2_messages import point_cloud
+
+    def cloud(names, size):
+        fields = [T["sensor_msgs/msg/PointField"](name=n, offset=4 * i, datatype=7, count=1) for i, n in
+                  enumerate(names)]
+        return T["sensor_msgs/msg/PointCloud2"](header=header(5, "lidar"), height=1, width=10, fields=fields,
+                                                is_bigendian=False, point_step=12, row_step=120,
+                                                data=np.zeros(size, np.uint8), is_dense=True)
+
+    assert point_cloud(cloud(("x", "y"), 120), 0) == (None, "PointCloud2 without numeric x, y, z fields")
+    message, why = point_cloud(cloud(("x", "y", "z"), 100), 0)
+    assert message is None and "100 bytes for 10 points" in why
+    message, why = point_cloud(cloud(("x", "y", "z"), 120), 7)
+    assert why == "" and message.sensor_time_ns == 5 and len(point_array(message)) == 10
