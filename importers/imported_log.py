@@ -1,5 +1,5 @@
 """Where an importer writes: a log that appears whole or not at all (OUT.partial renamed over OUT when the import
-finishes, removed when it fails), and the summary every importer prints."""
+finishes, removed when it fails), the summary every importer prints, and a pose matrix as a pose message."""
 
 from __future__ import annotations
 
@@ -9,8 +9,12 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+from scipy.spatial.transform import Rotation
+
 from daemon.log_format.writer import LogWriter
 from daemon.spine.config import CarConfig
+from daemon.spine.messages import VehiclePose
 
 
 @dataclass(frozen=True)
@@ -38,3 +42,12 @@ def imported_log(out: Path, config: CarConfig, metadata: dict[str, str]) -> Iter
         raise
     writer.close()
     partial.replace(out)
+
+
+def vehicle_pose(t_world_vehicle: np.ndarray, sensor_ns: int, host_ns: int, frame_id: str, seq: int = 0
+                 ) -> VehiclePose:
+    """A 4x4 vehicle -> world transform as the `pose` topic's message."""
+    return VehiclePose(seq=seq, sensor_time_ns=sensor_ns, host_mono_ns=host_ns, frame_id=frame_id,
+                       position_m=tuple(float(v) for v in t_world_vehicle[:3, 3]),
+                       orientation_xyzw=tuple(float(v) for v in
+                                              Rotation.from_matrix(t_world_vehicle[:3, :3]).as_quat()))

@@ -10,6 +10,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from daemon.spine.config import CarConfig, ConfigError, parse_config
+from daemon.spine.messages import CameraFrame
+from daemon.spine.topics import camera_topic
 
 # Camera axes (x right, y down, z forward) -> vehicle axes (x forward, y left, z up)
 CAMERA_TO_FLU = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -101,8 +103,24 @@ def imported_car_config(name: str, cameras: list[dict], reference_height_m: floa
     return parse_config(data, f"{source} (imported)")
 
 
+def png_file_size(path: Path) -> tuple[int, int]:
+    """(width, height) of a PNG file, from its first 24 bytes."""
+    with open(path, "rb") as f:
+        return png_size(f.read(24), path)
+
+
 def png_size(data: bytes, path: Path) -> tuple[int, int]:
     """(width, height) from a PNG's IHDR chunk."""
     if data[:8] != b"\x89PNG\r\n\x1a\n" or data[12:16] != b"IHDR":
         raise DatasetError(f"{path}: not a PNG file")
     return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+
+
+def write_png_frames(writer, camera: str, images: list[Path], times_ns: list[int], size: tuple[int, int]) -> None:
+    """Each PNG file as a frame of `camera` at its time, its bytes unchanged; one of another size is a DatasetError."""
+    for i, (path, t) in enumerate(zip(images, times_ns, strict=True)):
+        data = path.read_bytes()
+        if png_size(data, path) != size:
+            raise DatasetError(f"{path}: {png_size(data, path)} pixels, frame 0 has {size}")
+        writer.write(camera_topic(camera), CameraFrame(seq=i, sensor_time_ns=int(t), host_mono_ns=int(t),
+                                                       camera=camera, format="png", data=data))

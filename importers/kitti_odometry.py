@@ -16,22 +16,21 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from daemon.spine.config import reports_config_errors
-from daemon.spine.messages import CameraFrame, VehiclePose
-from daemon.spine.topics import POSE, camera_topic
-from importers.imported_log import ImportSummary, imported_log
+from daemon.spine.topics import POSE
+from importers.imported_log import ImportSummary, imported_log, vehicle_pose
 from importers.kitti_files import (
     CAMERA_TO_FLU,
     DatasetError,
     calibration_matrix,
     imported_car_config,
     numbered_files,
-    png_size,
+    png_file_size,
     read_calibration,
     recorded_camera,
     rigid,
+    write_png_frames,
 )
 
 CAMERA = "image_0"
@@ -69,25 +68,16 @@ def import_odometry(folder: Path, out: Path, *, camera_height_m: float = 1.65, r
     poses = vehicle_poses(read_poses(folder / "poses.txt"))
     if len(poses) < len(images):
         raise DatasetError(f"{folder / 'poses.txt'}: {len(poses)} poses for {len(images)} images of {CAMERA}")
-    first = images[0].read_bytes()
-    width, height = png_size(first, images[0])
+    width, height = png_file_size(images[0])
     camera = recorded_camera(CAMERA, width, height, p0[:, :3], rigid(CAMERA_TO_FLU, np.zeros(3)), rate_hz, "png")
     config = imported_car_config("kitti-odometry", [camera], camera_height_m, folder)
     times = CLOCK_START_NS + np.round(np.arange(len(images)) / rate_hz * 1e9).astype(np.int64)
     metadata = {"source": f"KITTI odometry {folder.resolve()}",
                 "import": json.dumps({"camera_height_m": camera_height_m, "rate_hz": rate_hz})}
     with imported_log(out, config, metadata) as writer:
-        for i, (path, t) in enumerate(zip(images, times, strict=False)):
-            data = first if i == 0 else path.read_bytes()
-            if png_size(data, path) != (width, height):
-                raise DatasetError(f"{path}: {png_size(data, path)} pixels, frame 0 has {(width, height)}")
-            pose = poses[i]
-            writer.write(POSE, VehiclePose(seq=i, sensor_time_ns=int(t), host_mono_ns=int(t), frame_id="map",
-                                           position_m=tuple(float(v) for v in pose[:3, 3]),
-                                           orientation_xyzw=tuple(float(v) for v in
-                                                                  Rotation.from_matrix(pose[:3, :3]).as_quat())))
-            writer.write(camera_topic(CAMERA), CameraFrame(seq=i, sensor_time_ns=int(t), host_mono_ns=int(t),
-                                                           camera=CAMERA, format="png", data=data))
+        for i, (pose, t) in enumerate(zip(poses, times.tolist(), strict=False)):  # poses.txt may run on
+            writer.write(POSE, vehicle_pose(pose, t, t, "map", seq=i))
+        write_png_frames(writer, CAMERA, images, times.tolist(), (width, height))
         counts = dict(writer.counts)
     return ImportSummary(out, counts, float(times[-1] - times[0]) / 1e9, time.perf_counter() - started)
 

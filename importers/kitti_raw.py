@@ -28,9 +28,9 @@ from scipy.spatial.transform import Rotation
 from daemon.log_format.metadata_records import POSE_ENU_ORIGIN_KEY
 from daemon.spine.config import POINT_CLOUD_LIDAR, reports_config_errors
 from daemon.spine.local_frame import LocalFrame
-from daemon.spine.messages import CameraFrame, GnssFix, ImuSample, PointCloud, TimeAnchor, VehiclePose
+from daemon.spine.messages import GnssFix, ImuSample, PointCloud, TimeAnchor, VehiclePose
 from daemon.spine.point_cloud_codec import pack_points
-from daemon.spine.topics import GNSS_FIX, IMU, LIDAR_POINTS, POSE, TIME_ANCHOR, camera_topic
+from daemon.spine.topics import GNSS_FIX, IMU, LIDAR_POINTS, POSE, TIME_ANCHOR
 from importers.imported_log import ImportSummary, imported_log
 from importers.kitti_files import (
     DatasetError,
@@ -38,11 +38,12 @@ from importers.kitti_files import (
     extrinsics,
     imported_car_config,
     numbered_files,
-    png_size,
+    png_file_size,
     read_calibration,
     read_timestamps,
     recorded_camera,
     rigid,
+    write_png_frames,
 )
 
 CAMERA = "image_02"
@@ -84,17 +85,15 @@ def imu_to_velodyne(folder: Path) -> np.ndarray:
 
 def imu_to_camera(folder: Path) -> tuple[np.ndarray, np.ndarray]:
     """(T_cam_imu of the rectified colour camera 2, its 3x3 K) from the three calibration files."""
-    cam_path, velo_path, imu_path = (folder / f"calib_{n}.txt" for n in ("cam_to_cam", "velo_to_cam", "imu_to_velo"))
-    cam, velo, imu = read_calibration(cam_path), read_calibration(velo_path), read_calibration(imu_path)
+    cam_path, velo_path = (folder / f"calib_{n}.txt" for n in ("cam_to_cam", "velo_to_cam"))
+    cam, velo = read_calibration(cam_path), read_calibration(velo_path)
     p_rect = calibration_matrix(cam, "P_rect_02", (3, 4), cam_path)
     r_rect = calibration_matrix(cam, "R_rect_00", (3, 3), cam_path)
     t_cam0_velo = rigid(calibration_matrix(velo, "R", (3, 3), velo_path), calibration_matrix(velo, "T", (3, 1),
                                                                                             velo_path)[:, 0])
-    t_velo_imu = rigid(calibration_matrix(imu, "R", (3, 3), imu_path), calibration_matrix(imu, "T", (3, 1),
-                                                                                          imu_path)[:, 0])
     k = p_rect[:, :3]
     t_cam2_cam0rect = rigid(np.eye(3), np.linalg.solve(k, p_rect[:, 3]))  # camera 2's baseline from P_rect_02
-    return t_cam2_cam0rect @ rigid(r_rect, np.zeros(3)) @ t_cam0_velo @ t_velo_imu, k
+    return t_cam2_cam0rect @ rigid(r_rect, np.zeros(3)) @ t_cam0_velo @ imu_to_velodyne(folder), k
 
 
 def read_oxts(folder: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -151,8 +150,7 @@ def import_raw(folder: Path, out: Path, *, reference_height_m: float = 0.93, pos
         raise DatasetError(f"{folder / CAMERA}: {len(images)} images for {len(frame_times)} timestamps")
     oxts_times, records = read_oxts(folder)
     fixes, samples = oxts_messages(oxts_times, records)
-    first = images[0].read_bytes()
-    width, height = png_size(first, images[0])
+    width, height = png_file_size(images[0])
     rate_hz = float((len(frame_times) - 1) / ((frame_times[-1] - frame_times[0]) * 1e-9))
     camera = recorded_camera(CAMERA, width, height, k, np.linalg.inv(t_cam_imu), round(rate_hz, 3), "png")
     oxts_rate = round(float((len(oxts_times) - 1) / ((oxts_times[-1] - oxts_times[0]) * 1e-9)), 3)
@@ -176,12 +174,7 @@ def import_raw(folder: Path, out: Path, *, reference_height_m: float = 0.93, pos
             writer.write(POSE, pose)
         for cloud in clouds:
             writer.write(LIDAR_POINTS, cloud)
-        for i, (path, t) in enumerate(zip(images, frame_times.tolist(), strict=True)):
-            data = first if i == 0 else path.read_bytes()
-            if png_size(data, path) != (width, height):
-                raise DatasetError(f"{path}: {png_size(data, path)} pixels, frame 0 has {(width, height)}")
-            writer.write(camera_topic(CAMERA), CameraFrame(seq=i, sensor_time_ns=t, host_mono_ns=t, camera=CAMERA,
-                                                           format="png", data=data))
+        write_png_frames(writer, CAMERA, images, frame_times.tolist(), (width, height))
         counts = dict(writer.counts)
     return ImportSummary(out, counts, float(frame_times[-1] - frame_times[0]) / 1e9, time.perf_counter() - started)
 

@@ -28,7 +28,7 @@ from daemon.spine.config import POINT_CLOUD_LIDAR, reports_config_errors
 from daemon.spine.messages import TimeAnchor
 from daemon.spine.topics import GNSS_FIX, IMU, LIDAR_POINTS, POSE, TIME_ANCHOR, camera_topic
 from importers import ros2_messages as ros
-from importers.imported_log import ImportSummary, imported_log
+from importers.imported_log import ImportSummary, imported_log, vehicle_pose
 from importers.kitti_files import DatasetError, extrinsics, imported_car_config, recorded_camera
 
 IMAGE, COMPRESSED, INFO = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/CameraInfo"
@@ -201,7 +201,7 @@ def _convert(msg, conn, host_ns: int, camera_of: dict[str, str], tree: ros.Frame
     if t_child_base is None:
         return POSE, None, f"no transform from Odometry's child frame {msg.child_frame_id!r} to {base!r}"
     t_world_base = ros.matrix(msg.pose.pose.position, msg.pose.pose.orientation) @ t_child_base
-    return POSE, ros.pose_message(t_world_base, ros.stamp_ns(msg.header), host_ns, msg.header.frame_id), ""
+    return POSE, vehicle_pose(t_world_base, ros.stamp_ns(msg.header), host_ns, msg.header.frame_id), ""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

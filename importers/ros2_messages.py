@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from daemon.spine.messages import RAW_FORMAT_CHANNELS, CameraFrame, GnssFix, ImuSample, PointCloud, VehiclePose
+from daemon.spine.messages import RAW_FORMAT_CHANNELS, CameraFrame, GnssFix, ImuSample, PointCloud
 from daemon.spine.point_cloud_codec import pack_points
 
 # trailing topic parts that name the stream, not the camera: /front/image_raw/compressed -> camera "front"
@@ -96,13 +96,6 @@ def matrix(translation, rotation) -> np.ndarray:
     t[:3, :3] = Rotation.from_quat([rotation.x, rotation.y, rotation.z, rotation.w]).as_matrix()
     t[:3, 3] = (translation.x, translation.y, translation.z)
     return t
-
-
-def pose_message(t_world_vehicle: np.ndarray, sensor_ns: int, host_ns: int, frame_id: str) -> VehiclePose:
-    return VehiclePose(sensor_time_ns=sensor_ns, host_mono_ns=host_ns, frame_id=frame_id,
-                       position_m=tuple(float(v) for v in t_world_vehicle[:3, 3]),
-                       orientation_xyzw=tuple(float(v) for v in
-                                              Rotation.from_matrix(t_world_vehicle[:3, :3]).as_quat()))
 
 
 @dataclass
