@@ -38,28 +38,26 @@ def _segment_index(name: str) -> int | None:
     return int(tail) if name.startswith(SEGMENT_PREFIX) and tail.isdigit() else None
 
 
-def closed_segments(output_dir: Path) -> list[disk_policy.Segment]:
-    """The closed segments in `output_dir`, oldest first: by index, which a clock set back cannot reorder."""
-    paths = output_dir.glob(f"{SEGMENT_PREFIX}*{SEGMENT_SUFFIX}")
+def _segments(output_dir: Path, pattern: str) -> list[disk_policy.Segment]:
+    """The files matching `pattern` in `output_dir` with their sizes, oldest first: by index, which a clock set back
+    cannot reorder; a file gone meanwhile is left out."""
     out = []
-    for p in sorted(paths, key=lambda p: (_segment_index(p.name) or 0, p.name)):
+    for p in sorted(output_dir.glob(pattern), key=lambda p: (_segment_index(p.name) or 0, p.name)):
         try:
             out.append(disk_policy.Segment(p, p.stat().st_size))
         except FileNotFoundError:
             continue
     return out
+
+
+def closed_segments(output_dir: Path) -> list[disk_policy.Segment]:
+    """The closed segments in `output_dir`, oldest first."""
+    return _segments(output_dir, f"{SEGMENT_PREFIX}*{SEGMENT_SUFFIX}")
 
 
 def quarantined_segments(output_dir: Path) -> list[disk_policy.Segment]:
     """The quarantined segments (`NAME.mcap.damaged`, see recover_unclosed) in `output_dir`, oldest first."""
-    out = []
-    for p in sorted(output_dir.glob(f"{SEGMENT_PREFIX}*{SEGMENT_SUFFIX}{DAMAGED_SUFFIX}*"),
-                    key=lambda p: (_segment_index(p.name) or 0, p.name)):
-        try:
-            out.append(disk_policy.Segment(p, p.stat().st_size))
-        except FileNotFoundError:
-            continue
-    return out
+    return _segments(output_dir, f"{SEGMENT_PREFIX}*{SEGMENT_SUFFIX}{DAMAGED_SUFFIX}*")
 
 
 def oldest_first(output_dir: Path) -> list[disk_policy.Segment]:
