@@ -5,11 +5,17 @@ each firing's time, range, intensity, laser id, ring, per-point time and xyz in 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.lidar.lidar_points import LidarPointCloud
+from drivers.lidar.packet_decoding import (
+    RETURN_TYPE_LAST,
+    RETURN_TYPE_STRONGEST,
+    DecodedPoints,
+    PacketCheck,
+    empty_points,
+)
 from drivers.lidar.velodyne_calibration import VelodyneCalibration
 
 PACKET_SIZE = 1206
@@ -21,8 +27,6 @@ _RETURN_MODE_OFFSET = 1204
 _PRODUCT_ID_OFFSET = 1205
 
 RETURN_STRONGEST, RETURN_LAST, RETURN_DUAL = 0x37, 0x38, 0x39
-# Bits of VelodynePoints.return_type; a dual-return point whose two returns agree carries both.
-RETURN_TYPE_STRONGEST, RETURN_TYPE_LAST = 1, 2
 _BANK_FLAGS = np.array([0xEEFF, 0xDDFF, 0xCCFF, 0xBBFF], dtype=np.uint16)  # lasers 0-31, 32-63, ...
 
 _DUAL_ORDER = np.stack(
@@ -70,51 +74,11 @@ MODELS = {
 }
 
 
-@dataclass
-class VelodynePacketCounts:
-    """What happened to the datagrams of one decode call; packets_in is always packets_decoded plus
-    the four reasons to skip."""
-
-    packets_in: int = 0
-    packets_decoded: int = 0
-    wrong_size: int = 0  # not 1,206 bytes (position packets are 512)
-    bad_block_flag: int = 0  # a block's flag is not the bank the model puts there
-    unknown_factory: int = 0  # product id or return mode byte of no model decoded here
-    foreign_model: int = 0  # a known model, but not the one the calibration is for
-
-    def add(self, other: VelodynePacketCounts) -> None:
-        for f in fields(self):
-            setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
-
-
-@dataclass
-class VelodynePoints:
-    """The N returns of one decode call with a range inside the decoder's limits, in packet order,
-    then block, then channel (velodyne-decoder's order)."""
-
-    model: str | None  # None when no packet decoded
-    xyz: np.ndarray  # (N, 3) float32 metres, sensor frame
-    distance_m: np.ndarray  # (N,) float32, corrected range
-    intensity: np.ndarray  # (N,) float32, calibrated intensity (the raw byte without focal corrections)
-    laser_id: np.ndarray  # (N,) uint8, channel in the packet (with the bank for 64/128 lasers)
-    ring: np.ndarray  # (N,) uint16, rank of the laser by elevation, 0 = lowest
-    azimuth_cdeg: np.ndarray  # (N,) uint16, interpolated azimuth in 0.01 degrees
-    return_type: np.ndarray  # (N,) uint8, RETURN_TYPE_STRONGEST | RETURN_TYPE_LAST bits: which return(s) it is
-    timestamp_ns: np.ndarray  # (N,) int64, sensor time past the top of the hour of the point's firing
-    packet_index: np.ndarray  # (N,) int64, position of the point's packet in the decoder's input
-    counts: VelodynePacketCounts = field(default_factory=VelodynePacketCounts)
-
-    def to_point_cloud(self, frame_id: int) -> LidarPointCloud:
-        """The vendor-neutral cloud (range in mm, intensity clipped to a byte, azimuth as column)."""
-        return LidarPointCloud(
-            frame_id=frame_id,
-            xyz=self.xyz,
-            range_mm=np.rint(self.distance_m * 1000.0).astype(np.uint32),
-            reflectivity=np.clip(np.rint(self.intensity), 0, 255).astype(np.uint8),
-            ring=self.ring,
-            column=self.azimuth_cdeg,
-            timestamp_ns=self.timestamp_ns.astype(np.uint64),
-        )
+# Reasons a datagram is skipped, as DecodedPoints.counts and PacketCheck.counts name them.
+WRONG_SIZE = "wrong_size"  # not 1,206 bytes (position packets are 512)
+BAD_BLOCK_FLAG = "bad_block_flag"  # a block's flag is not the bank the model puts there
+UNKNOWN_FACTORY = "unknown_factory"  # product id or return mode byte of no model decoded here
+FOREIGN_MODEL = "foreign_model"  # a known model, but not the one the calibration is for
 
 
 def _rotation_tables() -> tuple[np.ndarray, np.ndarray]:
@@ -139,55 +103,72 @@ class VelodyneDecoder:
         self._sin_rot = np.sin(calibration.rot_correction_rad.astype(f32))
         self._cos_vert = np.cos(calibration.vert_correction_rad.astype(f32))
         self._sin_vert = np.sin(calibration.vert_correction_rad.astype(f32))
-        model = next((m for m in MODELS.values() if m.num_lasers == calibration.num_lasers), None)
-        self._slot_tables = _slot_tables(model, calibration) if model is not None else {}
+        self._model = next((m for m in MODELS.values() if m.num_lasers == calibration.num_lasers), None)
+        self._slot_tables = _slot_tables(self._model, calibration) if self._model is not None else {}
         # With no offsets the offset terms vanish: the formula velodyne-decoder uses for such files.
         self._has_offsets = bool(np.any(calibration.vert_offset_m) or np.any(calibration.horiz_offset_m))
         self._has_offsets |= calibration.two_point_correction
         self._prev_azimuth: int | None = None  # VLS-128: first block azimuth of the last packet
         self._prev_rate = np.float32(0.0)
 
-    def decode(self, packets: np.ndarray | list[bytes]) -> VelodynePoints:
+    @property
+    def model(self) -> str:
+        return self._model.name if self._model is not None else f"Velodyne ({self.calibration.num_lasers} lasers)"
+
+    def check(self, packets: list[bytes]) -> PacketCheck:
+        """Which datagrams are this sensor's data packets, their stamps (microseconds past the hour) and the
+        azimuth of their first block."""
+        counts: dict[str, int] = {}
+        batch, index = self._as_batch(packets, counts)
+        good, _ = self._check_packets(batch, counts)
+        accepted = np.zeros(len(packets), bool)
+        accepted[index[good]] = True
+        time_ns = np.zeros(len(packets), np.int64)
+        azimuth = np.zeros(len(packets), np.int32)
+        stamps = batch[good, _TIMESTAMP_OFFSET:_TIMESTAMP_OFFSET + 4].copy().view("<u4")[:, 0]
+        time_ns[index[good]] = stamps.astype(np.int64) * 1000
+        azimuth[index[good]] = _u16(batch[good], 2).astype(np.int32) % 36000
+        return PacketCheck(accepted, time_ns, azimuth, {k: v for k, v in counts.items() if v and k != "packets_in"})
+
+    def decode(self, packets: np.ndarray | list[bytes]) -> DecodedPoints:
         """Decode an (N, 1206) uint8 array or a list of datagram payloads of any size."""
-        counts = VelodynePacketCounts()
+        counts = {"packets_in": 0, "packets_decoded": 0, WRONG_SIZE: 0, BAD_BLOCK_FLAG: 0, UNKNOWN_FACTORY: 0,
+                  FOREIGN_MODEL: 0}
         batch, index = self._as_batch(packets, counts)
         good, model = self._check_packets(batch, counts)
         batch, index = batch[good], index[good]
-        counts.packets_decoded = int(batch.shape[0])
+        counts["packets_decoded"] = int(batch.shape[0])
         if model is None or batch.shape[0] == 0:
-            return _empty_points(counts, None if model is None else model.name)
+            return empty_points(counts, None if model is None else model.name)
         points = self._decode_points(batch, index, model)
         points.counts = counts
         return points
 
     @staticmethod
-    def _as_batch(packets: np.ndarray | list[bytes], counts: VelodynePacketCounts) -> tuple[np.ndarray, np.ndarray]:
+    def _as_batch(packets: np.ndarray | list[bytes], counts: dict[str, int]) -> tuple[np.ndarray, np.ndarray]:
         if isinstance(packets, np.ndarray):
             if packets.ndim != 2:
                 raise TypeError("expected an (N, packet_size) uint8 array")
-            counts.packets_in = int(packets.shape[0])
+            counts["packets_in"] = int(packets.shape[0])
             if packets.shape[1] != PACKET_SIZE:
-                counts.wrong_size = counts.packets_in
+                counts[WRONG_SIZE] = counts["packets_in"]
                 return np.zeros((0, PACKET_SIZE), np.uint8), np.zeros(0, np.int64)
             return packets.astype(np.uint8, copy=False), np.arange(packets.shape[0], dtype=np.int64)
-        counts.packets_in = len(packets)
+        counts["packets_in"] = len(packets)
         index = np.array([i for i, p in enumerate(packets) if len(p) == PACKET_SIZE], dtype=np.int64)
-        counts.wrong_size = counts.packets_in - len(index)
+        counts[WRONG_SIZE] = counts["packets_in"] - len(index)
         joined = b"".join(packets[i] for i in index)
         return np.frombuffer(joined, dtype=np.uint8).reshape(-1, PACKET_SIZE), index
 
-    def _check_packets(
-        self, batch: np.ndarray, counts: VelodynePacketCounts
-    ) -> tuple[np.ndarray, VelodyneModel | None]:
+    def _check_packets(self, batch: np.ndarray, counts: dict[str, int]) -> tuple[np.ndarray, VelodyneModel | None]:
         """Mask of the packets to decode; counts the others by reason."""
         product = batch[:, _PRODUCT_ID_OFFSET]
         mode = batch[:, _RETURN_MODE_OFFSET]
         known = np.isin(product, list(MODELS)) & np.isin(mode, [RETURN_STRONGEST, RETURN_LAST, RETURN_DUAL])
-        counts.unknown_factory = int((~known).sum())
-        ours = [m for m in MODELS.values() if m.num_lasers == self.calibration.num_lasers]
-        model = ours[0] if ours else None
+        counts[UNKNOWN_FACTORY] = int((~known).sum())
+        model = self._model
         mine = known & (product == (model.product_id if model else -1))
-        counts.foreign_model = int((known & ~mine).sum())
+        counts[FOREIGN_MODEL] = int((known & ~mine).sum())
         flags = _u16(batch[:, :_TIMESTAMP_OFFSET].reshape(-1, BLOCKS_PER_PACKET, _BLOCK_BYTES), 0)
         if model is not None and model.num_lasers == 128:
             blocks_used = np.where(mode == RETURN_DUAL, 8, 12)
@@ -196,7 +177,7 @@ class VelodyneDecoder:
         else:
             ok = flags == _BANK_FLAGS[0]
         flags_ok = ok.all(axis=1)
-        counts.bad_block_flag = int((mine & ~flags_ok).sum())
+        counts[BAD_BLOCK_FLAG] = int((mine & ~flags_ok).sum())
         return mine & flags_ok, model
 
     def _vls128_rate(self, first_azimuth: np.ndarray, packet_duration: np.ndarray) -> np.ndarray:
@@ -217,7 +198,7 @@ class VelodyneDecoder:
         self._prev_azimuth = int(az[-1])
         return rate
 
-    def _decode_points(self, batch: np.ndarray, index: np.ndarray, model: VelodyneModel) -> VelodynePoints:
+    def _decode_points(self, batch: np.ndarray, index: np.ndarray, model: VelodyneModel) -> DecodedPoints:
         """All returns computed densely as (n, 384) slots, then the kept ones picked out. A slot is a
         return in velodyne-decoder's order: block by block, a dual pair channel by channel (last,
         strongest); what depends on the laser and firing only comes from per-slot tables."""
@@ -303,12 +284,12 @@ class VelodyneDecoder:
 
         intensity = self._intensity(in_slot_order(raw_intensity)[keep], slot_raw_distance[keep], laser_k)
         time_ns = per_slot(tables["time_ns"])[0 if uniform else kept_packet, kept_slot]
-        return VelodynePoints(
+        return DecodedPoints(
             model=model.name,
             xyz=xyz,
             distance_m=d,
             intensity=intensity,
-            laser_id=laser_k.astype(np.uint8),
+            laser_id=laser_k.astype(np.uint16),
             ring=cal.ring[laser_k],
             azimuth_cdeg=az_k.astype(np.uint16),
             return_type=slot_return_type[keep],
@@ -392,19 +373,3 @@ def _slot_tables(model: VelodyneModel, calibration: VelodyneCalibration) -> dict
 def _u16(a: np.ndarray, offset: int) -> np.ndarray:
     """Little-endian uint16 at byte `offset` of the last axis."""
     return a[..., offset].astype(np.uint16) | (a[..., offset + 1].astype(np.uint16) << 8)
-
-
-def _empty_points(counts: VelodynePacketCounts, model: str | None) -> VelodynePoints:
-    return VelodynePoints(
-        model=model,
-        xyz=np.zeros((0, 3), np.float32),
-        distance_m=np.zeros(0, np.float32),
-        intensity=np.zeros(0, np.float32),
-        laser_id=np.zeros(0, np.uint8),
-        ring=np.zeros(0, np.uint16),
-        azimuth_cdeg=np.zeros(0, np.uint16),
-        return_type=np.zeros(0, np.uint8),
-        timestamp_ns=np.zeros(0, np.int64),
-        packet_index=np.zeros(0, np.int64),
-        counts=counts,
-    )

@@ -60,8 +60,8 @@ def decoded(request):
 def test_decodes_every_packet_of_the_capture(decoded):
     capture, payloads, points, _ = decoded
     assert points.model == CAPTURES[capture][1]
-    assert points.counts.packets_in == len(payloads)
-    assert points.counts.packets_decoded == len(payloads)
+    assert points.counts["packets_in"] == len(payloads)
+    assert points.counts["packets_decoded"] == len(payloads)
     assert {p[1204] for _, p in payloads} == {CAPTURES[capture][2]}
 
 
@@ -158,9 +158,14 @@ def test_bad_packets_are_counted_and_skipped_and_the_good_ones_still_decode():
     ]
     points = VelodyneDecoder(calibration).decode(batch)
     c = points.counts
-    assert (c.packets_in, c.packets_decoded) == (12, 5)
-    assert (c.wrong_size, c.bad_block_flag, c.unknown_factory, c.foreign_model) == (3, 1, 2, 1)
-    assert c.packets_in == c.packets_decoded + c.wrong_size + c.bad_block_flag + c.unknown_factory + c.foreign_model
+    assert (c["packets_in"], c["packets_decoded"]) == (12, 5)
+    assert (c["wrong_size"], c["bad_block_flag"], c["unknown_factory"], c["foreign_model"]) == (3, 1, 2, 1)
+    assert c["packets_in"] == sum(v for k, v in c.items() if k != "packets_in")
+    check = VelodyneDecoder(calibration).check(batch)
+    np.testing.assert_array_equal(np.flatnonzero(check.accepted), [0, 7, 8, 10, 11])
+    assert check.counts == {"wrong_size": 3, "bad_block_flag": 1, "unknown_factory": 2, "foreign_model": 1}
+    np.testing.assert_array_equal(check.sensor_time_ns[check.accepted] // 1000,
+                                  [int.from_bytes(good[i][1200:1204], "little") for i in (0, 1, 2, 4, 5)])
     np.testing.assert_array_equal(points.xyz, alone.xyz)
     np.testing.assert_array_equal(np.unique(points.packet_index), [0, 7, 8, 10, 11])
     assert len(np.unique(alone.packet_index)) == 5
@@ -169,10 +174,10 @@ def test_bad_packets_are_counted_and_skipped_and_the_good_ones_still_decode():
 def test_array_batch_of_wrong_width_is_counted_not_raised():
     calibration = load_velodyne_calibration(DATA / "calib" / "VLP16.yaml")
     points = VelodyneDecoder(calibration).decode(np.zeros((4, 1000), np.uint8))
-    assert (points.counts.packets_in, points.counts.wrong_size, len(points.xyz)) == (4, 4, 0)
+    assert (points.counts["packets_in"], points.counts["wrong_size"], len(points.xyz)) == (4, 4, 0)
     garbage = np.random.default_rng(0).integers(0, 256, (50, PACKET_SIZE), dtype=np.uint8)
     points = VelodyneDecoder(calibration).decode(garbage)
-    assert points.counts.packets_decoded == 0 and points.counts.packets_in == 50
+    assert points.counts["packets_decoded"] == 0 and points.counts["packets_in"] == 50
 
 
 @pytest.mark.parametrize(
@@ -223,7 +228,7 @@ def test_vls128_dual_return_packets_ignore_their_four_empty_blocks():
         packet[block * 100 : block * 100 + 2] = int([0xEEFF, 0xDDFF, 0xCCFF, 0xBBFF][block // 2]).to_bytes(2, "little")
     calibration = load_velodyne_calibration(DATA / "calib" / "VLS128.yaml")
     points = VelodyneDecoder(calibration).decode([bytes(packet)])
-    assert points.counts.packets_decoded == 1
+    assert points.counts["packets_decoded"] == 1
     assert len(points.xyz) > 0
     assert set(points.laser_id.tolist()) <= set(range(128))
     blank = bytearray(packet)

@@ -1,0 +1,79 @@
+"""What a Lidar packet decoder of any vendor but Ouster gives (Velodyne, Hesai, RoboSense): the check of each
+datagram that the driver stamps and counts packets with (PacketCheck), the points of a batch of packets
+(DecodedPoints), and where one rotation ends and the next begins (rotation_starts).
+
+A decoder is an object with `model` (its name), `check(packets) -> PacketCheck` and
+`decode(packets) -> DecodedPoints`; `packets` is a list of datagram payloads of any size, in arrival order.
+Times are on the sensor's clock as its packets carry it (Velodyne: past the top of the hour; Hesai and
+RoboSense: UTC), so a point's time after its packet's stamp is `timestamp_ns - check.sensor_time_ns[packet]`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+# Bits of DecodedPoints.return_type; a dual-return point whose two returns agree carries both.
+RETURN_TYPE_STRONGEST, RETURN_TYPE_LAST, RETURN_TYPE_OTHER = 1, 2, 4
+
+
+@dataclass
+class PacketCheck:
+    """Each datagram of a batch looked at without decoding its points: whether it is one of this sensor's data
+    packets, and then its stamp and the azimuth of its first firing."""
+
+    accepted: np.ndarray  # (P,) bool
+    sensor_time_ns: np.ndarray  # (P,) int64, the packet's own stamp on the sensor's clock; 0 where not accepted
+    azimuth_cdeg: np.ndarray  # (P,) int32, its first firing's azimuth in 0.01 degrees, 0-35999; 0 where not
+    counts: dict[str, int] = field(default_factory=dict)  # reason -> datagrams not accepted for it (nonzero only)
+
+
+@dataclass
+class DecodedPoints:
+    """The returns with a range inside the decoder's limits of one decode call, in packet order."""
+
+    model: str | None  # None when no packet decoded
+    xyz: np.ndarray  # (N, 3) float32 metres, sensor frame (x forward, y left, z up)
+    distance_m: np.ndarray  # (N,) float32, corrected range
+    intensity: np.ndarray  # (N,) float32, as the sensor reports it (0-255 for most)
+    laser_id: np.ndarray  # (N,) uint16, channel in the packet
+    ring: np.ndarray  # (N,) uint16, rank of the laser by elevation, 0 = lowest
+    azimuth_cdeg: np.ndarray  # (N,) uint16, the firing's azimuth before per-laser corrections, 0.01 degrees
+    return_type: np.ndarray  # (N,) uint8, RETURN_TYPE_* bits
+    timestamp_ns: np.ndarray  # (N,) int64, firing time on the sensor's clock
+    packet_index: np.ndarray  # (N,) int64, position of the point's packet in the decode call's input
+    # packets_in, packets_decoded, and reason -> datagrams skipped for it
+    counts: dict[str, int] = field(default_factory=dict)
+
+
+class PacketDecoder(Protocol):
+    model: str
+
+    def check(self, packets: list[bytes]) -> PacketCheck: ...
+
+    def decode(self, packets: list[bytes]) -> DecodedPoints: ...
+
+
+def empty_points(counts: dict[str, int], model: str | None) -> DecodedPoints:
+    return DecodedPoints(
+        model=model,
+        xyz=np.zeros((0, 3), np.float32),
+        distance_m=np.zeros(0, np.float32),
+        intensity=np.zeros(0, np.float32),
+        laser_id=np.zeros(0, np.uint16),
+        ring=np.zeros(0, np.uint16),
+        azimuth_cdeg=np.zeros(0, np.uint16),
+        return_type=np.zeros(0, np.uint8),
+        timestamp_ns=np.zeros(0, np.int64),
+        packet_index=np.zeros(0, np.int64),
+        counts=counts,
+    )
+
+
+def rotation_starts(azimuth_cdeg: np.ndarray) -> np.ndarray:
+    """Indices of the packets (their first firings' azimuths, in order) that begin a new rotation: where the
+    azimuth falls by more than half a turn from the packet before."""
+    az = np.asarray(azimuth_cdeg, dtype=np.int64)
+    return np.flatnonzero(np.diff(az) < -18000) + 1
