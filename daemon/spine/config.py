@@ -18,8 +18,10 @@ from typing import Literal, ParamSpec
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
+from daemon.spine.config_model import StrictModel
+from daemon.spine.mapper_config import MapperConfig
 from daemon.spine.yaml_document import UnusableYaml, load_yaml
 
 P = ParamSpec("P")
@@ -29,11 +31,7 @@ class ConfigError(Exception):
     """A configuration file that cannot be used; the message names the file, key path and expectation."""
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class Extrinsics(_Strict):
+class Extrinsics(StrictModel):
     translation_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     rotation_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
@@ -52,7 +50,7 @@ class Extrinsics(_Strict):
         return t
 
 
-class CameraIntrinsics(_Strict):
+class CameraIntrinsics(StrictModel):
     fx: float = Field(gt=0)
     fy: float = Field(gt=0)
     cx: float
@@ -62,7 +60,7 @@ class CameraIntrinsics(_Strict):
         return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
 
 
-class CameraPhotometry(_Strict):
+class CameraPhotometry(StrictModel):
     """The simulator's photometric response of a camera (ignored by real backends)."""
 
     gain: float = Field(1.0, gt=0)
@@ -83,7 +81,7 @@ BACKEND_ENCODINGS = {
 }
 
 
-class CameraConfig(_Strict):
+class CameraConfig(StrictModel):
     name: str = Field(pattern=r"^[a-z][a-z0-9_]*$")
     backend: Literal["sim", "opencv", "depthai", "recorded"]  # recorded: no live driver (frames come from logs)
     device: str = ""  # V4L2 path, GStreamer pipeline, or OAK serial number
@@ -109,36 +107,58 @@ class CameraConfig(_Strict):
 
 
 POINT_CLOUD_LIDAR = "point-cloud"  # a Lidar model whose scans arrive already decoded (messages.PointCloud)
+OUSTER_LIDARS = ("ouster-os-128", "ouster-os-32")
+# the models decoded from packets by a vendor decoder (drivers/lidar/lidar_models.py; a test keeps the two equal)
+VENDOR_LIDARS = ("velodyne-vlp16", "velodyne-vlp32c", "velodyne-vls128")
+LIDAR_DEFAULT_PORTS = {"ouster": 7502, "velodyne": 2368, "hesai": 2368, "robosense": 6699}  # by vendor, as shipped
+LidarModel = Literal[(*OUSTER_LIDARS, *VENDOR_LIDARS, POINT_CLOUD_LIDAR)]
 
 
-class LidarConfig(_Strict):
-    # exactly the models the driver and the mapper decode: Ouster packets, or scans already decoded into points
-    # (POINT_CLOUD_LIDAR: an imported dataset, a ROS bag, another system's driver; they come only in logs, there is
-    # no live driver for them)
-    model: Literal["ouster-os-128", "ouster-os-32", "point-cloud"]
+class LidarConfig(StrictModel):
+    # exactly the models the driver and the mapper decode: Ouster packets, another vendor's packets
+    # (VENDOR_LIDARS), or scans already decoded into points (POINT_CLOUD_LIDAR: an imported dataset, a ROS bag,
+    # another system's driver; they come only in logs, there is no live driver for them)
+    model: LidarModel
     bind_address: str = "0.0.0.0"
-    port: int = Field(7502, ge=1, le=65535)
-    imu_port: int | None = Field(None, ge=0, le=65535)  # None: the metadata's udp_port_imu; 0: IMU off
-    metadata_file: str | None = None  # the Ouster's own calibration JSON (required for the Ouster models)
-    columns_per_frame: Literal[512, 1024, 2048] = 1024
-    rate_hz: Literal[10, 20] = 10
+    port: int = Field(7502, ge=1, le=65535)  # when left out: the vendor's factory port (LIDAR_DEFAULT_PORTS)
+    imu_port: int | None = Field(None, ge=0, le=65535)  # Ouster: None: the metadata's udp_port_imu; 0: IMU off
+    # the sensor's own calibration, required for every model but point-cloud: the Ouster's metadata JSON, the
+    # Velodyne calibration YAML (velodyne_pointcloud's layout), the Hesai or RoboSense angle-correction CSV
+    metadata_file: str | None = None
+    columns_per_frame: Literal[512, 1024, 2048] = 1024  # Ouster only
+    rate_hz: Literal[5, 10, 15, 20] = 10  # rotations per second (Ouster: 10 or 20)
     receive_buffer_bytes: int = Field(64 * 1024 * 1024, ge=1 << 16)
     extrinsics: Extrinsics
 
     @property
     def point_clouds(self) -> bool:
-        """Whether its scans arrive as decoded point clouds (`lidar/points`) instead of Ouster packets."""
+        """Whether its scans arrive as decoded point clouds (`lidar/points`) instead of packets."""
         return self.model == POINT_CLOUD_LIDAR
+
+    @property
+    def vendor_packets(self) -> bool:
+        """Whether its packets are decoded by a vendor decoder (not Ouster's)."""
+        return self.model in VENDOR_LIDARS
+
+    @model_validator(mode="before")
+    @classmethod
+    def _vendor_port(cls, data: object) -> object:
+        vendor = str(data.get("model")).split("-")[0] if isinstance(data, dict) else None
+        if isinstance(data, dict) and "port" not in data and vendor in LIDAR_DEFAULT_PORTS:
+            return {**data, "port": LIDAR_DEFAULT_PORTS[vendor]}
+        return data
 
     @model_validator(mode="after")
     def _packets_need_metadata(self) -> LidarConfig:
         if not self.point_clouds and not self.metadata_file:
-            raise ValueError(f"metadata_file is required for model {self.model} (the sensor's metadata JSON, "
+            raise ValueError(f"metadata_file is required for model {self.model} (the sensor's calibration file, "
                              f"which its packets are decoded with); only model {POINT_CLOUD_LIDAR} goes without")
+        if self.model in OUSTER_LIDARS and self.rate_hz not in (10, 20):
+            raise ValueError(f"rate_hz: an Ouster turns at 10 or 20 Hz, not {self.rate_hz}")
         return self
 
 
-class GnssConfig(_Strict):
+class GnssConfig(StrictModel):
     port: str
     baud: int = Field(115200, gt=0)
     protocol: Literal["nmea", "ubx", "nmea+ubx"] = "nmea+ubx"
@@ -148,7 +168,7 @@ class GnssConfig(_Strict):
     imu_extrinsics: Extrinsics = Extrinsics()
 
 
-class CanSignals(_Strict):
+class CanSignals(StrictModel):
     """Signal names as MESSAGE.SIGNAL in the DBC."""
 
     wheel_speed_fl: str
@@ -168,7 +188,7 @@ class CanSignals(_Strict):
         return v
 
 
-class CanConfig(_Strict):
+class CanConfig(StrictModel):
     interface: str = "socketcan"  # any python-can interface: socketcan, virtual, udp_multicast, slcan, ...
     channel: str = "can0"
     bitrate: int | None = Field(500000, gt=0)
@@ -177,7 +197,7 @@ class CanConfig(_Strict):
     options: dict[str, str | int | float | bool] = {}  # extra python-can bus arguments (e.g. udp_multicast port)
 
 
-class SensorsConfig(_Strict):
+class SensorsConfig(StrictModel):
     cameras: list[CameraConfig] = Field(min_length=1)
     lidar: LidarConfig | None = None
     gnss: GnssConfig | None = None
@@ -192,7 +212,7 @@ class SensorsConfig(_Strict):
         return cams
 
 
-class VehicleConfig(_Strict):
+class VehicleConfig(StrictModel):
     name: str = "car"
     reference_height_m: float = Field(0.0, ge=0, le=5)  # reference point height above the ground
     wheel_base_m: float = Field(2.8, gt=0)
@@ -200,12 +220,12 @@ class VehicleConfig(_Strict):
     rear_axle_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # rear axle centre in the vehicle frame
 
 
-class BusConfig(_Strict):
+class BusConfig(StrictModel):
     shm_prefix: str = Field("roadlog", pattern=r"^[A-Za-z0-9_]+$")
     ring_bytes: dict[str, int] = {}  # per-topic overrides of the topic table's ring size
 
 
-class RecorderConfig(_Strict):
+class RecorderConfig(StrictModel):
     output_dir: str = "logs"
     segment_seconds: float = Field(60.0, gt=0)
     segment_bytes: int = Field(2 * 1024**3, gt=0)
@@ -214,196 +234,12 @@ class RecorderConfig(_Strict):
     compression: Literal["zstd", "lz4", "none"] = "lz4"
 
 
-class LearningRates(_Strict):
-    """Adam learning rates of the faithful fit, one optimiser per parameter group."""
-
-    elevation_mlp: float = Field(0.01, gt=0)  # the elevation MLP's weights
-    colour_mlps: float = Field(0.005, gt=0)  # the per-camera colour decoders' weights
-    semantics: float = Field(0.1, gt=0)  # the per-vertex semantic logits (row-sparse Adam)
-    colour_codes: float = Field(0.005, gt=0)  # the per-vertex colour codes (row-sparse Adam)
-
-
-class LossWeights(_Strict):
-    """Weights of the faithful fit's four losses in its total."""
-
-    rgb: float = Field(1.0, ge=0)  # L1 colour of the rendered pixels against the images
-    semantics: float = Field(1.0, ge=0)  # cross-entropy of the rendered semantics against the masks
-    elevation: float = Field(1.0, ge=0)  # L1 of the vertex heights against the Lidar ground points under them
-    smoothness: float = Field(1.0, ge=0)  # L1 of the height differences between neighbouring vertices
-
-
-class LiveViewConfig(_Strict):
-    """The mapper's optional Foxglove WebSocket live view of the growing map (mapping.live.live_view)."""
-
-    enabled: bool = False
-    bind_address: str = "127.0.0.1"
-    port: int = Field(8765, ge=0, le=65535)  # 0: any free port
-
-
-MaskClassName = Literal["road", "lane_marking", "curb", "manhole", "background", "obstacle"]
-
-
-class SegmentationConfig(_Strict):
-    """Where the mapper's semantic masks come from (mapping.inputs.segmentation): `log`, the masks recorded beside
-    the frames (the simulator's, or an upstream segmenter's); `onnx`, a semantic-segmentation model run on
-    each keyframe with onnxruntime. The model takes one RGB image (1, 3, H, W) float32, scaled to [0, 1]
-    then normalised by `mean` and `std`, and gives (1, C, H', W') class scores or (1, H', W') class ids;
-    `class_map` names the map class of each model class id (ids it leaves out are unlabelled: not used)."""
-
-    provider: Literal["log", "onnx"] = "log"
-    model: str | None = None  # the .onnx file, relative to the config file
-    class_map: dict[int, MaskClassName] = {}
-    mean: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    std: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    input_size: tuple[int, int] | None = None  # (width, height) the image is resized to; None: the model's
-    # own fixed input size, else the image's
-    threads: int = Field(1, ge=1)  # onnxruntime intra-op threads
-
-    @model_validator(mode="after")
-    def _onnx_needs_a_model(self) -> SegmentationConfig:
-        if self.provider == "onnx" and (not self.model or not self.class_map):
-            raise ValueError("provider onnx needs `model` (an .onnx file) and `class_map` (model class id -> "
-                             "map class name)")
-        if any(v <= 0 for v in self.std):
-            raise ValueError("std must be positive")
-        return self
-
-
-class MeshConfig(_Strict):
-    """The road mesh (mapping.method.road_mesh): equilateral triangles cut to a corridor around the trajectory."""
-
-    side_m: float = Field(0.1, gt=0, le=2)  # triangle side (m): the map's resolution, and the BEV rasters' cell
-    corridor_half_width_m: float = Field(15.0, gt=0)  # the mesh reaches this far (m) either side of the
-    # trajectory; the Lidar ground points are kept within the same corridor
-
-
-class WindowsConfig(_Strict):
-    """The stretch of road around a point of the trajectory that the model spans (the paper's 80 m + 80 m)."""
-
-    before_m: float = Field(80.0, gt=0)  # metres of drive behind the point: the faithful fit's step window, the
-    # evaluation's view window (up to 10 m behind a camera) and the live worker's window start
-    after_m: float = Field(80.0, gt=0)  # metres ahead of it; before_m + after_m also scales the elevation
-    # MLP's positional encoding, and the live worker's windows are centred every (before_m + after_m) / 2
-
-
-class ModelConfig(_Strict):
-    """The EMIE-MAP model both fits train (mapping.method.road_map)."""
-
-    colour_code_dim: int = Field(32, gt=0)  # length of each vertex's colour code
-    positional_encoding_dim: int = Field(22, gt=1)  # sin/cos features of x, y fed to the elevation MLP
-    elevation_mlp_layers: int = Field(8, ge=1)  # hidden layers of the elevation MLP
-    elevation_mlp_width: int = Field(128, ge=1)  # units per hidden layer of the elevation MLP
-    colour_mlp_layers: int = Field(2, ge=1)  # layers of each camera's colour decoder
-    colour_mlp_width: int = Field(16, ge=1)  # units per hidden layer of each colour decoder
-    seed: int = 0  # seeds torch and numpy for the initial weights and the fits' sampling (the live worker
-    # derives one per window from it)
-
-
-class InputsConfig(_Strict):
-    """Which camera frames and Lidar scans of a drive the fits are given (mapping.inputs, mapping.live)."""
-
-    keyframe_spacing_m: float = Field(1.0, ge=0)  # per camera, a frame each time the vehicle has moved this
-    # far (m) since the last one kept; 0: every frame
-    lidar_every_n_scans: int = Field(2, ge=1)  # Lidar scans used: every n-th (a scan: one frame id's packets)
-
-
-class FastFitConfig(_Strict):
-    """The fast fit (the default; mapping.fits.fast_fit): the model fitted to what the keyframes saw at each
-    vertex: elevation MLP on a lattice against the Lidar, the Lidar detail, label frequencies, colour encoder."""
-
-    elevation_lattice_m: float = Field(1.0, ge=0)  # spacing (m) of the lattice the residual elevation MLP is
-    # evaluated on and fitted at (interpolated between its nodes); 0: at every vertex. The Lidar detail carries
-    # what is finer than the lattice
-    elevation_epochs: float = Field(5.0, gt=0)  # passes over the Lidar lattice nodes of the elevation fit ...
-    elevation_min_steps: int = Field(150, ge=1)  # ... but at least this many Adam steps (short drives)
-    elevation_batch: int = Field(512, ge=1)  # lattice nodes per elevation step ...
-    elevation_smooth_pairs: int = Field(128, ge=1)  # ... and neighbour pairs per step for the smoothness term
-    elevation_lr: float = Field(0.01, gt=0)  # the elevation fit's Adam learning rate at its start (cosine decay)
-    elevation_loss_weight: float = Field(1.0, ge=0)  # weight of the L1 Lidar height loss in the elevation fit
-    smoothness_loss_weight: float = Field(1.0, ge=0)  # weight of the neighbour smoothness loss in it
-    lidar_detail_passes: int = Field(8, ge=0)  # Jacobi passes of the Lidar detail (mapping.fits.lidar_detail),
-    # the per-vertex height the smooth MLP cannot hold; 0: no detail
-    lidar_detail_prior: float = Field(0.03, ge=0)  # points' worth of zero detail at each vertex (few points:
-    # the vertex keeps the smooth surface)
-    behind_m: float = Field(3.0, ge=0)  # a keyframe observes the vertices from this far (m) behind its
-    # trajectory point ...
-    ahead_m: float = Field(12.0, gt=0)  # ... to this far (m) ahead: farther views blur
-    label_sharp_m: float | None = Field(0.01, gt=0)  # a pixel's label counts fully where the pixel covers at
-    # most this much ground (m) along the line of sight, in proportion beyond (far views count less;
-    # mapping.fits.vertex_observations.label_weights); None: every label counts 1
-    colour_encoder_steps: int = Field(200, ge=1)  # steps of the joint colour encoder / decoder fit
-    colour_batch: int = Field(4096, ge=1)  # vertices sampled per colour step
-    colour_decoder_lr: float = Field(0.005, gt=0)  # Adam learning rate of the per-camera colour decoders
-    colour_encoder_lr: float = Field(0.01, gt=0)  # Adam learning rate of the colour encoder (the codes' source)
-
-
-class MasklessConfig(_Strict):
-    """Keyframes without semantics (no mask, no segmentation model; mapping.fits.lidar_occlusion): a view's pixel
-    is not used where the Lidar scan nearest in time saw something standing on the road (a car, a person, a wall)
-    between the camera and the surface, as a mask's obstacle pixels are not."""
-
-    lidar_occlusion: bool = True  # False: every pixel of such a view counts (cars in view reach the colours)
-    standing_min_m: float = Field(0.4, gt=0)  # a Lidar point stands on the road from this height (m) above the
-    # trajectory's ground (curbs, the crown and sidewalks are lower) ...
-    standing_max_m: float = Field(3.0, gt=0)  # ... up to this one (higher: branches, signs; they hide little)
-    cell_px: int = Field(8, ge=1)  # the test's image cells (px): a standing point hides the surface behind it in
-    # its cell, the cells either side and every cell below (it stands on the ground)
-    margin_m: float = Field(0.5, ge=0)  # a surface point is hidden when a standing point is this much nearer (m)
-    max_gap_s: float = Field(0.25, gt=0)  # a view with no Lidar scan this close in time keeps every pixel (counted)
-
-    @model_validator(mode="after")
-    def _heights_in_order(self) -> MasklessConfig:
-        if self.standing_max_m <= self.standing_min_m:
-            raise ValueError("standing_max_m must be above standing_min_m")
-        return self
-
-
-class FaithfulFitConfig(_Strict):
-    """The paper-faithful fit (`roadlog reconstruct --faithful`; mapping.fits.faithful_fit): every pixel of every
-    batch image rendered against the whole window, each step."""
-
-    learning_rates: LearningRates = LearningRates()
-    loss_weights: LossWeights = LossWeights()
-    epochs: int = Field(5, ge=1)  # passes over the training keyframes
-    batch_size: int = Field(8, ge=1)  # adjacent keyframes (along the trajectory) per step
-
-
-class RuntimeConfig(_Strict):
-    """Threads of the mapper's pools and of torch. They change the speed only: the sums that split over threads
-    split the same way whatever their timing, but their count is part of the order of the float sums."""
-
-    torch_threads_fast_fit: int = Field(1, ge=1)  # torch intra-op threads of the fast fit and its evaluation
-    # (its MLPs are small: more threads spin against each other)
-    torch_threads_faithful_fit: int = Field(2, ge=1)  # torch intra-op threads of the faithful fit
-    observe_threads: int = Field(2, ge=1)  # threads projecting the keyframes onto the vertices (fast fit)
-    lidar_ground_threads: int = Field(2, ge=1)  # threads extracting the Lidar ground, scan by scan
-    lidar_detail_threads: int = Field(2, ge=1)  # threads (and parts of the point sums) of the Lidar detail
-    evaluation_threads: int = Field(2, ge=1)  # threads rendering and scoring the evaluation's views
-    raster_threads: int = Field(2, ge=1)  # threads filling the bird's-eye rasters (blocks of rows)
-
-
-class MapperConfig(_Strict):
-    """The road-surface mapper (the live worker and `roadlog reconstruct`)."""
-
-    enabled: bool = True  # run the live mapping worker beside the recorder
-    mesh: MeshConfig = MeshConfig()
-    windows: WindowsConfig = WindowsConfig()
-    model: ModelConfig = ModelConfig()
-    inputs: InputsConfig = InputsConfig()
-    fast_fit: FastFitConfig = FastFitConfig()
-    faithful_fit: FaithfulFitConfig = FaithfulFitConfig()
-    maskless: MasklessConfig = MasklessConfig()
-    runtime: RuntimeConfig = RuntimeConfig()
-    live_view: LiveViewConfig = LiveViewConfig()
-    segmentation: SegmentationConfig = SegmentationConfig()
-
-
-class StatusConfig(_Strict):
+class StatusConfig(StrictModel):
     bind_address: str = "127.0.0.1"
     port: int = Field(8088, ge=0, le=65535)
 
 
-class CarConfig(_Strict):
+class CarConfig(StrictModel):
     vehicle: VehicleConfig = VehicleConfig()
     sensors: SensorsConfig
     bus: BusConfig = BusConfig()

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from daemon.spine.config import MapperConfig
+from daemon.spine.mapper_config import MapperConfig
 from daemon.spine.semantic_classes import NUM_MAP_CLASSES
 from mapping.fits.lidar_occlusion import OcclusionTest
 from mapping.localization.trajectory import HorizontalTrack

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from daemon.spine.config import FastFitConfig, MapperConfig
+from daemon.spine.mapper_config import FastFitConfig, MapperConfig
 from mapping.fits.lidar_detail import fit_lidar_detail
 from mapping.fits.lidar_occlusion import OcclusionTest
 from mapping.fits.observation_fit import fit_colours, fit_elevation, semantic_logits_from_counts

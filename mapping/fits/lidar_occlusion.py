@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from daemon.spine.config import MasklessConfig
+from daemon.spine.mapper_config import MasklessConfig
 from mapping.fits.vertex_observations import project_points
 from mapping.method.scene_data import CameraModel, Keyframe, StandingPoints
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from daemon.spine.config import MapperConfig
+from daemon.spine.mapper_config import MapperConfig
 from mapping.fits import faithful_fit, fast_fit
 from mapping.fits.lidar_occlusion import OcclusionTest
 from mapping.localization.keyframe_spacing import spaced_by_distance

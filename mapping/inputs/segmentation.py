@@ -10,7 +10,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from daemon.spine.config import ConfigError, SegmentationConfig
+from daemon.spine.config import ConfigError
+from daemon.spine.mapper_config import SegmentationConfig
 from daemon.spine.semantic_classes import SemanticClass
 
 UNLABELLED = 255  # mask value of pixels no map class is given for (never used by a loss)

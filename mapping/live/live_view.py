@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from daemon.spine.config import LiveViewConfig
+from daemon.spine.mapper_config import LiveViewConfig
 from mapping.live.map_images import north_up_png
 
 FRAME = "map"

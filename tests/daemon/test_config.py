@@ -9,7 +9,8 @@ import yaml
 from daemon.commands.check_config import main as check_config_main
 from daemon.processes.daemon_main import run_main
 from daemon.processes.replay import replayed_topics
-from daemon.spine.config import ConfigError, MapperConfig, load_config, parse_config
+from daemon.spine.config import ConfigError, load_config, parse_config
+from daemon.spine.mapper_config import MapperConfig
 from daemon.spine.messages import PointCloud
 from daemon.spine.process_table import process_table, required_drivers
 from daemon.spine.recorded_config import sectioned_recorded_config

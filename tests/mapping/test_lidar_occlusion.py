@@ -5,7 +5,8 @@ masks mark and leaves the road."""
 import numpy as np
 import pytest
 
-from daemon.spine.config import MasklessConfig, load_config
+from daemon.spine.config import load_config
+from daemon.spine.mapper_config import MasklessConfig
 from daemon.spine.semantic_classes import SemanticClass
 from mapping.fits.lidar_occlusion import OcclusionTest
 from mapping.fits.vertex_observations import project_points

@@ -13,7 +13,8 @@ import threading
 import numpy as np
 import pytest
 
-from daemon.spine.config import ConfigError, LiveViewConfig, parse_config
+from daemon.spine.config import ConfigError, parse_config
+from daemon.spine.mapper_config import LiveViewConfig
 from tests.daemon_fixtures import REPO
 
 pytest.importorskip("foxglove")  # the `live-view` extra (also in `test`)

@@ -8,7 +8,7 @@ import trimesh
 
 import mapping.fits.fast_fit as fast_fit
 import mapping.outputs.map_metrics as map_metrics
-from daemon.spine.config import (
+from daemon.spine.mapper_config import (
     FaithfulFitConfig,
     InputsConfig,
     MapperConfig,

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from daemon.spine.config import FaithfulFitConfig
+from daemon.spine.mapper_config import FaithfulFitConfig
 from daemon.spine.semantic_classes import NUM_MAP_CLASSES, SemanticClass
 from mapping.fits.reconstruction import reconstruct
 from mapping.fits.vertex_observations import VertexObservations, observe_keyframe

@@ -9,7 +9,8 @@ import pytest
 import yaml
 from onnx import TensorProto, helper, numpy_helper
 
-from daemon.spine.config import ConfigError, SegmentationConfig, load_config
+from daemon.spine.config import ConfigError, load_config
+from daemon.spine.mapper_config import SegmentationConfig
 from daemon.spine.semantic_classes import SemanticClass
 from mapping.inputs.drive_inputs import load_drive
 from mapping.inputs.segmentation import UNLABELLED, OnnxSegmenter

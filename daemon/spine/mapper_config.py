@@ -1,0 +1,194 @@
+"""The mapper's section of the car's configuration (`mapper:`): the mesh, the windows, the model, the inputs, the
+two fits, the maskless mode, the threads, the live view and where the semantic masks come from."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from daemon.spine.config_model import StrictModel
+
+
+class LearningRates(StrictModel):
+    """Adam learning rates of the faithful fit, one optimiser per parameter group."""
+
+    elevation_mlp: float = Field(0.01, gt=0)  # the elevation MLP's weights
+    colour_mlps: float = Field(0.005, gt=0)  # the per-camera colour decoders' weights
+    semantics: float = Field(0.1, gt=0)  # the per-vertex semantic logits (row-sparse Adam)
+    colour_codes: float = Field(0.005, gt=0)  # the per-vertex colour codes (row-sparse Adam)
+
+
+class LossWeights(StrictModel):
+    """Weights of the faithful fit's four losses in its total."""
+
+    rgb: float = Field(1.0, ge=0)  # L1 colour of the rendered pixels against the images
+    semantics: float = Field(1.0, ge=0)  # cross-entropy of the rendered semantics against the masks
+    elevation: float = Field(1.0, ge=0)  # L1 of the vertex heights against the Lidar ground points under them
+    smoothness: float = Field(1.0, ge=0)  # L1 of the height differences between neighbouring vertices
+
+
+class LiveViewConfig(StrictModel):
+    """The mapper's optional Foxglove WebSocket live view of the growing map (mapping.live.live_view)."""
+
+    enabled: bool = False
+    bind_address: str = "127.0.0.1"
+    port: int = Field(8765, ge=0, le=65535)  # 0: any free port
+
+
+MaskClassName = Literal["road", "lane_marking", "curb", "manhole", "background", "obstacle"]
+
+
+class SegmentationConfig(StrictModel):
+    """Where the mapper's semantic masks come from (mapping.inputs.segmentation): `log`, the masks recorded beside
+    the frames (the simulator's, or an upstream segmenter's); `onnx`, a semantic-segmentation model run on
+    each keyframe with onnxruntime. The model takes one RGB image (1, 3, H, W) float32, scaled to [0, 1]
+    then normalised by `mean` and `std`, and gives (1, C, H', W') class scores or (1, H', W') class ids;
+    `class_map` names the map class of each model class id (ids it leaves out are unlabelled: not used)."""
+
+    provider: Literal["log", "onnx"] = "log"
+    model: str | None = None  # the .onnx file, relative to the config file
+    class_map: dict[int, MaskClassName] = {}
+    mean: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    std: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    input_size: tuple[int, int] | None = None  # (width, height) the image is resized to; None: the model's
+    # own fixed input size, else the image's
+    threads: int = Field(1, ge=1)  # onnxruntime intra-op threads
+
+    @model_validator(mode="after")
+    def _onnx_needs_a_model(self) -> SegmentationConfig:
+        if self.provider == "onnx" and (not self.model or not self.class_map):
+            raise ValueError("provider onnx needs `model` (an .onnx file) and `class_map` (model class id -> "
+                             "map class name)")
+        if any(v <= 0 for v in self.std):
+            raise ValueError("std must be positive")
+        return self
+
+
+class MeshConfig(StrictModel):
+    """The road mesh (mapping.method.road_mesh): equilateral triangles cut to a corridor around the trajectory."""
+
+    side_m: float = Field(0.1, gt=0, le=2)  # triangle side (m): the map's resolution, and the BEV rasters' cell
+    corridor_half_width_m: float = Field(15.0, gt=0)  # the mesh reaches this far (m) either side of the
+    # trajectory; the Lidar ground points are kept within the same corridor
+
+
+class WindowsConfig(StrictModel):
+    """The stretch of road around a point of the trajectory that the model spans (the paper's 80 m + 80 m)."""
+
+    before_m: float = Field(80.0, gt=0)  # metres of drive behind the point: the faithful fit's step window, the
+    # evaluation's view window (up to 10 m behind a camera) and the live worker's window start
+    after_m: float = Field(80.0, gt=0)  # metres ahead of it; before_m + after_m also scales the elevation
+    # MLP's positional encoding, and the live worker's windows are centred every (before_m + after_m) / 2
+
+
+class ModelConfig(StrictModel):
+    """The EMIE-MAP model both fits train (mapping.method.road_map)."""
+
+    colour_code_dim: int = Field(32, gt=0)  # length of each vertex's colour code
+    positional_encoding_dim: int = Field(22, gt=1)  # sin/cos features of x, y fed to the elevation MLP
+    elevation_mlp_layers: int = Field(8, ge=1)  # hidden layers of the elevation MLP
+    elevation_mlp_width: int = Field(128, ge=1)  # units per hidden layer of the elevation MLP
+    colour_mlp_layers: int = Field(2, ge=1)  # layers of each camera's colour decoder
+    colour_mlp_width: int = Field(16, ge=1)  # units per hidden layer of each colour decoder
+    seed: int = 0  # seeds torch and numpy for the initial weights and the fits' sampling (the live worker
+    # derives one per window from it)
+
+
+class InputsConfig(StrictModel):
+    """Which camera frames and Lidar scans of a drive the fits are given (mapping.inputs, mapping.live)."""
+
+    keyframe_spacing_m: float = Field(1.0, ge=0)  # per camera, a frame each time the vehicle has moved this
+    # far (m) since the last one kept; 0: every frame
+    lidar_every_n_scans: int = Field(2, ge=1)  # Lidar scans used: every n-th (a scan: one frame id's packets)
+
+
+class FastFitConfig(StrictModel):
+    """The fast fit (the default; mapping.fits.fast_fit): the model fitted to what the keyframes saw at each
+    vertex: elevation MLP on a lattice against the Lidar, the Lidar detail, label frequencies, colour encoder."""
+
+    elevation_lattice_m: float = Field(1.0, ge=0)  # spacing (m) of the lattice the residual elevation MLP is
+    # evaluated on and fitted at (interpolated between its nodes); 0: at every vertex. The Lidar detail carries
+    # what is finer than the lattice
+    elevation_epochs: float = Field(5.0, gt=0)  # passes over the Lidar lattice nodes of the elevation fit ...
+    elevation_min_steps: int = Field(150, ge=1)  # ... but at least this many Adam steps (short drives)
+    elevation_batch: int = Field(512, ge=1)  # lattice nodes per elevation step ...
+    elevation_smooth_pairs: int = Field(128, ge=1)  # ... and neighbour pairs per step for the smoothness term
+    elevation_lr: float = Field(0.01, gt=0)  # the elevation fit's Adam learning rate at its start (cosine decay)
+    elevation_loss_weight: float = Field(1.0, ge=0)  # weight of the L1 Lidar height loss in the elevation fit
+    smoothness_loss_weight: float = Field(1.0, ge=0)  # weight of the neighbour smoothness loss in it
+    lidar_detail_passes: int = Field(8, ge=0)  # Jacobi passes of the Lidar detail (mapping.fits.lidar_detail),
+    # the per-vertex height the smooth MLP cannot hold; 0: no detail
+    lidar_detail_prior: float = Field(0.03, ge=0)  # points' worth of zero detail at each vertex (few points:
+    # the vertex keeps the smooth surface)
+    behind_m: float = Field(3.0, ge=0)  # a keyframe observes the vertices from this far (m) behind its
+    # trajectory point ...
+    ahead_m: float = Field(12.0, gt=0)  # ... to this far (m) ahead: farther views blur
+    label_sharp_m: float | None = Field(0.01, gt=0)  # a pixel's label counts fully where the pixel covers at
+    # most this much ground (m) along the line of sight, in proportion beyond (far views count less;
+    # mapping.fits.vertex_observations.label_weights); None: every label counts 1
+    colour_encoder_steps: int = Field(200, ge=1)  # steps of the joint colour encoder / decoder fit
+    colour_batch: int = Field(4096, ge=1)  # vertices sampled per colour step
+    colour_decoder_lr: float = Field(0.005, gt=0)  # Adam learning rate of the per-camera colour decoders
+    colour_encoder_lr: float = Field(0.01, gt=0)  # Adam learning rate of the colour encoder (the codes' source)
+
+
+class MasklessConfig(StrictModel):
+    """Keyframes without semantics (no mask, no segmentation model; mapping.fits.lidar_occlusion): a view's pixel
+    is not used where the Lidar scan nearest in time saw something standing on the road (a car, a person, a wall)
+    between the camera and the surface, as a mask's obstacle pixels are not."""
+
+    lidar_occlusion: bool = True  # False: every pixel of such a view counts (cars in view reach the colours)
+    standing_min_m: float = Field(0.4, gt=0)  # a Lidar point stands on the road from this height (m) above the
+    # trajectory's ground (curbs, the crown and sidewalks are lower) ...
+    standing_max_m: float = Field(3.0, gt=0)  # ... up to this one (higher: branches, signs; they hide little)
+    cell_px: int = Field(8, ge=1)  # the test's image cells (px): a standing point hides the surface behind it in
+    # its cell, the cells either side and every cell below (it stands on the ground)
+    margin_m: float = Field(0.5, ge=0)  # a surface point is hidden when a standing point is this much nearer (m)
+    max_gap_s: float = Field(0.25, gt=0)  # a view with no Lidar scan this close in time keeps every pixel (counted)
+
+    @model_validator(mode="after")
+    def _heights_in_order(self) -> MasklessConfig:
+        if self.standing_max_m <= self.standing_min_m:
+            raise ValueError("standing_max_m must be above standing_min_m")
+        return self
+
+
+class FaithfulFitConfig(StrictModel):
+    """The paper-faithful fit (`roadlog reconstruct --faithful`; mapping.fits.faithful_fit): every pixel of every
+    batch image rendered against the whole window, each step."""
+
+    learning_rates: LearningRates = LearningRates()
+    loss_weights: LossWeights = LossWeights()
+    epochs: int = Field(5, ge=1)  # passes over the training keyframes
+    batch_size: int = Field(8, ge=1)  # adjacent keyframes (along the trajectory) per step
+
+
+class RuntimeConfig(StrictModel):
+    """Threads of the mapper's pools and of torch. They change the speed only: the sums that split over threads
+    split the same way whatever their timing, but their count is part of the order of the float sums."""
+
+    torch_threads_fast_fit: int = Field(1, ge=1)  # torch intra-op threads of the fast fit and its evaluation
+    # (its MLPs are small: more threads spin against each other)
+    torch_threads_faithful_fit: int = Field(2, ge=1)  # torch intra-op threads of the faithful fit
+    observe_threads: int = Field(2, ge=1)  # threads projecting the keyframes onto the vertices (fast fit)
+    lidar_ground_threads: int = Field(2, ge=1)  # threads extracting the Lidar ground, scan by scan
+    lidar_detail_threads: int = Field(2, ge=1)  # threads (and parts of the point sums) of the Lidar detail
+    evaluation_threads: int = Field(2, ge=1)  # threads rendering and scoring the evaluation's views
+    raster_threads: int = Field(2, ge=1)  # threads filling the bird's-eye rasters (blocks of rows)
+
+
+class MapperConfig(StrictModel):
+    """The road-surface mapper (the live worker and `roadlog reconstruct`)."""
+
+    enabled: bool = True  # run the live mapping worker beside the recorder
+    mesh: MeshConfig = MeshConfig()
+    windows: WindowsConfig = WindowsConfig()
+    model: ModelConfig = ModelConfig()
+    inputs: InputsConfig = InputsConfig()
+    fast_fit: FastFitConfig = FastFitConfig()
+    faithful_fit: FaithfulFitConfig = FaithfulFitConfig()
+    maskless: MasklessConfig = MasklessConfig()
+    runtime: RuntimeConfig = RuntimeConfig()
+    live_view: LiveViewConfig = LiveViewConfig()
+    segmentation: SegmentationConfig = SegmentationConfig()
