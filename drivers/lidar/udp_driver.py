@@ -17,12 +17,11 @@ import dataclasses
 import select
 import signal
 import socket
-import struct
 import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -35,15 +34,9 @@ from drivers.lidar.ouster_decoder import count_missing_packets, decode_packets, 
 from drivers.lidar.ouster_imu import decode_imu_packet, imu_profile_supported
 from drivers.lidar.ouster_metadata import OusterMetadata, configured_metadata, imu_port
 from drivers.lidar.ouster_packet_layout import OusterPacketLayout, packet_layout, packets_per_second
+from drivers.lidar.udp_receive import ReceiveBuffer, gather_batch, open_lidar_socket, receive_queued
 
 PROCESS = "lidar"
-# Linux socket options Python's socket module does not name (asm-generic/socket.h).
-SO_RCVBUFFORCE = 33  # SO_RCVBUF beyond net.core.rmem_max, with CAP_NET_ADMIN
-SO_TIMESTAMPNS = 35  # kernel receive time (CLOCK_REALTIME) as ancillary data
-SO_RXQ_OVFL = 40  # datagrams the kernel dropped because the receive buffer was full, as ancillary data
-_ANCILLARY_BYTES = socket.CMSG_SPACE(16) + socket.CMSG_SPACE(4)
-_TIMESPEC = struct.Struct("=qq")
-_DROP_COUNT = struct.Struct("=I")
 RESTART_AFTER_S = 60.0  # a numbering jump of more than this many seconds of packets is a sensor restart
 IMU_RECEIVE_BUFFER_BYTES = 1 << 20  # ~20,000 LEGACY IMU packets: 200 s at 100 Hz
 IMU_BATCH = 64  # IMU datagrams taken from the socket at once
@@ -80,21 +73,6 @@ class LidarDriverStats:
 
 
 @dataclass
-class ReceiveBuffer:
-    """Rows of one batch of datagrams: bytes (truncated to the row), real lengths, arrival times."""
-
-    rows: np.ndarray  # (N, packet_size) uint8
-    sizes: np.ndarray  # (N,) int64, the datagram's real length (MSG_TRUNC)
-    arrival_ns: np.ndarray  # (N,) int64, host CLOCK_MONOTONIC at arrival
-    views: list[memoryview] = field(repr=False)
-
-    @classmethod
-    def allocate(cls, capacity: int, row_bytes: int) -> ReceiveBuffer:
-        rows = np.zeros((capacity, row_bytes), np.uint8)
-        return cls(rows, np.zeros(capacity, np.int64), np.zeros(capacity, np.int64), [memoryview(r) for r in rows])
-
-
-@dataclass
 class PacketLossCounter:
     """Packets missing from the sensor's packet numbering (see ouster_decoder.packet_sequence), across batches."""
 
@@ -127,66 +105,6 @@ class PacketLossCounter:
         self.missing += count_missing_packets(sequence, self.layout, self.newest)
         self.newest = newest_packet(sequence, self.layout, self.newest)
         return jump
-
-
-def open_lidar_socket(bind_address: str, port: int, receive_buffer_bytes: int) -> tuple[socket.socket, int]:
-    """A non-blocking UDP socket bound to (bind_address, port) with kernel arrival times and overflow
-    counts, and the receive buffer the kernel granted (SO_RCVBUFFORCE when allowed, else SO_RCVBUF,
-    which the kernel caps at net.core.rmem_max)."""
-    sock = socket.socket(socket.AF_INET6 if ":" in bind_address else socket.AF_INET, socket.SOCK_DGRAM)
-    try:
-        try:
-            sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, receive_buffer_bytes)
-        except PermissionError:
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, receive_buffer_bytes)
-        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-        sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
-        sock.bind((bind_address, port))
-    except OSError as exc:
-        sock.close()
-        raise OSError(exc.errno, f"cannot listen for lidar packets on UDP {bind_address}:{port}: {exc.strerror}") \
-            from None
-    sock.setblocking(False)
-    return sock, sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
-
-
-def _receive_queued(sock: socket.socket, buf: ReceiveBuffer, start: int, mono_minus_real_ns: int,
-                    stats: LidarDriverStats, health: HealthCounters) -> int:
-    """Receive the datagrams already queued into rows start.. of `buf`; returns the rows filled."""
-    for i in range(start, len(buf.views)):
-        try:
-            size, ancillary, _, _ = sock.recvmsg_into([buf.views[i]], _ANCILLARY_BYTES, socket.MSG_TRUNC)
-        except BlockingIOError:
-            return i
-        except OSError as exc:
-            stats.socket_errors += 1
-            health.count_error(f"receiving: {exc}")
-            return i
-        arrival_ns = 0
-        for level, kind, data in ancillary:
-            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(data) >= _TIMESPEC.size:
-                seconds, nanoseconds = _TIMESPEC.unpack_from(data)
-                arrival_ns = seconds * 1_000_000_000 + nanoseconds + mono_minus_real_ns
-            elif level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(data) >= _DROP_COUNT.size:
-                stats.kernel_drops = _DROP_COUNT.unpack_from(data)[0]
-        buf.sizes[i] = size
-        buf.arrival_ns[i] = arrival_ns or time.monotonic_ns()
-    return len(buf.views)
-
-
-def _gather_batch(sock: socket.socket, buf: ReceiveBuffer, batch_period_s: float, stats: LidarDriverStats,
-                  health: HealthCounters) -> int:
-    """Rows of `buf` filled with what arrives within batch_period_s (or until it is full)."""
-    deadline = time.monotonic() + batch_period_s
-    mono_minus_real_ns = time.monotonic_ns() - time.time_ns()
-    n = _receive_queued(sock, buf, 0, mono_minus_real_ns, stats, health)
-    while n < len(buf.views):
-        remaining = deadline - time.monotonic()
-        if remaining <= 0:
-            break
-        time.sleep(remaining)  # let datagrams gather in the kernel's buffer
-        n = _receive_queued(sock, buf, n, mono_minus_real_ns, stats, health)
-    return n
 
 
 def _count_rejects(buf: ReceiveBuffer, n: int, accepted: np.ndarray, layout: OusterPacketLayout,
@@ -259,7 +177,7 @@ def _handle_imu(sock: socket.socket, buf: ReceiveBuffer, publish: Publish, stats
                 health: HealthCounters) -> None:
     """Publish the IMU packets queued on `sock`; count and report the ones that do not decode."""
     seen = LidarDriverStats()  # this socket's own overflow count and errors
-    n = _receive_queued(sock, buf, 0, time.monotonic_ns() - time.time_ns(), seen, health)
+    n = receive_queued(sock, buf, 0, time.monotonic_ns() - time.time_ns(), seen, health)
     stats.imu_kernel_drops = seen.kernel_drops
     stats.socket_errors += seen.socket_errors
     for i in range(n):
@@ -337,7 +255,7 @@ def run_lidar_driver(
                 _handle_imu(imu_sock, imu_buf, publish, stats, health)
             if sock.fileno() not in ready:
                 continue
-            n = _gather_batch(sock, buf, period_s, stats, health)
+            n = gather_batch(sock, buf, period_s, stats, health)
             if n:
                 _handle_batch(buf, n, layout, prod_sn, publish, health, stats, loss)
     finally:

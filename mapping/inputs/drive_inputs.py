@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from daemon.log_format.metadata_records import METADATA_NAME, POSE_ENU_ORIGIN_KEY
 from daemon.log_format.reader import ReadReport, read_log, read_metadata
-from daemon.spine.config import CarConfig, resolve_path
+from daemon.spine.config import CarConfig
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.messages import (
     RAW_FORMAT_CHANNELS,
@@ -45,8 +45,7 @@ from daemon.spine.topics import (
     camera_topic,
     mask_topic,
 )
-from drivers.lidar.ouster_metadata import configured_metadata, parse_metadata
-from mapping.inputs.lidar_ground import GroundFilter, lidar_scans, scans_ground
+from mapping.inputs.lidar_ground import GroundFilter, configured_decoding, lidar_scans, scans_ground
 from mapping.inputs.segmentation import OnnxSegmenter
 from mapping.localization import pose_fusion
 from mapping.localization.keyframe_spacing import spaced_preferring
@@ -259,10 +258,9 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="load-drive")
     lidar = config.sensors.lidar
 
-    def packet_metadata():  # a bad metadata file fails here, before the background work
-        return parse_metadata(resolve_path(config_path or ".", lidar.metadata_file)) if lidar.metadata_file else None
-
-    scans = lidar_scans(packets, clouds, packet_metadata, config.mapper.inputs.lidar_every_n_scans) if lidar else None
+    # a bad metadata or calibration file fails here, before the background work
+    scans = lidar_scans(packets, clouds, lambda: configured_decoding(lidar, config_path or "."),
+                        config.mapper.inputs.lidar_every_n_scans) if lidar else None
     ground, standing_points = Future(), Future()
     if scans is not None:
         occlusion = (counts["keyframes_without_mask"] > 0 and config.mapper.maskless.lidar_occlusion
@@ -376,10 +374,11 @@ def keyframe_semantics(image: np.ndarray, mask: SemanticMask | None,
 
 def check_config(car: CarConfig, config_path: str | Path) -> None:
     """What the mapper (live worker or reconstruct) needs of the config before it starts (also run by `roadlog
-    check-config`): the segmentation model loads, the Lidar metadata reads (a point-cloud Lidar has none)."""
+    check-config`): the segmentation model loads, the Lidar metadata or calibration reads and fits the model (a
+    point-cloud Lidar has none)."""
     segmenter_for(car, config_path)
-    if car.sensors.lidar is not None and not car.sensors.lidar.point_clouds:
-        configured_metadata(car.sensors.lidar, config_path)
+    if car.sensors.lidar is not None:
+        configured_decoding(car.sensors.lidar, config_path)
 
 
 def segmenter_for(config: CarConfig, config_path: str | Path | None) -> OnnxSegmenter | None:

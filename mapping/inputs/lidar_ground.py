@@ -1,8 +1,9 @@
 """Lidar ground points for the elevation loss: scans -> world points -> ground points only (and, for views
 without masks, the points standing on the road: standing_points).
 
-A scan comes as raw Ouster packets or as a decoded PointCloud (any vendor's, `lidar/points`); decoding it into
-ScanPoints (points in the Lidar frame, each with its firing time) is the only step that differs. Points are then
+A scan comes as raw Ouster packets, as another vendor's raw packets (Velodyne, Hesai, RoboSense: a scan is the
+packets stamped within one rotation period), or as a decoded PointCloud (any vendor's, `lidar/points`); decoding it
+into ScanPoints (points in the Lidar frame, each with its firing time) is the only step that differs. Points are then
 moved into the world frame with the vehicle pose at their time (motion compensated). The ground filter keeps
 points within a height band around the trajectory's ground height under them, then, on a 0.5 m grid, only points
 close to the lowest point of their cell or on a flat patch at most a curb's height above it: points on cars and
@@ -14,23 +15,27 @@ trajectory point (a k-d tree query per point was a large part of loading a drive
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from daemon.spine.config import CarConfig
+from daemon.spine.config import CarConfig, LidarConfig
 from daemon.spine.messages import LidarPacket, PointCloud
 from daemon.spine.point_cloud_codec import point_array
 from daemon.spine.topics import LIDAR_PACKETS, LIDAR_POINTS
+from drivers.lidar.lidar_models import configured_decoder
 from drivers.lidar.lidar_points import XYZLut, batch_xyz
 from drivers.lidar.ouster_decoder import decode_packets
-from drivers.lidar.ouster_metadata import OusterMetadata
+from drivers.lidar.ouster_metadata import OusterMetadata, configured_metadata
 from drivers.lidar.ouster_packet_layout import OusterPacketLayout, packet_layout
 from drivers.lidar.ouster_xyz import make_xyz_lut
+from drivers.lidar.packet_decoding import PacketDecoder
 from mapping.localization.sensor_time import ClockMap
 from mapping.localization.trajectory import Trajectory
 from mapping.method.scene_data import StandingPoints
@@ -66,6 +71,17 @@ class GroundFilter:
     ground_cell_m: float = 0.25  # cell of the trajectory ground raster (TrajectoryGround)
 
 
+def scan_number(decoding: OusterMetadata | VendorDecoding | None, topic: str, count: int, message: object) -> int:
+    """The scan of a drive's `count`-th Lidar message (counted from the first) on `topic`, as keeps_scan numbers
+    them: an Ouster's packets `packets_per_frame` to a scan, a vendor Lidar's by the rotation period their stamps
+    fall in, a PointCloud one scan each."""
+    if topic == LIDAR_POINTS or decoding is None:
+        return count
+    if isinstance(decoding, VendorDecoding):
+        return message.sensor_time_ns // decoding.rotation_period_ns
+    return count // decoding.packets_per_frame
+
+
 @dataclass(frozen=True)
 class LidarDecoding:
     """What decoding one sensor's packets needs, built once per drive."""
@@ -99,6 +115,55 @@ def packet_scan_points(packets: list[bytes], decoding: LidarDecoding) -> ScanPoi
         xyz = xyz[valid]
     times = batch.timestamp_ns.ravel()[valid].astype(np.int64)
     return ScanPoints(xyz.reshape(-1, 3), np.repeat(np.arange(len(times)), xyz.shape[1]), times)
+
+
+@dataclass(frozen=True)
+class VendorDecoding:
+    """How a vendor Lidar's packets decode: a fresh decoder per scan (decoders keep state from packet to packet,
+    and scans are decoded on several threads), and the rotation period that groups packets into scans."""
+
+    new_decoder: Callable[[], PacketDecoder]
+    rotation_period_ns: int
+
+
+def configured_decoding(lidar: LidarConfig, config_path: str | Path) -> OusterMetadata | VendorDecoding | None:
+    """How the configured Lidar's packets decode (None: a point-cloud Lidar, it has none); a calibration or
+    metadata file that cannot be read or does not fit the model is a ConfigError naming it."""
+    if lidar.point_clouds:
+        return None
+    if not lidar.vendor_packets:
+        return configured_metadata(lidar, config_path)
+    prototype = configured_decoder(lidar, config_path)
+    return VendorDecoding(lambda: copy.deepcopy(prototype), round(1e9 / lidar.rate_hz))
+
+
+def vendor_scan_points(lead: LidarPacket | None, packets: list[LidarPacket], decoding: VendorDecoding) -> ScanPoints:
+    """A vendor scan's packets decoded, each point at its packet's message stamp plus its firing offset within the
+    packet (the packet's own stamp may count past the hour: Velodyne). The `lead` packet (the one before the scan)
+    only primes the decoder (a VLS-128 takes its rotation rate from the packet before) and gives no points."""
+    payloads = ([bytes(lead.data)] if lead is not None else []) + [bytes(p.data) for p in packets]
+    stamps = np.array(([lead.sensor_time_ns] if lead is not None else []) + [p.sensor_time_ns for p in packets],
+                      dtype=np.int64)
+    decoder = decoding.new_decoder()
+    check = decoder.check(payloads)
+    points = decoder.decode(payloads)
+    keep = np.flatnonzero(points.packet_index >= (1 if lead is not None else 0))
+    packet = points.packet_index[keep]
+    times_ns = stamps[packet] + (points.timestamp_ns[keep] - check.sensor_time_ns[packet])
+    times, time_index = np.unique(times_ns, return_inverse=True)
+    return ScanPoints(points.xyz[keep], time_index.ravel(), times)
+
+
+def vendor_packet_scans(packets: list[LidarPacket], decoding: VendorDecoding, every_n_scans: int) -> LidarScans:
+    """Every n-th scan of a vendor Lidar's packets (a scan: consecutive packets stamped within the same rotation
+    period, counted from the first scan), each with the packet before it as its lead."""
+    if not packets:
+        return LidarScans(LIDAR_PACKETS, [], lambda scan: vendor_scan_points(*scan, decoding), 0)
+    period = np.array([p.sensor_time_ns for p in packets], dtype=np.int64) // decoding.rotation_period_ns
+    starts = np.concatenate([[0], np.flatnonzero(np.diff(period) != 0) + 1, [len(packets)]])
+    scans = [(packets[a - 1] if a > 0 else None, packets[a:b]) for k, (a, b) in enumerate(zip(starts[:-1],
+             starts[1:], strict=True)) if keeps_scan(k, 1, every_n_scans)]
+    return LidarScans(LIDAR_PACKETS, scans, lambda scan: vendor_scan_points(*scan, decoding), len(packets))
 
 
 def cloud_scan_points(cloud: PointCloud) -> ScanPoints:
@@ -285,13 +350,17 @@ def point_cloud_scans(clouds: list[PointCloud], every_n_scans: int) -> LidarScan
 
 
 def lidar_scans(packets: list[LidarPacket], clouds: list[PointCloud],
-                metadata: Callable[[], OusterMetadata | None], every_n_scans: int) -> LidarScans | None:
-    """The scans the Lidar ground is taken from: the point clouds when there are any, else the packets decoded with
-    `metadata()` (asked for only then; None: packets that cannot be decoded, no scans)."""
+                decoding: Callable[[], OusterMetadata | VendorDecoding | None],
+                every_n_scans: int) -> LidarScans | None:
+    """The scans the Lidar ground is taken from: the point clouds when there are any, else the packets decoded as
+    `decoding()` says (asked for only then: the Ouster's metadata or a vendor decoding; None: packets that cannot
+    be decoded, no scans)."""
     if clouds:
         return point_cloud_scans(clouds, every_n_scans)
-    meta = metadata() if packets else None
-    return packet_scans(packets, meta, every_n_scans) if meta is not None else None
+    how = decoding() if packets else None
+    if isinstance(how, VendorDecoding):
+        return vendor_packet_scans(packets, how, every_n_scans)
+    return packet_scans(packets, how, every_n_scans) if how is not None else None
 
 
 def scans_ground(scans: LidarScans, clock: ClockMap, config: CarConfig, trajectory: Trajectory,

@@ -23,7 +23,8 @@ from daemon.spine.topics import (
     mask_topic,
     topic_table,
 )
-from mapping.inputs.lidar_ground import keeps_scan
+from drivers.lidar.ouster_metadata import OusterMetadata
+from mapping.inputs.lidar_ground import VendorDecoding, keeps_scan, scan_number
 from mapping.live.keyframe_spool import KeyframeSpool
 
 STALLED_TOPIC_NS = 30_000_000_000  # a topic this far behind the newest message is not waited for
@@ -36,7 +37,7 @@ class BusReader(threading.Thread):
     """Reads every topic the mapper needs into the spool (and the small streams into memory)."""
 
     def __init__(self, config: CarConfig, spool: KeyframeSpool, lock: threading.Lock, health: HealthCounters,
-                 last_seq: dict[str, int], packets_per_scan: int):
+                 last_seq: dict[str, int], lidar_decoding: OusterMetadata | VendorDecoding | None):
         super().__init__(name="mapper-bus", daemon=True)
         self.config = config
         self.spool = spool
@@ -54,7 +55,7 @@ class BusReader(threading.Thread):
         self.subs: dict[str, pubsub.Subscriber] = {}
         self.side: dict[str, pubsub.Subscriber] = {}
         self.lidar_count = 0
-        self.per_scan = {LIDAR_PACKETS: packets_per_scan, LIDAR_POINTS: 1}  # messages per Lidar scan
+        self.lidar_decoding = lidar_decoding  # which scan a Lidar message belongs to (scan_number)
         self.last_message_ns = time.monotonic_ns()
         self.lost = 0
         self.newest: dict[str, int] = {}  # topic -> newest host time received
@@ -82,10 +83,11 @@ class BusReader(threading.Thread):
         self.health.received += 1
         arrival = msg.host_mono_ns
         self.newest[topic] = max(arrival, self.newest.get(topic, arrival))
-        if topic in self.per_scan:  # a config has one of the two
+        if topic in (LIDAR_PACKETS, LIDAR_POINTS):  # a config has one of the two
             n = self.lidar_count
             self.lidar_count += 1
-            if not keeps_scan(n, self.per_scan[topic], self.config.mapper.inputs.lidar_every_n_scans):
+            scan = scan_number(self.lidar_decoding, topic, n, msg)
+            if not keeps_scan(scan, 1, self.config.mapper.inputs.lidar_every_n_scans):
                 return
         with self.lock:
             self.spool.append(topic, msg, arrival)

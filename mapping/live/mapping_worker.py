@@ -58,7 +58,6 @@ from daemon.spine.topics import (
     mask_topic,
     topic_table,
 )
-from drivers.lidar.ouster_metadata import configured_metadata
 from mapping.fits.reconstruction import reconstruct
 from mapping.inputs.drive_inputs import (
     camera_models,
@@ -70,7 +69,7 @@ from mapping.inputs.drive_inputs import (
     segmenter_for,
     spaced_camera_frames,
 )
-from mapping.inputs.lidar_ground import GroundFilter, lidar_scans, scans_ground
+from mapping.inputs.lidar_ground import GroundFilter, configured_decoding, lidar_scans, scans_ground
 from mapping.live import live_view, map_tiles
 from mapping.live.bus_reader import SMALL_TOPICS, BusReader
 from mapping.live.final_map import FinalMapMetadata, TileStore, write_final_map
@@ -163,10 +162,9 @@ class MappingWorker:
                                  self.journal.odometry_last_speed_mps)
         self.origin = LocalFrame(*self.journal.origin) if self.journal.origin else None
         lidar = config.sensors.lidar
-        self.lidar_meta = configured_metadata(lidar, config_path) if lidar and not lidar.point_clouds else None
+        self.lidar_decoding = configured_decoding(lidar, config_path) if lidar else None
         last_seq, newest = self.spool.last_seq_and_newest()
-        self.reader = BusReader(config, self.spool, self.lock, self.health, last_seq,
-                                self.lidar_meta.packets_per_frame if self.lidar_meta else 1)
+        self.reader = BusReader(config, self.spool, self.lock, self.health, last_seq, self.lidar_decoding)
         self.reader.newest.update(newest)
         self._refill_small()
         self.state.windows_done = sum(1 for w in self.journal.windows if w.status == "done")
@@ -304,8 +302,8 @@ class MappingWorker:
                 keyframes.append(Keyframe(cam.name, (t - t_lo) / 1e9, camera_pose(traj, t, cam.extrinsics.matrix()),
                                           image, keyframe_semantics(image, mask, self.segmenter)))
         keyframes.sort(key=lambda kf: kf.timestamp)
-        scans = lidar_scans(by_topic.get(LIDAR_PACKETS, []), by_topic.get(LIDAR_POINTS, []), lambda: self.lidar_meta,
-                            1)  # every n-th scan: kept by the bus thread
+        scans = lidar_scans(by_topic.get(LIDAR_PACKETS, []), by_topic.get(LIDAR_POINTS, []),
+                            lambda: self.lidar_decoding, 1)  # every n-th scan: kept by the bus thread
         ground = standing = None
         if scans is not None:  # what stands on the road too, when a keyframe has no mask to leave it out
             occlusion = m.maskless.lidar_occlusion and any(kf.semantics is None for kf in keyframes)

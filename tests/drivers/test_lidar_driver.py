@@ -304,7 +304,7 @@ def test_a_lidar_model_without_a_decoder_is_a_config_error(tmp_path, capsys):
     """The config accepts exactly the models that decode: another one is refused when the config is read, so
     check-config refuses it too and the driver exits 2 (not retried) instead of dying later."""
     meta_json = metadata_to_json(simulated_os128_metadata(1024))
-    for model in ("hesai-pandar128", "velodyne-vls128"):
+    for model in ("hesai-pandar128", "velodyne-hdl32e"):
         path = write_config(tmp_path, meta_json, model=model)
         assert udp_driver.main(["--config", str(path)]) == EXIT_CONFIG_ERROR
         err = capsys.readouterr().err

@@ -1,0 +1,103 @@
+"""Receiving a Lidar's UDP datagrams in batches: a socket with kernel arrival times and overflow counts, and one
+(N, row bytes) buffer filled with what arrives within a batch period, each row with its real length and arrival
+time. Shared by the Ouster driver and the vendor packet driver."""
+
+from __future__ import annotations
+
+import socket
+import struct
+import time
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from daemon.spine.health import HealthCounters
+
+# Linux socket options Python's socket module does not name (asm-generic/socket.h).
+SO_RCVBUFFORCE = 33  # SO_RCVBUF beyond net.core.rmem_max, with CAP_NET_ADMIN
+SO_TIMESTAMPNS = 35  # kernel receive time (CLOCK_REALTIME) as ancillary data
+SO_RXQ_OVFL = 40  # datagrams the kernel dropped because the receive buffer was full, as ancillary data
+_ANCILLARY_BYTES = socket.CMSG_SPACE(16) + socket.CMSG_SPACE(4)
+_TIMESPEC = struct.Struct("=qq")
+_DROP_COUNT = struct.Struct("=I")
+
+
+class SocketStats(Protocol):
+    kernel_drops: int  # the socket's overflow count (SO_RXQ_OVFL), as last reported by the kernel
+    socket_errors: int
+
+
+@dataclass
+class ReceiveBuffer:
+    """Rows of one batch of datagrams: bytes (truncated to the row), real lengths, arrival times."""
+
+    rows: np.ndarray  # (N, packet_size) uint8
+    sizes: np.ndarray  # (N,) int64, the datagram's real length (MSG_TRUNC)
+    arrival_ns: np.ndarray  # (N,) int64, host CLOCK_MONOTONIC at arrival
+    views: list[memoryview] = field(repr=False)
+
+    @classmethod
+    def allocate(cls, capacity: int, row_bytes: int) -> ReceiveBuffer:
+        rows = np.zeros((capacity, row_bytes), np.uint8)
+        return cls(rows, np.zeros(capacity, np.int64), np.zeros(capacity, np.int64), [memoryview(r) for r in rows])
+
+
+def open_lidar_socket(bind_address: str, port: int, receive_buffer_bytes: int) -> tuple[socket.socket, int]:
+    """A non-blocking UDP socket bound to (bind_address, port) with kernel arrival times and overflow
+    counts, and the receive buffer the kernel granted (SO_RCVBUFFORCE when allowed, else SO_RCVBUF,
+    which the kernel caps at net.core.rmem_max)."""
+    sock = socket.socket(socket.AF_INET6 if ":" in bind_address else socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, receive_buffer_bytes)
+        except PermissionError:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, receive_buffer_bytes)
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
+        sock.bind((bind_address, port))
+    except OSError as exc:
+        sock.close()
+        raise OSError(exc.errno, f"cannot listen for lidar packets on UDP {bind_address}:{port}: {exc.strerror}") \
+            from None
+    sock.setblocking(False)
+    return sock, sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+
+
+def receive_queued(sock: socket.socket, buf: ReceiveBuffer, start: int, mono_minus_real_ns: int,
+                    stats: SocketStats, health: HealthCounters) -> int:
+    """Receive the datagrams already queued into rows start.. of `buf`; returns the rows filled."""
+    for i in range(start, len(buf.views)):
+        try:
+            size, ancillary, _, _ = sock.recvmsg_into([buf.views[i]], _ANCILLARY_BYTES, socket.MSG_TRUNC)
+        except BlockingIOError:
+            return i
+        except OSError as exc:
+            stats.socket_errors += 1
+            health.count_error(f"receiving: {exc}")
+            return i
+        arrival_ns = 0
+        for level, kind, data in ancillary:
+            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(data) >= _TIMESPEC.size:
+                seconds, nanoseconds = _TIMESPEC.unpack_from(data)
+                arrival_ns = seconds * 1_000_000_000 + nanoseconds + mono_minus_real_ns
+            elif level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(data) >= _DROP_COUNT.size:
+                stats.kernel_drops = _DROP_COUNT.unpack_from(data)[0]
+        buf.sizes[i] = size
+        buf.arrival_ns[i] = arrival_ns or time.monotonic_ns()
+    return len(buf.views)
+
+
+def gather_batch(sock: socket.socket, buf: ReceiveBuffer, batch_period_s: float, stats: SocketStats,
+                  health: HealthCounters) -> int:
+    """Rows of `buf` filled with what arrives within batch_period_s (or until it is full)."""
+    deadline = time.monotonic() + batch_period_s
+    mono_minus_real_ns = time.monotonic_ns() - time.time_ns()
+    n = receive_queued(sock, buf, 0, mono_minus_real_ns, stats, health)
+    while n < len(buf.views):
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            break
+        time.sleep(remaining)  # let datagrams gather in the kernel's buffer
+        n = receive_queued(sock, buf, n, mono_minus_real_ns, stats, health)
+    return n
