@@ -24,6 +24,7 @@ PROCESSES = {
     "drivers.camera.camera_driver": ["--camera", "front_wide"],
     "sim.camera_playback": ["--camera", "front_wide"],
     "drivers.lidar.udp_driver": [],
+    "drivers.lidar.vendor_udp_driver": [],
     "drivers.gnss.serial_driver": [],
     "drivers.can.can_driver": [],
     "daemon.processes.recorder": ["--output-dir", "{tmp}/out"],

@@ -44,9 +44,9 @@ def driver_processes(config: CarConfig, config_path: str) -> list[ProcessSpec]:
                                  check="drivers.camera.camera_driver:check_config"))
     if s.lidar is not None and s.lidar.point_clouds:
         table.append(ProcessSpec("lidar", "", cfg, required=True))
-    elif s.lidar is not None:
-        table.append(ProcessSpec("lidar", "drivers.lidar.udp_driver", cfg, required=True,
-                                 check="drivers.lidar.udp_driver:check_config"))
+    elif s.lidar is not None:  # Ouster packets have their own driver; the other vendors' share one
+        module = "drivers.lidar.vendor_udp_driver" if s.lidar.vendor_packets else "drivers.lidar.udp_driver"
+        table.append(ProcessSpec("lidar", module, cfg, required=True, check=f"{module}:check_config"))
     if s.gnss is not None:
         table.append(ProcessSpec("gnss", "drivers.gnss.serial_driver", cfg, required=True))
     if s.can is not None:
