@@ -58,7 +58,7 @@ from drivers.lidar.ouster_metadata import parse_metadata
 from sim.sensors import can_sim, gnss_sim, imu_sim
 from sim.sensors.camera_renderer import camera_rig, render_view
 from sim.sensors.camera_response import encode_jpeg, expose, vignetting_map
-from sim.sensors.lidar_sim import lidar_rig, scan_packets, simulate_scan
+from sim.sensors.lidar_sim import ouster_rig, simulate_scan
 from sim.sensors.semantic_mask_sim import encode_mask_png, segmentation_mask
 from sim.sensors.sensor_clocks import (
     ESF_TICK_NS,
@@ -70,6 +70,7 @@ from sim.sensors.sensor_clocks import (
     sensor_stamp_ns,
     utc_start_ns,
 )
+from sim.sensors.velodyne_sim import velodyne_rig
 from sim.world.random_world import scenario_for
 from sim.world.road_world import ground_truth_grids, is_road_surface
 from sim.world.scenarios import Scenario, scenario_names
@@ -141,21 +142,22 @@ def _lidar_task(task: tuple) -> tuple:
     _, frame_id, start_s = task
     scene = _SCENE
     if "lidar" not in _RIGS:
-        _RIGS["lidar"] = lidar_rig(scene.config.sensors.lidar, _LIDAR_METADATA)
+        lidar = scene.config.sensors.lidar
+        _RIGS["lidar"] = (velodyne_rig if lidar.vendor_packets else ouster_rig)(lidar, _LIDAR_METADATA)
     rig = _RIGS["lidar"]
     rng = np.random.default_rng([scene.seed, 20, frame_id])
     scan = simulate_scan(scene, rig, frame_id, start_s, rng)
     clock = _CLOCKS["lidar"]
     stamps = sensor_stamp_ns(clock, scan.column_time_s, rng)
-    packets = scan_packets(rig, scan, stamps)
-    k = rig.meta.columns_per_packet
+    packets, packet_stamps = rig.encode(scan, stamps)
+    k = rig.columns_per_packet
     last_column = scan.column_time_s[k - 1::k]
     arrivals = np.maximum.accumulate(host_arrival_ns(clock, last_column, rng))
     points = classes = None
     if frame_id % LIDAR_GT_EVERY == 0:
         road = is_road_surface(scan.hit_class)
         points, classes = scan.hit_world[road], scan.hit_class[road]
-    return ("lidar", frame_id, start_s, packets, stamps[::k], arrivals, points, classes)
+    return ("lidar", frame_id, start_s, packets, packet_stamps, arrivals, points, classes)
 
 
 def _run_task(task: tuple) -> tuple:
@@ -301,7 +303,7 @@ def simulate_drive(scenario: str, seconds: float | None, out: Path, config: CarC
 
     _SCENE, _CLOCKS, _MASKS = scene, clocks, masks
     _LIDAR_METADATA = resolve_path(config_file, sensors.lidar.metadata_file) if sensors.lidar else None
-    if sensors.lidar is not None:
+    if sensors.lidar is not None and not sensors.lidar.vendor_packets:  # an Ouster's IMU; the Velodynes have none
         for item in _lidar_imu_messages(scene, clocks, np.random.default_rng([seed, 9])):
             push(*item)
     gt_points: list[np.ndarray] = []

@@ -1,9 +1,11 @@
-"""The simulated Ouster OS-128: every (column, beam) ray of the sensor's metadata cast from the pose at
-that column's firing time onto the road and the cars, with range noise and dropouts, encoded into the
-sensor's real UDP packets (drivers/lidar/ouster_encoder.py)."""
+"""The simulated Lidar: every (column, beam) ray of the sensor cast from the pose at that column's firing time onto
+the road and the cars, with range noise and dropouts, encoded into the sensor's real UDP packets. A LidarRig says
+what the sensor is: the Ouster OS-128 of its metadata (drivers/lidar/ouster_encoder.py) here, a Velodyne of its
+calibration in sim/sensors/velodyne_sim.py."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,7 +20,7 @@ from drivers.lidar.ouster_metadata import (
     parse_metadata,
     simulated_os128_metadata,
 )
-from drivers.lidar.ouster_packet_layout import OusterPacketLayout, packet_layout
+from drivers.lidar.ouster_packet_layout import packet_layout
 from drivers.lidar.ouster_xyz import make_xyz_lut
 from sim.world.linear_maps import apply_matrices
 from sim.world.road_world import albedo_uv, semantic_uv
@@ -43,14 +45,17 @@ def write_sim_metadata(path: str | Path, columns_per_frame: int = 1024, fps: int
 
 @dataclass
 class LidarRig:
-    meta: OusterMetadata
-    layout: OusterPacketLayout
     direction: np.ndarray  # (W, H, 3) float32 unit ray directions in the sensor frame
     offset: np.ndarray  # (W, H, 3) float32 ray origins (range 0) in the sensor frame, metres
     sensor_to_vehicle: np.ndarray  # (4, 4)
+    column_offset_s: np.ndarray  # (W,) firing time of each column after the scan's first
+    columns_per_packet: int
+    # (scan, sensor stamp of each column in ns) -> the scan's payloads (P, packet size) uint8 and the sensor time
+    # of each packet (ns) as its driver publishes it
+    encode: Callable[[LidarScanSim, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
-def lidar_rig(config: LidarConfig, metadata_path: str | Path) -> LidarRig:
+def ouster_rig(config: LidarConfig, metadata_path: str | Path) -> LidarRig:
     meta = parse_metadata(Path(metadata_path))
     if meta.columns_per_frame != config.columns_per_frame or meta.fps != config.rate_hz:
         raise ValueError(f"{metadata_path}: metadata mode {meta.lidar_mode} does not match the config "
@@ -58,8 +63,16 @@ def lidar_rig(config: LidarConfig, metadata_path: str | Path) -> LidarRig:
     lut = make_xyz_lut(meta)
     direction = np.moveaxis(lut.direction, 0, -1) * 1000.0
     direction /= np.linalg.norm(direction, axis=-1, keepdims=True)
-    return LidarRig(meta, packet_layout(meta), np.ascontiguousarray(direction, np.float32),
-                    np.ascontiguousarray(np.moveaxis(lut.offset, 0, -1), np.float32), config.extrinsics.matrix())
+    layout, w, k = packet_layout(meta), meta.columns_per_frame, meta.columns_per_packet
+
+    def encode(scan: LidarScanSim, column_stamp_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        pixels = {"range_mm": scan.range_mm, "reflectivity": scan.reflectivity, "signal": scan.signal,
+                  "near_ir": scan.near_ir}
+        return encode_frame_packets(layout, scan.frame_id, pixels, column_stamp_ns), column_stamp_ns[::k]
+
+    return LidarRig(np.ascontiguousarray(direction, np.float32),
+                    np.ascontiguousarray(np.moveaxis(lut.offset, 0, -1), np.float32), config.extrinsics.matrix(),
+                    np.arange(w) / (w * meta.fps), k, encode)
 
 
 @dataclass
@@ -77,8 +90,7 @@ class LidarScanSim:
 
 
 def column_times(rig: LidarRig, start_s: float) -> np.ndarray:
-    w = rig.meta.columns_per_frame
-    return start_s + np.arange(w) / (w * rig.meta.fps)
+    return start_s + rig.column_offset_s
 
 
 def world_rays(scene: Scene, rig: LidarRig, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -125,7 +137,7 @@ def _cars(scene: Scene, rig: LidarRig, origins: np.ndarray, dirs: np.ndarray, mi
     middle = dirs[:, h // 2]
     column_az = np.arctan2(middle[:, 1], middle[:, 0])  # beams stagger +-4.2 degrees about it
     beam_el = np.arcsin(np.clip(dirs[w // 2, :, 2], -1, 1))  # the car's pitch and roll tilt it a little
-    az_margin, el_margin = np.radians(6.0), np.radians(4.0)
+    az_margin, el_margin = np.radians(8.0), np.radians(4.0)  # beams 4.2 (Ouster), 6.4 (VLS-128) degrees off
     for i in range(len(cars.centre)):
         d = cars.centre[i] - centre
         if np.linalg.norm(d[:2]) > CAR_RANGE_M:
@@ -181,10 +193,3 @@ def simulate_scan(scene: Scene, rig: LidarRig, frame_id: int, start_s: float, rn
         reflectivity=reflect.T.astype(np.uint16), signal=signal.T.astype(np.uint16),
         near_ir=near_ir.T.astype(np.uint16), hit_world=hit_world.astype(np.float32),
         hit_class=np.where(valid, cls, NO_RETURN).astype(np.uint8))
-
-
-def scan_packets(rig: LidarRig, scan: LidarScanSim, column_stamp_ns: np.ndarray) -> np.ndarray:
-    """The frame's UDP payloads, (packets, packet_size) uint8."""
-    pixels = {"range_mm": scan.range_mm, "reflectivity": scan.reflectivity, "signal": scan.signal,
-              "near_ir": scan.near_ir}
-    return encode_frame_packets(rig.layout, scan.frame_id, pixels, column_stamp_ns)

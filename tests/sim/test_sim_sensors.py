@@ -16,7 +16,7 @@ from daemon.spine.semantic_classes import SemanticClass
 from sim.sensors import can_sim, gnss_sim, imu_sim
 from sim.sensors.camera_renderer import camera_pose, camera_rig, project_points, render_view
 from sim.sensors.camera_response import expose, vignetting_map
-from sim.sensors.lidar_sim import lidar_rig, scan_packets, simulate_scan
+from sim.sensors.lidar_sim import ouster_rig, simulate_scan
 from sim.sensors.semantic_mask_sim import segmentation_mask
 from sim.world.road_world import height_st, road_point, surface_height
 from sim.world.scenarios import load_scenario
@@ -132,10 +132,11 @@ def test_lidar_packets_decode_in_ouster_sdk_to_the_simulated_rays(city):
     sdk = pytest.importorskip("ouster.sdk.core")
     lidar = CONFIG.sensors.lidar
     metadata = CONFIGS / lidar.metadata_file
-    rig = lidar_rig(lidar, metadata)
+    rig = ouster_rig(lidar, metadata)
     scan = simulate_scan(city, rig, 7, 1.5, np.random.default_rng(3))
     stamps = (scan.column_time_s * 1e9).astype(np.int64) + 1_700_000_000_000_000_000
-    packets = scan_packets(rig, scan, stamps)
+    packets, packet_stamps = rig.encode(scan, stamps)
+    np.testing.assert_array_equal(packet_stamps, stamps[::16])
     assert packets.shape == (64, 24896)
     info = sdk.SensorInfo(metadata.read_text())
     frame = _sdk_frame(sdk, info, packets)
