@@ -135,9 +135,12 @@ def _cars(scene: Scene, rig: LidarRig, origins: np.ndarray, dirs: np.ndarray, mi
     w, h = dirs.shape[:2]
     centre = origins[w // 2, h // 2].astype(np.float64)
     middle = dirs[:, h // 2]
-    column_az = np.arctan2(middle[:, 1], middle[:, 0])  # beams stagger +-4.2 degrees about it
+    column_az = np.arctan2(middle[:, 1], middle[:, 0])
     beam_el = np.arcsin(np.clip(dirs[w // 2, :, 2], -1, 1))  # the car's pitch and roll tilt it a little
-    az_margin, el_margin = np.radians(8.0), np.radians(4.0)  # beams 4.2 (Ouster), 6.4 (VLS-128) degrees off
+    # a column's beams spread about its middle one (the OS-128's up to 8.4 degrees, a VLS-128's 6.4), plus 2 degrees
+    beam_az = np.arctan2(dirs[w // 2, :, 1], dirs[w // 2, :, 0])
+    spread = np.abs((beam_az - column_az[w // 2] + np.pi) % (2 * np.pi) - np.pi).max()
+    az_margin, el_margin = spread + np.radians(2.0), np.radians(4.0)
     for i in range(len(cars.centre)):
         d = cars.centre[i] - centre
         if np.linalg.norm(d[:2]) > CAR_RANGE_M:
