@@ -20,29 +20,16 @@ from drivers.lidar.hesai_calibration import (
     load_hesai_angles,
 )
 from drivers.lidar.hesai_packet_formats import (
-    DUAL_FIRST_LAST,
-    DUAL_FIRST_SECOND,
-    DUAL_FIRST_STRONGEST,
-    DUAL_LAST_STRONGEST,
-    DUAL_STRONGEST_SECOND,
     FORMATS,
     HESAI_MODELS,
-    RETURN_MODES,
-    SINGLE_LAST,
-    SINGLE_STRONGEST,
+    N_RETURNS,
     HesaiFormat,
     format_of,
     packet_times_ns,
+    return_type_table,
     u16,
 )
-from drivers.lidar.packet_decoding import (
-    RETURN_TYPE_LAST,
-    RETURN_TYPE_OTHER,
-    RETURN_TYPE_STRONGEST,
-    DecodedPoints,
-    PacketCheck,
-    empty_points,
-)
+from drivers.lidar.packet_decoding import DecodedPoints, PacketCheck, empty_points
 
 __all__ = ["HESAI_MODELS", "HesaiDecoder", "hesai_decoder", "hesai_imu_samples"]
 
@@ -56,6 +43,8 @@ BAD_TIMESTAMP = "bad_timestamp"  # the tail's date or microseconds are out of ra
 REASONS = (WRONG_SIZE, FOREIGN_MODEL, BAD_HEADER, BAD_BLOCK_FLAG, UNKNOWN_RETURN_MODE, BAD_TIMESTAMP)
 
 _AT128_TURN = 360 * AT128_ANGLE_UNITS_PER_DEG
+_COS_CDEG = np.cos(np.deg2rad(np.arange(36000) * 0.01)).astype(np.float32)
+_SIN_CDEG = np.sin(np.deg2rad(np.arange(36000) * 0.01)).astype(np.float32)
 
 
 class HesaiDecoder:
@@ -73,8 +62,12 @@ class HesaiDecoder:
         self.max_range_m = min(max_range_m, fmt.max_range_m)
         self.dual_threshold_m = dual_return_distance_threshold_m
         if isinstance(angles, HesaiAngles):
-            self._elevation = np.deg2rad(angles.elevation_deg)
-            self._azimuth_offset = np.deg2rad(angles.azimuth_offset_deg)
+            elevation, offset = np.deg2rad(angles.elevation_deg), np.deg2rad(angles.azimuth_offset_deg)
+            self._cos_elevation, self._sin_elevation = np.cos(elevation).astype(np.float32), np.sin(elevation).astype(
+                np.float32)
+            self._cos_offset, self._sin_offset = np.cos(offset).astype(np.float32), np.sin(offset).astype(np.float32)
+
+        self._types = return_type_table(fmt.first_last_reversed)
 
     @property
     def model(self) -> str:
@@ -120,7 +113,7 @@ class HesaiDecoder:
             flag = np.frombuffer(fmt.block_flag, np.uint8)
             checks.append((BAD_BLOCK_FLAG, np.all(batch[:, starts[:, None] + np.arange(2)] == flag, axis=(1, 2))))
         mode = batch[:, fmt.return_mode_at]
-        n_returns = np.array([RETURN_MODES.get(int(m), 0) for m in range(256)])[mode]
+        n_returns = N_RETURNS[mode]
         checks.append((UNKNOWN_RETURN_MODE, (n_returns > 0) & (fmt.n_blocks % np.maximum(n_returns, 1) == 0)))
         checks.append((BAD_TIMESTAMP, packet_times_ns(fmt, batch)[1]))
         good = np.ones(len(batch), bool)
@@ -154,114 +147,114 @@ class HesaiDecoder:
         return (doubled // 256).astype(np.int32)
 
     def _decode_points(self, batch: np.ndarray, index: np.ndarray) -> DecodedPoints:
-        """Units computed densely as (n, groups, channels, returns), then the kept ones picked out, in nebula's
-        order: packet, firing (block group), channel, return."""
+        """Units looked at densely, per packet, firing (block group), return and channel; the kept ones picked
+        out in nebula's order: packet, firing, channel, return."""
         fmt = self.format
         n, f32 = len(batch), np.float32
         blocks = batch[:, fmt.first_block : fmt.first_block + fmt.n_blocks * fmt.block_size]
         blocks = blocks.reshape(n, fmt.n_blocks, fmt.block_size)
         units = blocks[:, :, fmt.first_unit : fmt.first_unit + fmt.n_channels * fmt.unit_size]
         units = units.reshape(n, fmt.n_blocks, fmt.n_channels, fmt.unit_size)
-        raw_distance = u16(units, 0)
+        raw_distance = units[:, :, :, 0].astype(np.int32) | (units[:, :, :, 1].astype(np.int32) << 8)
         reflectivity = units[:, :, :, 2]
         dis_unit = np.full(n, 0.004) if fmt.dis_unit_at is None else batch[:, fmt.dis_unit_at] * 1e-3
         mode = batch[:, fmt.return_mode_at]
-        n_returns = np.array([RETURN_MODES.get(int(m), 0) for m in mode])
-        stamp_ns = packet_times_ns(fmt, batch)[0]
-        firing_ns = fmt.firing_ns(n_returns, batch)  # (n, blocks, channels)
-        block_azimuth = self._block_azimuth(batch)
+        n_returns = N_RETURNS[mode]
+        per_packet = fmt.n_blocks * fmt.n_channels
         parts = []
         for nr in np.unique(n_returns):
             rows = np.flatnonzero(n_returns == nr)
-            parts.append(self._decode_mode_group(
-                rows, int(nr), mode[rows], raw_distance[rows], reflectivity[rows], dis_unit[rows],
-                block_azimuth[rows], stamp_ns[rows, None, None] + firing_ns[rows]))
+            unit, return_type = self._kept_returns(int(nr), mode[rows], raw_distance[rows], reflectivity[rows],
+                                                   dis_unit[rows])
+            parts.append((rows[unit // per_packet] * per_packet + unit % per_packet, return_type))
         if len(parts) > 1:
-            order = np.argsort(np.concatenate([p["row"] for p in parts]), kind="stable")
-            merged = {k: np.concatenate([p[k] for p in parts])[order] for k in parts[0]}
+            unit, return_type = (np.concatenate([p[i] for p in parts]) for i in range(2))
+            order = np.argsort(unit // per_packet, kind="stable")
+            unit, return_type = unit[order], return_type[order]
         else:
-            merged = parts[0]
-        row, channel, distance = merged["row"], merged["channel"], merged["distance"]
-        azimuth, elevation = self._angles_rad(merged["raw_azimuth"], channel)
-        xy = distance * np.cos(elevation)
-        xyz = np.stack([xy * np.cos(azimuth), -xy * np.sin(azimuth), distance * np.sin(elevation)], axis=1)
+            unit, return_type = parts[0]
+        row, channel = unit // per_packet, unit % fmt.n_channels
+        block = unit // fmt.n_channels % fmt.n_blocks
+        distance = (raw_distance.ravel()[unit] * dis_unit[row]).astype(f32)
+        raw_azimuth = self._block_azimuth(batch)[row, block - block % n_returns[row]]
+        firing_ns = fmt.firing_ns(n_returns, batch)  # (n or 1, blocks, channels)
+        firing_unit = unit if firing_ns.shape[0] == n else unit % per_packet
         return DecodedPoints(
             model=self.model,
-            xyz=xyz.astype(f32),
-            distance_m=distance.astype(f32),
-            intensity=merged["reflectivity"].astype(f32),
+            xyz=self._xyz(distance, raw_azimuth, channel),
+            distance_m=distance,
+            intensity=reflectivity.ravel()[unit].astype(f32),
             laser_id=channel.astype(np.uint16),
             ring=self.angles.ring[channel],
-            azimuth_cdeg=self._firing_azimuth(merged["raw_azimuth"]).astype(np.uint16),
-            return_type=merged["return_type"],
-            timestamp_ns=merged["time_ns"],
+            azimuth_cdeg=self._firing_azimuth(raw_azimuth).astype(np.uint16),
+            return_type=return_type,
+            timestamp_ns=packet_times_ns(fmt, batch)[0][row] + firing_ns.ravel()[firing_unit],
             packet_index=index[row],
         )
 
-    def _decode_mode_group(self, rows, nr, mode, raw_distance, reflectivity, dis_unit, block_azimuth, time_ns):
-        """The kept returns of packets with `nr` returns per firing, as flat arrays."""
+    def _kept_returns(self, nr: int, mode: np.ndarray, raw_distance: np.ndarray, reflectivity: np.ndarray,
+                      dis_unit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Flat indices into the (m, blocks, channels) units of m packets with `nr` returns per firing of the
+        returns kept, in order of packet, firing, channel, return; and their return types. Ranges are compared
+        in raw units: per packet, the raw bounds that the metre limits give."""
         m, n_blocks, n_channels = raw_distance.shape
-        shape = (m, n_blocks // nr, nr, n_channels)
-
-        def grouped(a: np.ndarray) -> np.ndarray:  # (m, blocks, channels) -> (m, groups, channels, returns)
-            return a.reshape(shape).transpose(0, 1, 3, 2)
-
-        d_raw, refl = grouped(raw_distance), grouped(reflectivity)
-        distance = d_raw * dis_unit[:, None, None, None]
-        keep = (d_raw != 0) & (distance >= self.min_range_m) & (distance <= self.max_range_m)
-        return_type = self._return_types(mode, refl, nr)
-        if nr > 1:
-            # A return equal to or within the threshold of another one of its firing is dropped unless it is
-            # the last; the last one then stands for it and carries its type bits too.
-            dropped = np.zeros_like(keep)
-            for other in range(nr):
-                same = (d_raw == d_raw[..., other : other + 1]) & (refl == refl[..., other : other + 1])
-                near = np.abs(distance - distance[..., other : other + 1]) < self.dual_threshold_m
-                dropped |= (same | near) & (np.arange(nr) != other)
-            dropped &= keep & (np.arange(nr) < nr - 1)
-            keep &= ~dropped
-            return_type[..., -1] |= np.bitwise_or.reduce(np.where(dropped, return_type, 0), axis=-1).astype(np.uint8)
-        row, group, channel, ret = np.nonzero(keep)
-        block = group * nr + ret
-        return {
-            "row": rows[row],
-            "channel": channel,
-            "distance": distance[row, group, channel, ret],
-            "reflectivity": refl[row, group, channel, ret],
-            "raw_azimuth": block_azimuth[row, group * nr],
-            "return_type": return_type[row, group, channel, ret],
-            "time_ns": time_ns[row, block, channel],
-        }
-
-    def _return_types(self, mode: np.ndarray, refl: np.ndarray, nr: int) -> np.ndarray:
-        """(m, groups, channels, returns) RETURN_TYPE_* bits of each return by the packet's return mode."""
-        S, L, O = RETURN_TYPE_STRONGEST, RETURN_TYPE_LAST, RETURN_TYPE_OTHER
-        mode = mode[:, None, None, None]
+        shape = (m, n_blocks // nr, nr, n_channels)  # packet, firing, return, channel
+        d = raw_distance.reshape(shape)
+        lo, hi = _raw_bounds(dis_unit, self.min_range_m, self.max_range_m)
+        keep = (d >= lo[:, None, None, None]) & (d <= hi[:, None, None, None])  # lo >= 1: raw 0 is no return
         if nr == 1:
-            single = np.where(mode == SINGLE_STRONGEST, S, np.where(mode == SINGLE_LAST, L, O))
-            return np.broadcast_to(single, refl.shape).astype(np.uint8)
-        if nr == 3:  # first, last, strongest
-            return np.broadcast_to(np.array([O, L, S], np.uint8), refl.shape).copy()
-        strongest = refl == refl.max(axis=-1, keepdims=True)
-        by_mode = {  # (first block, second block); 0: strongest or not decides
-            DUAL_LAST_STRONGEST: (L, 0),
-            DUAL_FIRST_STRONGEST: (O, 0),
-            DUAL_FIRST_SECOND: (O, O),
-            DUAL_STRONGEST_SECOND: (S, O),
-            DUAL_FIRST_LAST: (L, O) if self.format.first_last_reversed else (O, L),
-        }
-        types = np.zeros(refl.shape, np.uint8)
-        for code, base in by_mode.items():
-            types = np.where(mode == code, np.array(base, np.uint8), types)
-        by_strength = np.isin(mode, [DUAL_LAST_STRONGEST, DUAL_FIRST_STRONGEST])
-        types |= np.where(by_strength & strongest, S, 0).astype(np.uint8)
-        types |= np.where(by_strength & ~strongest & (np.arange(2) == 1), O, 0).astype(np.uint8)
-        return types
+            unit = np.flatnonzero(keep)
+            return unit, self._types[mode[unit // (n_blocks * n_channels)], 0, 1]
+        refl = reflectivity.reshape(shape)
+        strongest = (refl == refl.max(axis=2, keepdims=True)).ravel()
+        # A return equal to or within the threshold of another of its firing is dropped unless it is the last;
+        # the last then stands for it and carries its type bits too (nebula keeps only the last).
+        near_raw = _raw_below(dis_unit, self.dual_threshold_m)[:, None, None]
+        dropped = np.zeros_like(keep)
+        for r in range(nr - 1):
+            for other in range(nr):
+                if other != r:
+                    same = (d[:, :, r] == d[:, :, other]) & (refl[:, :, r] == refl[:, :, other])
+                    dropped[:, :, r] |= same | (np.abs(d[:, :, r] - d[:, :, other]) <= near_raw)
+        dropped &= keep
+        keep &= ~dropped
+        t = np.flatnonzero(keep.transpose(0, 1, 3, 2))  # ((packet, firing), channel, return)
+        ret, channel, firing = t % nr, t // nr % n_channels, t // (nr * n_channels)
+        unit = (firing * nr + ret) * n_channels + channel
+        mode = mode[unit // (n_blocks * n_channels)]
+        return_type = self._types[mode, ret, strongest[unit].astype(np.intp)]
+        last = np.flatnonzero(ret == nr - 1)
+        dropped = dropped.ravel()
+        for r in range(nr - 1):
+            other = unit[last] - (nr - 1 - r) * n_channels
+            was = last[dropped[other]]
+            return_type[was] |= self._types[mode[was], r, strongest[other[dropped[other]]].astype(np.intp)]
+        return unit, return_type
+
+    def _xyz(self, distance: np.ndarray, raw_azimuth: np.ndarray, channel: np.ndarray) -> np.ndarray:
+        """x forward, y left, z up of each return, float32. Hesai's azimuth runs clockwise seen from above, 0
+        forward. Pandar: the block azimuth's cosine and sine from a 0.01 degree table, the channel's offset added
+        by the angle sum formulas."""
+        f32 = np.float32
+        xyz = np.empty((len(distance), 3), f32)
+        if self.format.fine_azimuth:
+            azimuth, elevation = self._angles_rad(raw_azimuth, channel)
+            xy = distance * np.cos(elevation)
+            xyz[:, 0], xyz[:, 1], xyz[:, 2] = xy * np.cos(azimuth), -xy * np.sin(azimuth), distance * np.sin(elevation)
+            return xyz
+        cos_b, sin_b = _COS_CDEG[raw_azimuth % 36000], _SIN_CDEG[raw_azimuth % 36000]
+        cos_o, sin_o = self._cos_offset[channel], self._sin_offset[channel]
+        xy = distance * self._cos_elevation[channel]
+        np.multiply(xy, cos_b * cos_o - sin_b * sin_o, out=xyz[:, 0])
+        np.multiply(xy, -(sin_b * cos_o + cos_b * sin_o), out=xyz[:, 1])
+        np.multiply(distance, self._sin_elevation[channel], out=xyz[:, 2])
+        return xyz
 
     def _angles_rad(self, raw_azimuth: np.ndarray, channel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Corrected azimuth (clockwise from forward, as Hesai counts it) and elevation of each point."""
-        if not self.format.fine_azimuth:
-            return np.deg2rad(raw_azimuth * 0.01) + self._azimuth_offset[channel], self._elevation[channel]
+        """AT128: corrected azimuth and elevation of each point from the correction file. The azimuth is twice
+        the motor angle past the mirror's frame start, less the channel's azimuth, plus the adjustment that
+        the file gives every 2 degrees of motor angle, interpolated (nebula's rule; past the last entry the
+        last one is taken)."""
         c = self.angles
         start = c.frame_start[self._at128_field(raw_azimuth)]
         step = raw_azimuth // AT128_ADJUST_STEP_UNITS
@@ -276,6 +269,22 @@ class HesaiDecoder:
         elevation = c.elevation[channel] + adjust(c.elevation_adjust)
         unit = np.pi / (180 * AT128_ANGLE_UNITS_PER_DEG)
         return (azimuth % _AT128_TURN) * unit, ((elevation + _AT128_TURN // 2) % _AT128_TURN - _AT128_TURN // 2) * unit
+
+
+def _raw_bounds(dis_unit: np.ndarray, min_m: float, max_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per packet, the least and greatest raw distance whose metres (raw x unit) lie in [min_m, max_m]; at least
+    1 (raw 0 is no return)."""
+    lo = np.ceil(min_m / dis_unit).astype(np.int64)
+    lo = np.maximum(np.where((lo - 1) * dis_unit >= min_m, lo - 1, np.where(lo * dis_unit >= min_m, lo, lo + 1)), 1)
+    hi = np.floor(max_m / dis_unit).astype(np.int64)
+    hi = np.where((hi + 1) * dis_unit <= max_m, hi + 1, np.where(hi * dis_unit <= max_m, hi, hi - 1))
+    return lo, hi
+
+
+def _raw_below(dis_unit: np.ndarray, threshold_m: float) -> np.ndarray:
+    """Per packet, the greatest raw distance difference whose metres are below `threshold_m` (-1: none)."""
+    k = np.floor(threshold_m / dis_unit).astype(np.int64)
+    return np.where(k * dis_unit < threshold_m, k, k - 1)
 
 
 def hesai_decoder(model: str, calibration_path: str | Path, **limits: float) -> HesaiDecoder:

@@ -10,12 +10,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.lidar import hesai_firing_times
+from drivers.lidar.packet_decoding import RETURN_TYPE_LAST, RETURN_TYPE_OTHER, RETURN_TYPE_STRONGEST
 
 # Tail return-mode byte -> returns per firing (the blocks of one firing are consecutive).
 RETURN_MODES = {0x33: 1, 0x34: 1, 0x37: 1, 0x38: 1, 0x39: 2, 0x3A: 2, 0x3B: 2, 0x3C: 2, 0x03: 2, 0x3D: 3}
 SINGLE_FIRST, SINGLE_SECOND, SINGLE_STRONGEST, SINGLE_LAST = 0x33, 0x34, 0x37, 0x38
 DUAL_LAST_STRONGEST, DUAL_FIRST_SECOND, DUAL_FIRST_LAST, DUAL_FIRST_STRONGEST = 0x39, 0x3A, 0x3B, 0x3C
 DUAL_STRONGEST_SECOND, TRIPLE_FIRST_LAST_STRONGEST = 0x03, 0x3D
+N_RETURNS = np.zeros(256, np.int64)  # by return-mode byte; 0: no mode
+N_RETURNS[list(RETURN_MODES)] = list(RETURN_MODES.values())
 
 # How the tail's date is written: year (+1900 or +2000), month, day, hour, minute, second; or a zero byte and
 # big-endian seconds since 1970 in 5 bytes.
@@ -75,6 +78,25 @@ FORMATS = {
     )
 }
 HESAI_MODELS = tuple(FORMATS)
+
+
+def return_type_table(first_last_reversed: bool) -> np.ndarray:
+    """(256, 3, 2) uint8 RETURN_TYPE_* bits by return-mode byte, the return's index in its firing, and whether
+    it is the firing's strongest (no other return has a higher reflectivity). Dual first+last: the XT32 and
+    128E4X send the last return first (nebula flips them as well)."""
+    S, L, O = RETURN_TYPE_STRONGEST, RETURN_TYPE_LAST, RETURN_TYPE_OTHER
+    table = np.zeros((256, 3, 2), np.uint8)
+    table[SINGLE_STRONGEST, 0] = S
+    table[SINGLE_LAST, 0] = L
+    table[[SINGLE_FIRST, SINGLE_SECOND], 0] = O
+    table[DUAL_LAST_STRONGEST, 0] = (L, L | S)
+    table[DUAL_FIRST_STRONGEST, 0] = (O, O | S)
+    table[[DUAL_LAST_STRONGEST, DUAL_FIRST_STRONGEST], 1] = (O, S)
+    table[DUAL_FIRST_SECOND, :2] = O
+    table[DUAL_STRONGEST_SECOND, :2] = ((S, S), (O, O))
+    table[DUAL_FIRST_LAST, :2] = ((L, L), (O, O)) if first_last_reversed else ((O, O), (L, L))
+    table[TRIPLE_FIRST_LAST_STRONGEST] = ((O, O), (L, L), (S, S))
+    return table
 
 
 def format_of(packet: bytes) -> HesaiFormat | None:
