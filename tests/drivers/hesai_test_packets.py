@@ -79,3 +79,23 @@ def encode_at128_correction(frame_start: list[int], frame_end: list[int], azimut
     out += struct.pack(f"<{channels}i", *azimuth) + struct.pack(f"<{channels}i", *elevation)
     out += azimuth_adjust.astype(np.int8).tobytes() + elevation_adjust.astype(np.int8).tobytes()
     return bytes(out + b"\x00" * 32)
+
+
+AT128_FRAMES_DEG = ((0, 120), (120, 240), (240, 360))  # the self-made correction's mirror frames (motor angle)
+
+
+def at128_correction_from_table(path: Path, azimuth_adjust: np.ndarray | None = None,
+                                elevation_adjust: np.ndarray | None = None) -> bytes:
+    """A self-made AT128 correction file: three mirrors over AT128_FRAMES_DEG, each channel's azimuth and
+    elevation from a Pandar-style angle CSV (the file's azimuth is subtracted, so the CSV's is negated), the
+    given adjustments (128, 180) in 0.01 degree or none."""
+    rows = [line.split(",") for line in path.read_text().splitlines()[1:] if line.strip()]
+    unit = 25600
+    azimuth = np.array([round(-float(r[2]) * unit) for r in rows])
+    elevation = np.array([round(float(r[1]) * unit) for r in rows])
+    none = np.zeros((len(rows), 180), np.int8)
+    starts = [a * unit for a, _ in AT128_FRAMES_DEG]
+    ends = [min(b * unit, 360 * unit - 1) for _, b in AT128_FRAMES_DEG]
+    return encode_at128_correction(starts, ends, azimuth, elevation,
+                                   none if azimuth_adjust is None else azimuth_adjust,
+                                   none if elevation_adjust is None else elevation_adjust)

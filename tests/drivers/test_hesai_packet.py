@@ -20,9 +20,9 @@ from drivers.lidar.hesai_decoder import HESAI_MODELS, hesai_decoder, hesai_imu_s
 from drivers.lidar.packet_decoding import RETURN_TYPE_LAST, RETURN_TYPE_STRONGEST, rotation_starts
 from drivers.lidar.pcap_udp import read_pcap_udp
 from tests.drivers.hesai_test_packets import (
+    at128_correction_from_table,
     encode_128e4x,
     encode_at128,
-    encode_at128_correction,
     read_binary_pcd,
 )
 
@@ -258,16 +258,12 @@ def test_pandar128e4x_self_made_packets_decode_to_the_angle_tables_geometry():
 
 
 def _at128_correction_file() -> bytes:
-    rows = _angle_rows("PandarAT128.csv")
-    unit = 25600
-    azimuth = np.array([round(-a * unit) for _, a in rows])
-    elevation = np.array([round(e * unit) for e, _ in rows])
+    _angle_rows("PandarAT128.csv")  # skips when absent
     azimuth_adjust = np.zeros((128, 180), np.int8)
     azimuth_adjust[5, :] = np.arange(180) % 7 - 3  # 0.01 degree
     elevation_adjust = np.zeros((128, 180), np.int8)
     elevation_adjust[9, :] = 4
-    starts, ends = [0, 120 * unit, 240 * unit], [120 * unit, 240 * unit, 360 * unit - 1]
-    return encode_at128_correction(starts, ends, azimuth, elevation, azimuth_adjust, elevation_adjust)
+    return at128_correction_from_table(DATA / "calib" / "PandarAT128.csv", azimuth_adjust, elevation_adjust)
 
 
 def test_pandarat128_self_made_packets_decode_to_the_correction_files_geometry(tmp_path):
