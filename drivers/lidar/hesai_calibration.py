@@ -99,7 +99,8 @@ def load_at128_correction(path: str | Path) -> AT128Correction:
     data = path.read_bytes()
     start = data.find(b"\xee\xff")
     if start < 0:
-        raise ValueError(f"{path}: no 0xEE 0xFF delimiter: not an AT128 angle correction file")
+        raise ValueError(f"{path}: no 0xEE 0xFF delimiter: not an AT128 angle correction file (the binary file the "
+                         "sensor serves; its angle CSV alone does not give the mirrors' frames)")
     head = data[start : start + 16]
     if len(head) < 16:
         raise ValueError(f"{path}: truncated header")

@@ -36,7 +36,7 @@ __all__ = ["HESAI_MODELS", "HesaiDecoder", "hesai_decoder", "hesai_imu_samples"]
 # Reasons a datagram is skipped, as DecodedPoints.counts and PacketCheck.counts name them.
 WRONG_SIZE = "wrong_size"  # no Hesai data packet size of this model (or truncated)
 FOREIGN_MODEL = "foreign_model"  # another Hesai model's data packet
-BAD_HEADER = "bad_header"  # the model's size, but not its header signature, laser and block counts
+BAD_HEADER = "bad_header"  # the model's size, but not its header (signature, laser and block counts, distance unit)
 BAD_BLOCK_FLAG = "bad_block_flag"  # a block's start flag is wrong (Pandar40P)
 UNKNOWN_RETURN_MODE = "unknown_return_mode"  # a return mode byte of no mode, or not fitting the blocks
 BAD_TIMESTAMP = "bad_timestamp"  # the tail's date or microseconds are out of range
@@ -107,7 +107,10 @@ class HesaiDecoder:
             counts[reason] = counts.get(reason, 0) + 1
         index = np.array(sized, dtype=np.int64)
         batch = np.frombuffer(b"".join(packets[i][:size] for i in sized), np.uint8).reshape(-1, size)
-        checks = [(BAD_HEADER, np.all([batch[:, at] == value for at, value in fmt.header], axis=0))]
+        header_ok = np.all([batch[:, at] == value for at, value in fmt.header], axis=0)
+        if fmt.dis_unit_at is not None:
+            header_ok &= batch[:, fmt.dis_unit_at] != 0
+        checks = [(BAD_HEADER, header_ok)]
         if fmt.block_flag:
             starts = fmt.first_block + fmt.block_size * np.arange(fmt.n_blocks)
             flag = np.frombuffer(fmt.block_flag, np.uint8)

@@ -58,6 +58,8 @@ def _header12(protocol_major: int, lasers: int, blocks: int) -> tuple[tuple[int,
     return _SIGNATURE + ((2, protocol_major), (6, lasers), (7, blocks))
 
 
+# Date bases: the 40P capture's year byte is 17 (2017 from 2000), the Pandar64's 120 (2020 from 1900; nebula reads
+# the 64's tail as the 40P's, 2000-based, which would be 2120); the 12-byte-header models' are 1900-based.
 FORMATS = {
     f.model: f
     for f in (

@@ -172,6 +172,10 @@ def test_each_decoder_takes_only_its_own_models_packets():
         header = bytearray(firsts[capture])
         header[{"40p": 1, "64": 3, "qt128": 7, "xt32": 7}[capture]] ^= 0xFF  # a block flag byte, the block count
         assert _decoder(capture).check([bytes(header)]).counts == {"bad_header": 1}
+        if capture != "40p":  # a distance unit of 0 (the 40P's is fixed at 4 mm)
+            unit = bytearray(firsts[capture])
+            unit[5 if capture == "64" else 9] = 0
+            assert _decoder(capture).check([bytes(unit)]).counts == {"bad_header": 1}
 
 
 def test_angle_tables_are_checked(tmp_path):
