@@ -124,6 +124,8 @@ def load_at128_correction(path: str | Path) -> AT128Correction:
     frame_start, frame_end = table(mirrors, "<u4"), table(mirrors, "<u4")
     azimuth, elevation = table(channels, "<i4"), table(channels, "<i4")
     azimuth_adjust, elevation_adjust = table(adjust, "i1"), table(adjust, "i1")
+    if np.any(np.diff(frame_start) <= 0) or np.any(frame_start >= 360 * AT128_ANGLE_UNITS_PER_DEG):
+        raise ValueError(f"{path}: mirror frame starts {frame_start.tolist()} not ascending within one turn")
     return AT128Correction(
         str(path), frame_start, frame_end, azimuth, elevation,
         azimuth_adjust.reshape(channels, AT128_ADJUST_ENTRIES),

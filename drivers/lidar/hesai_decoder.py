@@ -61,12 +61,10 @@ class HesaiDecoder:
         self.min_range_m = max(min_range_m, fmt.min_range_m)
         self.max_range_m = min(max_range_m, fmt.max_range_m)
         self.dual_threshold_m = dual_return_distance_threshold_m
-        if isinstance(angles, HesaiAngles):
+        if isinstance(angles, HesaiAngles):  # per-channel cosines and sines, float32
             elevation, offset = np.deg2rad(angles.elevation_deg), np.deg2rad(angles.azimuth_offset_deg)
-            self._cos_elevation, self._sin_elevation = np.cos(elevation).astype(np.float32), np.sin(elevation).astype(
-                np.float32)
-            self._cos_offset, self._sin_offset = np.cos(offset).astype(np.float32), np.sin(offset).astype(np.float32)
-
+            self._cos_elevation, self._sin_elevation = (f(elevation).astype(np.float32) for f in (np.cos, np.sin))
+            self._cos_offset, self._sin_offset = (f(offset).astype(np.float32) for f in (np.cos, np.sin))
         self._types = return_type_table(fmt.first_last_reversed)
 
     @property
@@ -217,8 +215,9 @@ class HesaiDecoder:
         for r in range(nr - 1):
             for other in range(nr):
                 if other != r:
-                    same = (d[:, :, r] == d[:, :, other]) & (refl[:, :, r] == refl[:, :, other])
-                    dropped[:, :, r] |= same | (np.abs(d[:, :, r] - d[:, :, other]) <= near_raw)
+                    dropped[:, :, r] |= np.abs(d[:, :, r] - d[:, :, other]) <= near_raw
+                    if near_raw.min() < 0:  # else an equal distance is near already
+                        dropped[:, :, r] |= (d[:, :, r] == d[:, :, other]) & (refl[:, :, r] == refl[:, :, other])
         dropped &= keep
         keep &= ~dropped
         t = np.flatnonzero(keep.transpose(0, 1, 3, 2))  # ((packet, firing), channel, return)
@@ -265,8 +264,8 @@ class HesaiDecoder:
         upper = np.minimum(step + 1, AT128_ADJUST_ENTRIES - 1)
 
         def adjust(table: np.ndarray) -> np.ndarray:  # 0.01 degree -> angle units
-            return np.round((1 - k) * table[channel, step] + k * table[channel, upper]) * (AT128_ANGLE_UNITS_PER_DEG
-                                                                                           // 100)
+            hundredths = np.round((1 - k) * table[channel, step] + k * table[channel, upper])
+            return hundredths * (AT128_ANGLE_UNITS_PER_DEG // 100)
 
         azimuth = ((raw_azimuth - start) % _AT128_TURN) * 2 - c.azimuth[channel] + adjust(c.azimuth_adjust)
         elevation = c.elevation[channel] + adjust(c.elevation_adjust)
@@ -308,14 +307,17 @@ def hesai_decoder(model: str, calibration_path: str | Path, **limits: float) -> 
 def hesai_imu_samples(packets: list[bytes]) -> dict[str, np.ndarray]:
     """The IMU readings in the tails of Pandar128E4X packets (the only model here that carries one): `time_ns`
     (the packet's UTC stamp), `imu_timestamp` (the IMU's own counter), `angular_velocity_rad_s` and
-    `linear_acceleration_m_s2` (n, 3); a reading repeated in consecutive packets is given once."""
+    `linear_acceleration_m_s2` (n, 3); a reading repeated in consecutive packets is given once. Layout from
+    nebula's 128E3X/E4X tail and its IMU decoder: acceleration value x unit x 0.001 mg, angular velocity value x
+    unit x 0.01 mdps; the values read as signed 16 bit (nebula's struct comments say unsigned; not checked
+    against a real packet)."""
     fmt = FORMATS["hesai-pandar128e4x"]
     good = [p[: min(fmt.sizes)] for p in packets if format_of(p) is fmt]
     batch = np.frombuffer(b"".join(good), np.uint8).reshape(-1, min(fmt.sizes))
     time_ns, ok = packet_times_ns(fmt, batch)
     at = fmt.imu_at
     imu_time = u16(batch, at + 6) | (u16(batch, at + 8) << 16)
-    fresh = ok & np.concatenate([[True], imu_time[1:] != imu_time[:-1]])
+    fresh = ok & (np.diff(imu_time, prepend=-1) != 0)  # within this call
     batch, time_ns, imu_time = batch[fresh], time_ns[fresh], imu_time[fresh]
     axes = np.stack([u16(batch, at + 10 + 2 * i) for i in range(6)], axis=1)
     axes = np.where(axes >= 32768, axes - 65536, axes).astype(np.float64)  # signed 16 bit
