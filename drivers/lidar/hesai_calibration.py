@@ -36,7 +36,7 @@ class AT128Correction:
 
     source: str
     frame_start: np.ndarray  # (M,) int64, raw motor azimuth where each mirror's frame begins
-    frame_end: np.ndarray  # (M,) int64
+    frame_end: np.ndarray  # (M,) int64 (read; the decoder cuts no field of view by it)
     azimuth: np.ndarray  # (C,) int64, subtracted from the doubled motor angle
     elevation: np.ndarray  # (C,) int64
     azimuth_adjust: np.ndarray  # (C, 180) int64, 0.01 degree, interpolated over the raw azimuth

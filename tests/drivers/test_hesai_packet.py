@@ -305,6 +305,10 @@ def test_pandarat128_self_made_packets_decode_to_the_correction_files_geometry(t
     # Manual's timing, single return: block 0 at -9.249 us - 2 x 41.666 us, channel 2 a further 8.24 us.
     assert points.timestamp_ns[(points.packet_index == 0) & (points.laser_id == 2)][0] - stamp == -9249 - 83332 + 8240
     assert hesai_imu_samples(packets)["time_ns"].size == 0  # the AT128 carries no IMU
+    # Each mirror's frame is one "rotation": the firing azimuth wraps where the next frame starts.
+    across = [encode_at128((round(a * 25600), round((a + 0.2) * 25600)), distance, reflectivity, 1_700_000_000, i)
+              for i, a in enumerate((119.4, 119.8, 120.2, 120.6))]
+    assert rotation_starts(decoder.check(across).azimuth_cdeg).tolist() == [2]
     raw = bytearray(packets[0])
     raw[2] = 0x03  # another protocol's major version at the AT128's size
     assert decoder.check([bytes(raw)]).counts == {"bad_header": 1}
