@@ -20,9 +20,11 @@ DUAL_STRONGEST_SECOND, TRIPLE_FIRST_LAST_STRONGEST = 0x03, 0x3D
 N_RETURNS = np.zeros(256, np.int64)  # by return-mode byte; 0: no mode
 N_RETURNS[list(RETURN_MODES)] = list(RETURN_MODES.values())
 
-# How the tail's date is written: year (+1900 or +2000), month, day, hour, minute, second; or a zero byte and
-# big-endian seconds since 1970 in 5 bytes.
-DATE_1900, DATE_2000, DATE_EPOCH = "ymdhms+1900", "ymdhms+2000", "epoch"
+# How the tail's date is written: year, month, day, hour, minute, second; or a zero byte and big-endian seconds
+# since 1970 in 5 bytes. The year byte counts from 2000 in the Pandar40P and Pandar64 manuals and from 1900 in
+# the later models (nebula's structs), but the Pandar64 capture here writes 120 (2020): so a year byte from 70
+# is taken from 1900 and one below from 2000, which reads both for 1970-2069.
+DATE_YMDHMS, DATE_EPOCH = "ymdhms", "epoch"
 
 
 @dataclass(frozen=True)
@@ -58,22 +60,20 @@ def _header12(protocol_major: int, lasers: int, blocks: int) -> tuple[tuple[int,
     return _SIGNATURE + ((2, protocol_major), (6, lasers), (7, blocks))
 
 
-# Date bases: the 40P capture's year byte is 17 (2017 from 2000), the Pandar64's 120 (2020 from 1900; nebula reads
-# the 64's tail as the 40P's, 2000-based, which would be 2120); the 12-byte-header models' are 1900-based.
 FORMATS = {
     f.model: f
     for f in (
         HesaiFormat("hesai-pandar40p", (1262, 1266), ((0, 0xFF), (1, 0xEE)), 10, 40, 0, 124, 2, False, 4, 3,
-                    b"\xff\xee", None, 1254, 1250, 1256, DATE_2000, 0.3, 200.0, hesai_firing_times.pandar40p),
+                    b"\xff\xee", None, 1254, 1250, 1256, DATE_YMDHMS, 0.3, 200.0, hesai_firing_times.pandar40p),
         HesaiFormat("hesai-pandar64", (1194, 1198), _SIGNATURE + ((2, 64), (3, 6)), 6, 64, 8, 194, 0, False, 2, 3,
-                    b"", 5, 1186, 1182, 1188, DATE_1900, 0.3, 200.0, hesai_firing_times.pandar64),
+                    b"", 5, 1186, 1182, 1188, DATE_YMDHMS, 0.3, 200.0, hesai_firing_times.pandar64),
         HesaiFormat("hesai-pandarqt128", (1095, 1127), _header12(3, 128, 2), 2, 128, 12, 514, 0, False, 2, 4,
-                    b"", 9, 1073, 1082, 1076, DATE_1900, 0.05, 50.0, hesai_firing_times.pandarqt128),
+                    b"", 9, 1073, 1082, 1076, DATE_YMDHMS, 0.05, 50.0, hesai_firing_times.pandarqt128),
         HesaiFormat("hesai-pandarxt32", (1076, 1080), _header12(6, 32, 8), 8, 32, 12, 130, 0, False, 2, 4,
-                    b"", 9, 1062, 1071, 1065, DATE_1900, 0.05, 120.0, hesai_firing_times.pandarxt32,
+                    b"", 9, 1062, 1071, 1065, DATE_YMDHMS, 0.05, 120.0, hesai_firing_times.pandarxt32,
                     first_last_reversed=True),
         HesaiFormat("hesai-pandar128e4x", (861, 893), _header12(1, 128, 2), 2, 128, 12, 386, 0, False, 2, 3,
-                    b"", 9, 817, 826, 820, DATE_1900, 0.1, 230.0, hesai_firing_times.pandar128e4x,
+                    b"", 9, 817, 826, 820, DATE_YMDHMS, 0.1, 230.0, hesai_firing_times.pandar128e4x,
                     first_last_reversed=True, imu_at=835),
         HesaiFormat("hesai-pandarat128", (1086, 1118), _header12(4, 128, 2), 2, 128, 12, 515, 0, True, 3, 4,
                     b"", 9, 1070, 1066, 1072, DATE_EPOCH, 1.0, 180.0, hesai_firing_times.pandarat128),
@@ -138,7 +138,7 @@ def packet_times_ns(fmt: HesaiFormat, batch: np.ndarray) -> tuple[np.ndarray, np
             seconds = seconds << 8 | d[:, i]
         ok = d[:, 0] == 0
     else:
-        year = d[:, 0] + (1900 if fmt.date_kind == DATE_1900 else 2000)
+        year = d[:, 0] + np.where(d[:, 0] >= 70, 1900, 2000)
         month, day, hour, minute, second = d[:, 1], d[:, 2], d[:, 3], d[:, 4], d[:, 5]
         ok = (month >= 1) & (month <= 12) & (day >= 1) & (day <= 31) & (hour < 24) & (minute < 60) & (second < 61)
         days = _days_from_civil(year, np.clip(month, 1, 12), day)
