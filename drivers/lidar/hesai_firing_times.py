@@ -104,7 +104,8 @@ def pandarqt128(n_returns: np.ndarray, packets: np.ndarray, mode_flag_offset: in
     """Single return: block 0 fires loop 1, block 1 loop 2, 111.11 us apart; multiple return: both blocks are
     returns of one firing of the loop that bit 0 of the tail's mode flag names (1: loop 1). Nebula divides the
     block term by the number of returns after multiplying, which puts the two returns of one dual firing
-    55.6 us apart; here they share the firing's time (the other models' rule; not checked against a manual)."""
+    55.6 us apart; here they share the firing's time, as the QT128C2X manual has it ("the measurements from
+    each round of firing are stored in the two blocks of one packet")."""
     nr = n_returns[:, None, None]
     block = 9000 + 111110 * ((1 - _blocks(2)) // nr)
     loop1 = np.where(nr == 1, _blocks(2) % 2 == 0, (packets[:, mode_flag_offset] & 1)[:, None, None] == 1)

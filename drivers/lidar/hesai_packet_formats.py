@@ -13,10 +13,11 @@ from drivers.lidar import hesai_firing_times
 from drivers.lidar.packet_decoding import RETURN_TYPE_LAST, RETURN_TYPE_OTHER, RETURN_TYPE_STRONGEST
 
 # Tail return-mode byte -> returns per firing (the blocks of one firing are consecutive).
-RETURN_MODES = {0x33: 1, 0x34: 1, 0x37: 1, 0x38: 1, 0x39: 2, 0x3A: 2, 0x3B: 2, 0x3C: 2, 0x03: 2, 0x3D: 3}
+RETURN_MODES = {0x33: 1, 0x34: 1, 0x37: 1, 0x38: 1, 0x39: 2, 0x3A: 2, 0x3B: 2, 0x3C: 2, 0x03: 2, 0x3E: 2, 0x3D: 3}
 SINGLE_FIRST, SINGLE_SECOND, SINGLE_STRONGEST, SINGLE_LAST = 0x33, 0x34, 0x37, 0x38
 DUAL_LAST_STRONGEST, DUAL_FIRST_SECOND, DUAL_FIRST_LAST, DUAL_FIRST_STRONGEST = 0x39, 0x3A, 0x3B, 0x3C
-DUAL_STRONGEST_SECOND, TRIPLE_FIRST_LAST_STRONGEST = 0x03, 0x3D
+# Strongest + second strongest: 0x03 in nebula, 0x3E in the QT128C2X manual; both read.
+DUAL_STRONGEST_SECOND, DUAL_STRONGEST_SECOND_QT128, TRIPLE_FIRST_LAST_STRONGEST = 0x03, 0x3E, 0x3D
 N_RETURNS = np.zeros(256, np.int64)  # by return-mode byte; 0: no mode
 N_RETURNS[list(RETURN_MODES)] = list(RETURN_MODES.values())
 
@@ -95,7 +96,7 @@ def return_type_table(first_last_reversed: bool) -> np.ndarray:
     table[DUAL_FIRST_STRONGEST, 0] = (O, O | S)
     table[[DUAL_LAST_STRONGEST, DUAL_FIRST_STRONGEST], 1] = (O, S)
     table[DUAL_FIRST_SECOND, :2] = O
-    table[DUAL_STRONGEST_SECOND, :2] = ((S, S), (O, O))
+    table[[DUAL_STRONGEST_SECOND, DUAL_STRONGEST_SECOND_QT128], :2] = ((S, S), (O, O))
     table[DUAL_FIRST_LAST, :2] = ((L, L), (O, O)) if first_last_reversed else ((O, O), (L, L))
     table[TRIPLE_FIRST_LAST_STRONGEST] = ((O, O), (L, L), (S, S))
     return table
