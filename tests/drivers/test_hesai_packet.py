@@ -335,3 +335,21 @@ def test_the_firing_order_in_a_dual_return_packet_is_by_firing_then_channel():
                                                RETURN_TYPE_STRONGEST, RETURN_TYPE_LAST | RETURN_TYPE_STRONGEST]
     np.testing.assert_allclose(points.distance_m[:4], [4.0, 4.0, 8.0, 4.048], rtol=1e-6)
     assert struct.unpack_from("<H", packet, 12)[0] == 100
+
+
+def test_randomly_corrupted_datagrams_never_raise():
+    """Every byte of a packet may be garbage: each datagram is decoded or counted under one reason."""
+    if not DATA.is_dir():
+        pytest.skip("shared lidar_nebula captures not present")
+    rng = np.random.default_rng(11)
+    for capture in CAPTURES:
+        packets = []
+        for payload in _payloads(capture)[:40]:
+            raw = np.frombuffer(payload, np.uint8).copy()
+            at = rng.integers(0, len(raw), rng.integers(1, 40))
+            raw[at] = rng.integers(0, 256, len(at))
+            packets.append(raw.tobytes()[: len(raw) - int(rng.integers(0, 3)) * int(rng.random() < 0.2)])
+        points = _decoder(capture).decode(packets)
+        skipped = sum(v for k, v in points.counts.items() if k not in ("packets_in", "packets_decoded"))
+        assert points.counts["packets_decoded"] + skipped == len(packets)
+        assert np.isfinite(points.xyz).all() and len(points.xyz) == len(points.timestamp_ns)
