@@ -109,7 +109,8 @@ class CameraConfig(StrictModel):
 POINT_CLOUD_LIDAR = "point-cloud"  # a Lidar model whose scans arrive already decoded (messages.PointCloud)
 OUSTER_LIDARS = ("ouster-os-128", "ouster-os-32")
 # the models decoded from packets by a vendor decoder (drivers/lidar/lidar_models.py; a test keeps the two equal)
-VENDOR_LIDARS = ("velodyne-vlp16", "velodyne-vlp32c", "velodyne-vls128")
+VENDOR_LIDARS = ("velodyne-vlp16", "velodyne-vlp32c", "velodyne-vls128", "hesai-pandar40p", "hesai-pandar64",
+                 "hesai-pandarqt128", "hesai-pandarxt32", "hesai-pandar128e4x", "hesai-pandarat128")
 LIDAR_DEFAULT_PORTS = {"ouster": 7502, "velodyne": 2368, "hesai": 2368, "robosense": 6699}  # by vendor, as shipped
 LidarModel = Literal[(*OUSTER_LIDARS, *VENDOR_LIDARS, POINT_CLOUD_LIDAR)]
 

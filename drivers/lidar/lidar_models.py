@@ -5,11 +5,13 @@ microseconds past the top of the hour; the others stamp UTC)."""
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 from daemon.spine.config import ConfigError, LidarConfig, resolve_path
+from drivers.lidar.hesai_decoder import HESAI_MODELS, hesai_decoder
 from drivers.lidar.packet_decoding import PacketDecoder
 from drivers.lidar.velodyne_calibration import load_velodyne_calibration
 from drivers.lidar.velodyne_decoder import VelodyneDecoder
@@ -44,6 +46,8 @@ VENDOR_LIDARS = {
         # VLS-128 ranges come in 4 mm units (its manual); a calibration file's other value is not used: the shared
         # VLS128.yaml says 7 mm, which puts every point 1.75x too far against the vendor project's reference cloud
         VendorLidar("velodyne-vls128", _velodyne(128, distance_resolution_m=0.004), HOUR_NS),
+        # Hesai: the angle-correction CSV (the AT128: its binary correction file); stamps in UTC
+        *(VendorLidar(model, functools.partial(hesai_decoder, model), None) for model in HESAI_MODELS),
     )
 }
 

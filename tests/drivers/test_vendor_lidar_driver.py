@@ -39,8 +39,8 @@ def free_udp_port() -> int:
         return s.getsockname()[1]
 
 
-def velodyne_config(tmp_path: Path, model: str, calibration: str, **lidar: object) -> Path:
-    """sim.yaml with this Velodyne as its Lidar (calibration copied beside it), a unique bus, a free port."""
+def vendor_config(tmp_path: Path, model: str, calibration: str, **lidar: object) -> Path:
+    """sim.yaml with this Lidar (its calibration copied beside it), a unique bus, a free port."""
     (tmp_path / calibration).write_bytes((DATA / "calib" / calibration).read_bytes())
     data = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
     data["bus"]["shm_prefix"] = f"t{uuid.uuid4().hex[:12]}"
@@ -51,8 +51,8 @@ def velodyne_config(tmp_path: Path, model: str, calibration: str, **lidar: objec
     return path
 
 
-def capture(name: str) -> list[bytes]:
-    return [d.payload for d in read_pcap_udp(DATA / "velodyne" / f"{name}.pcap").datagrams]
+def capture(name: str, vendor: str = "velodyne") -> list[bytes]:
+    return [d.payload for d in read_pcap_udp(DATA / vendor / f"{name}.pcap").datagrams]
 
 
 def run_driver(config_path: Path, datagrams: list[bytes], expected: int) -> tuple[list, str, dict]:
@@ -93,7 +93,7 @@ def test_a_velodyne_capture_through_the_driver_process_comes_out_packet_for_pack
             bytes(np.random.default_rng(1).integers(0, 256, 1206, dtype=np.uint8)),  # noise of the right size
             b"x" * 1600]  # beyond an Ethernet payload
     datagrams = payloads[:100] + junk + payloads[100:]
-    config = velodyne_config(tmp_path, "velodyne-vlp16", "VLP16.yaml")
+    config = vendor_config(tmp_path, "velodyne-vlp16", "VLP16.yaml")
     got, err, health = run_driver(config, datagrams, len(payloads))
     assert [bytes(p.data) for p in got] == payloads  # every data packet, in order, byte for byte
     detail = health.detail
@@ -105,6 +105,18 @@ def test_a_velodyne_capture_through_the_driver_process_comes_out_packet_for_pack
     assert np.all((times - stamps) % HOUR_NS == 0)  # in whole hours from the packet's stamp ...
     assert abs(times[0] - time.time_ns()) < HOUR_NS  # ... in the host's hour
     assert "Traceback" not in err
+
+
+def test_a_hesai_capture_through_the_driver_process_comes_out_packet_for_packet(tmp_path):
+    """The same driver with another vendor's decoder: a PandarXT32's packets, stamped in UTC (no unwrapping)."""
+    payloads = capture("xt32", "hesai")[:600]
+    datagrams = payloads[:300] + [payloads[5][:500], capture("vlp16")[0]] + payloads[300:]  # truncated, foreign
+    config = vendor_config(tmp_path, "hesai-pandarxt32", "PandarXT32.csv")
+    got, err, health = run_driver(config, datagrams, len(payloads))
+    assert [bytes(p.data) for p in got] == payloads, err
+    assert health.rejected == 2 and "hesai-pandarxt32" in health.detail, health.detail
+    check = configured_decoding(load_config(config).sensors.lidar, config).new_decoder().check(payloads)
+    np.testing.assert_array_equal([p.sensor_time_ns for p in got], check.sensor_time_ns)
 
 
 def test_stamps_past_the_hour_are_unwrapped_into_one_time():
@@ -125,7 +137,7 @@ def test_the_mapper_decodes_published_packets_as_the_decoder_decodes_the_capture
     the packet before it as lead, give exactly the points of the whole capture decoded at once, each at its
     packet's message time plus its firing offset."""
     payloads = capture("vls128")
-    config_path = velodyne_config(tmp_path, "velodyne-vls128", "VLS128.yaml")
+    config_path = vendor_config(tmp_path, "velodyne-vls128", "VLS128.yaml")
     car = load_config(config_path)
     decoding = configured_decoding(car.sensors.lidar, config_path)
     base = 7 * HOUR_NS  # the driver's unwrapped times: the stamps placed in some hour
@@ -146,12 +158,27 @@ def test_the_mapper_decodes_published_packets_as_the_decoder_decodes_the_capture
     assert 15 < np.median(ranges) < 30  # 4 mm range units: the reference cloud's median is 22.4 m
 
 
+def test_the_mapper_decodes_a_hesai_s_published_packets_as_its_decoder_decodes_the_capture(tmp_path):
+    payloads = capture("qt128", "hesai")
+    config_path = vendor_config(tmp_path, "hesai-pandarqt128", "PandarQT128.csv")
+    decoding = configured_decoding(load_config(config_path).sensors.lidar, config_path)
+    stamps = decoding.new_decoder().check(payloads).sensor_time_ns
+    packets = [LidarPacket(seq=i, sensor_time_ns=int(t), host_mono_ns=i, data=p)
+               for i, (p, t) in enumerate(zip(payloads, stamps, strict=True))]
+    scans = lidar_scans(packets, [], lambda: decoding, 1)
+    assert 1 <= len(scans.scans) <= 3  # 0.2 s of a 10 Hz sensor
+    whole = decoding.new_decoder().decode(payloads)
+    decoded = [scans.decode(scan) for scan in scans.scans]
+    np.testing.assert_array_equal(np.concatenate([d.xyz for d in decoded]), whole.xyz)
+    np.testing.assert_array_equal(np.concatenate([d.times_ns[d.time_index] for d in decoded]), whole.timestamp_ns)
+
+
 def test_check_config_refuses_a_calibration_of_another_model(tmp_path, capsys):
-    config = velodyne_config(tmp_path, "velodyne-vls128", "VLP16.yaml")
+    config = vendor_config(tmp_path, "velodyne-vls128", "VLP16.yaml")
     assert check_config_main([str(config)]) == EXIT_CONFIG_ERROR
     err = capsys.readouterr().err
     assert "VLP16.yaml" in err and "16 lasers" in err and "128" in err, err
-    good = velodyne_config(tmp_path, "velodyne-vlp32c", "VLP32.yaml")
+    good = vendor_config(tmp_path, "velodyne-vlp32c", "VLP32.yaml")
     data = yaml.safe_load(good.read_text())
     data["sensors"]["lidar"].pop("port")
     good.write_text(yaml.safe_dump(data))
