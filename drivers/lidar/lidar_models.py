@@ -1,7 +1,7 @@
 """The Lidar models decoded from packets by a vendor decoder (everything but Ouster, whose driver and decoder are
 their own): per config model name, how its decoder is built from the sensor's calibration file (`metadata_file`:
 Velodyne YAML, Hesai or RoboSense angle CSV), its UDP port, and whether its packet stamps wrap (Velodyne counts
-microseconds past the top of the hour; the others stamp UTC)."""
+microseconds past the top of the hour; the others stamp UTC), and the IMU readings its packets carry, if any."""
 
 from __future__ import annotations
 
@@ -10,8 +10,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from daemon.spine.config import ConfigError, LidarConfig, resolve_path
-from drivers.lidar.hesai_decoder import HESAI_MODELS, hesai_decoder
+from drivers.lidar.hesai_decoder import HESAI_MODELS, hesai_decoder, hesai_imu_samples
 from drivers.lidar.packet_decoding import PacketDecoder
 from drivers.lidar.velodyne_calibration import load_velodyne_calibration
 from drivers.lidar.velodyne_decoder import VelodyneDecoder
@@ -24,6 +26,9 @@ class VendorLidar:
     model: str  # the config's name for it
     load_decoder: Callable[[Path], PacketDecoder]  # from the calibration file; ValueError when it does not fit
     stamp_period_ns: int | None  # the packet stamps count modulo this (None: absolute UTC)
+    # the IMU readings its data packets carry (time_ns: the packet's stamp, angular_velocity_rad_s,
+    # linear_acceleration_m_s2, imu_timestamp: the IMU's own counter), None: it has none
+    imu_readings: Callable[[list[bytes]], dict[str, np.ndarray]] | None = None
 
 
 def _velodyne(lasers: int, distance_resolution_m: float | None = None) -> Callable[[Path], PacketDecoder]:
@@ -47,7 +52,8 @@ VENDOR_LIDARS = {
         # VLS128.yaml says 7 mm, which puts every point 1.75x too far against the vendor project's reference cloud
         VendorLidar("velodyne-vls128", _velodyne(128, distance_resolution_m=0.004), HOUR_NS),
         # Hesai: the angle-correction CSV (the AT128: its binary correction file); stamps in UTC
-        *(VendorLidar(model, functools.partial(hesai_decoder, model), None) for model in HESAI_MODELS),
+        *(VendorLidar(model, functools.partial(hesai_decoder, model), None,
+                      hesai_imu_samples if model == "hesai-pandar128e4x" else None) for model in HESAI_MODELS),
     )
 }
 

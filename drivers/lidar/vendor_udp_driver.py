@@ -6,7 +6,8 @@ decoding their points (`PacketDecoder.check`): anything else (a position or devi
 another sensor's, a truncated or malformed one) is counted by reason and not published. A Velodyne stamps its
 packets in microseconds past the top of the hour: the stamps are unwrapped into one continuous sensor time, placed
 in the hour the host clock is in (exact when the sensor is GPS-synchronised, consistent when not). A jump of the
-stamps forwards by more than `GAP_ROTATIONS` rotation periods is counted as a gap (packets lost before the socket)."""
+stamps forwards by more than `GAP_ROTATIONS` rotation periods is counted as a gap (packets lost before the socket).
+A sensor whose packets carry its IMU's readings (the Pandar128E4X) has each new reading published on `lidar/imu`."""
 
 from __future__ import annotations
 
@@ -25,8 +26,8 @@ import numpy as np
 
 from daemon.spine.config import CarConfig, ConfigError, LidarConfig, load_config, reports_config_errors
 from daemon.spine.health import HealthCounters
-from daemon.spine.messages import LidarPacket
-from daemon.spine.topics import LIDAR_PACKETS, health_topic
+from daemon.spine.messages import ImuSample, LidarPacket
+from daemon.spine.topics import LIDAR_IMU, LIDAR_PACKETS, health_topic
 from drivers.lidar.lidar_models import VENDOR_LIDARS, configured_decoder
 from drivers.lidar.packet_decoding import PacketDecoder
 from drivers.lidar.udp_receive import ReceiveBuffer, gather_batch, open_lidar_socket
@@ -48,6 +49,7 @@ class VendorDriverStats:
     packets: int = 0  # published
     too_large: int = 0  # datagrams beyond ROW_BYTES (also in rejected, by the decoder's reason for an empty one)
     rejected: dict[str, int] = field(default_factory=dict)  # the decoder's reason -> datagrams not published
+    imu_samples: int = 0  # published on lidar/imu (a sensor whose packets carry its IMU's readings)
     gaps: int = 0
     stamps_back: int = 0  # packets stamped earlier than the one before (a reordered or restarted stream)
     kernel_drops: int = 0
@@ -88,8 +90,35 @@ def _publish_health(publish: Publish, health: HealthCounters, stats: VendorDrive
     publish(health_topic(PROCESS), dataclasses.replace(health.snapshot(), detail=detail))
 
 
+@dataclass
+class PacketImu:
+    """The IMU readings in a sensor's data packets (VendorLidar.imu_readings), each published once on lidar/imu."""
+
+    readings: Callable[[list[bytes]], dict[str, np.ndarray]]
+    last_counter: int | None = None  # the IMU's own counter of the last reading published
+
+    def publish_new(self, payloads: list[bytes], stamps: np.ndarray, times: np.ndarray, arrivals: np.ndarray,
+                    publish: Publish, stats: VendorDriverStats) -> None:
+        """The readings of these accepted packets (their own stamps, the sensor times they were published at, their
+        arrivals) that were not published yet, each at the time and arrival of the packet it came in."""
+        got = self.readings(payloads)
+        counter = got["imu_timestamp"]
+        fresh = np.ones(len(counter), bool)
+        if len(counter) and self.last_counter is not None:
+            fresh[0] = int(counter[0]) != self.last_counter  # the batch before published it
+        packet = np.minimum(np.searchsorted(stamps, got["time_ns"]), len(stamps) - 1)
+        for k in np.flatnonzero(fresh):
+            i = int(packet[k])
+            publish(LIDAR_IMU, ImuSample(sensor_time_ns=int(times[i]), host_mono_ns=int(arrivals[i]),
+                                         accel_mps2=tuple(float(v) for v in got["linear_acceleration_m_s2"][k]),
+                                         gyro_rps=tuple(float(v) for v in got["angular_velocity_rad_s"][k])))
+            stats.imu_samples += 1
+        if len(counter):
+            self.last_counter = int(counter[-1])
+
+
 def _handle_batch(buf: ReceiveBuffer, n: int, decoder: PacketDecoder, clock: StampClock, rotation_ns: int,
-                  publish: Publish, health: HealthCounters, stats: VendorDriverStats) -> None:
+                  imu: PacketImu | None, publish: Publish, health: HealthCounters, stats: VendorDriverStats) -> None:
     """Check one batch, publish its packets in arrival order, count the rest and the gaps."""
     sizes = buf.sizes[:n]
     fits = sizes <= ROW_BYTES
@@ -122,6 +151,9 @@ def _handle_batch(buf: ReceiveBuffer, n: int, decoder: PacketDecoder, clock: Sta
         publish(LIDAR_PACKETS, LidarPacket(sensor_time_ns=t, host_mono_ns=int(buf.arrival_ns[i]), data=payloads[i]))
     health.count_published(len(index))
     stats.packets += len(index)
+    if imu is not None:
+        imu.publish_new([payloads[i] for i in index], check.sensor_time_ns[index], times, buf.arrival_ns[index],
+                        publish, stats)
 
 
 def run_vendor_lidar_driver(
@@ -143,7 +175,9 @@ def run_vendor_lidar_driver(
     if granted < config.receive_buffer_bytes:
         health.last_error = (f"receive buffer {granted} B granted of {config.receive_buffer_bytes} B asked "
                              f"(raise net.core.rmem_max)")
-    clock = StampClock(VENDOR_LIDARS[config.model].stamp_period_ns)
+    lidar = VENDOR_LIDARS[config.model]
+    clock = StampClock(lidar.stamp_period_ns)
+    imu = PacketImu(lidar.imu_readings) if lidar.imu_readings is not None else None
     rotation_ns = round(1e9 / config.rate_hz)
     buf = ReceiveBuffer.allocate(batch_packets, ROW_BYTES)
     poller = select.poll()
@@ -160,7 +194,7 @@ def run_vendor_lidar_driver(
                 continue
             n = gather_batch(sock, buf, batch_period_s, stats, health)
             if n:
-                _handle_batch(buf, n, decoder, clock, rotation_ns, publish, health, stats)
+                _handle_batch(buf, n, decoder, clock, rotation_ns, imu, publish, health, stats)
     finally:
         sock.close()
     _publish_health(publish, health, stats)
@@ -190,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
     decoder = check_config(car, args.config)
     overrides = {k: v for k, v in (("port", args.port), ("bind_address", args.bind)) if v is not None}
     config = car.sensors.lidar.model_copy(update=overrides)
-    publishers = {topic: open_publisher(car, topic) for topic in (LIDAR_PACKETS, health_topic(PROCESS))}
+    publishers = {topic: open_publisher(car, topic) for topic in (LIDAR_PACKETS, LIDAR_IMU, health_topic(PROCESS))}
     health = HealthCounters(PROCESS)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -119,6 +119,53 @@ def test_a_hesai_capture_through_the_driver_process_comes_out_packet_for_packet(
     np.testing.assert_array_equal([p.sensor_time_ns for p in got], check.sensor_time_ns)
 
 
+def test_a_pandar128e4x_s_imu_readings_come_out_on_lidar_imu_once_each(tmp_path):
+    """Self-made 128E4X packets (tests/drivers/hesai_test_packets.py: from the manual's layout, no capture here)
+    whose tails carry an IMU reading updated every 4th packet: each reading is published once, at its packet's
+    time, in SI units."""
+    from daemon.spine.topics import LIDAR_IMU
+    from tests.drivers.hesai_test_packets import encode_128e4x
+
+    rng = np.random.default_rng(2)
+    packets = []
+    for k in range(200):
+        reading = k // 4
+        imu = (1000, 1000, 1000 + reading, (reading, -2, 1000), (5, 0, -reading))  # units: 1 mg and 10 mdps
+        packets.append(encode_128e4x((k * 20 % 36000, k * 20 % 36000), rng.integers(100, 5000, (2, 128)),
+                                     rng.integers(0, 255, (2, 128)), 1_700_000_000 + k // 100, (k % 100) * 10_000,
+                                     imu=imu))
+    config = vendor_config(tmp_path, "hesai-pandar128e4x", "Pandar128E4X.csv")
+    car = load_config(config)
+    imu_sub = None
+    proc = subprocess.Popen([sys.executable, "-m", "drivers.lidar.vendor_udp_driver", "--config", str(config)],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        health = pubsub.open_subscriber(car, health_topic("lidar"), start="oldest", wait_s=20)
+        assert health.read(timeout_s=20) is not None
+        imu_sub = pubsub.open_subscriber(car, LIDAR_IMU, start="oldest", wait_s=5)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            for k, p in enumerate(packets):
+                s.sendto(p, ("127.0.0.1", car.sensors.lidar.port))
+                if k % 20 == 19:
+                    time.sleep(0.01)  # several batches: a reading may straddle two
+        samples, deadline = [], time.monotonic() + 10
+        while len(samples) < 50 and time.monotonic() < deadline:
+            msg = imu_sub.read(timeout_s=0.2, copy=True)
+            if msg is not None:
+                samples.append(msg)
+        time.sleep(0.5)
+        extra = imu_sub.read(timeout_s=0.2, copy=True)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=15)
+    assert len(samples) == 50 and extra is None  # 200 packets, a reading per 4
+    np.testing.assert_allclose([s.accel_mps2[0] for s in samples], np.arange(50) * 1e-3 * 9.80665, atol=1e-9)
+    np.testing.assert_allclose([s.accel_mps2[2] for s in samples], 9.80665, rtol=1e-9)  # 1000 mg
+    np.testing.assert_allclose([s.gyro_rps[2] for s in samples], -np.radians(np.arange(50) * 0.01), atol=1e-12)
+    expected_ns = [(1_700_000_000 + (4 * r) // 100) * 10**9 + ((4 * r) % 100) * 10**7 for r in range(50)]
+    assert [s.sensor_time_ns for s in samples] == expected_ns  # the first packet carrying each reading
+
+
 def test_stamps_past_the_hour_are_unwrapped_into_one_time():
     clock = StampClock(HOUR_NS)
     host = 5 * HOUR_NS + HOUR_NS - 1_000_000_000  # 1 s before the top of host hour 6
