@@ -12,9 +12,9 @@ import numpy as np
 import trimesh
 
 from mapping.live import map_tiles
-from mapping.live.map_images import atomic_png, atomic_write_text, semantic_image
+from mapping.live.map_images import atomic_png, atomic_write_text
 from mapping.method.road_map import NO_LABEL
-from mapping.outputs.map_export import elevation_image
+from mapping.outputs.map_colours import elevation_image, semantic_image
 
 METADATA_NAME = "metadata.json"
 OVERVIEW_MAX_CELLS = 4_000_000  # the final map's PNGs: an overview, coarser past 4 M cells of bounding box

@@ -1,5 +1,5 @@
-"""The live map's images on disk: north-up PNGs and JSON written atomically (a reader never sees half a file), the
-semantic colours, a window's previews."""
+"""The live map's images on disk: north-up PNGs and JSON written atomically (a reader never sees half a file), a
+window's previews (coloured by mapping.outputs.map_colours)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from daemon.spine.semantic_classes import CLASS_COLOURS
-from mapping.method.road_map import NO_LABEL
-from mapping.outputs.map_export import elevation_image
+from mapping.outputs.map_colours import elevation_image, semantic_image
 
 PREVIEW_NAMES = ("rgb", "semantics", "elevation")
 
@@ -34,11 +32,6 @@ def atomic_png(path: Path, rgb: np.ndarray) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_bytes(north_up_png(rgb, path.name))
     os.replace(tmp, path)
-
-
-def semantic_image(labels: np.ndarray) -> np.ndarray:
-    return CLASS_COLOURS[np.minimum(labels, len(CLASS_COLOURS) - 1)] * (labels != NO_LABEL)[..., None].astype(np.uint8)
-
 
 
 def preview_images(bev: dict, camera: str, semantics: bool) -> dict[str, np.ndarray]:

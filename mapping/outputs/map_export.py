@@ -13,9 +13,9 @@ import numpy as np
 import torch
 import trimesh
 
-from daemon.spine.semantic_classes import CLASS_COLOURS
 from mapping.method.road_map import NO_LABEL, RoadMap
 from mapping.method.road_mesh import used_vertices
+from mapping.outputs.map_colours import elevation_image, semantic_image
 from mapping.outputs.map_metrics import observed_triangles
 
 _ROWS_PER_CHUNK = 256
@@ -57,17 +57,6 @@ def bev_rasters(road_map: RoadMap, cameras: list[str], resolution_m: float, thre
     return {"origin_xy": (float(lo[0]), float(lo[1])), "elevation": elevation, "labels": labels, "rgb": rgb}
 
 
-def elevation_image(elevation: np.ndarray) -> np.ndarray:
-    valid = np.isfinite(elevation)
-    out = np.zeros(elevation.shape + (3,), np.uint8)
-    if valid.any():
-        lo, hi = np.percentile(elevation[valid], [1, 99])
-        scaled = np.clip((elevation - lo) / max(hi - lo, 1e-6), 0, 1)
-        coloured = cv2.applyColorMap((np.nan_to_num(scaled) * 255).astype(np.uint8), cv2.COLORMAP_VIRIDIS)
-        out[valid] = coloured[valid]
-    return out
-
-
 def export_map(road_map: RoadMap, out_dir: Path, cameras: list[str], raster_threads: int) -> dict[str, Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     with ThreadPoolExecutor(1, thread_name_prefix="export-mesh") as pool:  # the mesh beside the rasters
@@ -90,8 +79,7 @@ def _export_rasters(road_map: RoadMap, out_dir: Path, cameras: list[str], raster
     for c in cameras:
         save_png(f"bev_rgb_{c}.png", bev["rgb"][c])
     if semantics:
-        save_png("bev_semantics.png", CLASS_COLOURS[np.minimum(bev["labels"], len(CLASS_COLOURS) - 1)]
-                 * (bev["labels"] != NO_LABEL)[..., None].astype(np.uint8))
+        save_png("bev_semantics.png", semantic_image(bev["labels"]))
     save_png("bev_elevation.png", elevation_image(bev["elevation"]))
     arrays = [("bev_elevation.npy", bev["elevation"])] + ([("bev_semantics.npy", bev["labels"])] if semantics else [])
     for name, array in arrays:
