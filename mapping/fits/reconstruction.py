@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from daemon.spine.config import MapperConfig
+from daemon.spine.local_frame import LocalFrame
 from mapping.fits import faithful_fit, fast_fit
 from mapping.fits.lidar_occlusion import OcclusionTest
 from mapping.localization.keyframe_spacing import spaced_by_distance
@@ -114,12 +115,14 @@ def reconstruct(
     holdout_every: int = 10,
     progress: bool = True,
     lidar_standing: StandingPoints | None | Future[StandingPoints | None] = None,
+    origin: LocalFrame | None = None,
 ) -> ReconstructionResult:
     """Reconstruct the road surface seen by `keyframes` along `trajectory`; evaluate; export if out_dir.
     `keyframes`, `lidar_ground_points` and `lidar_standing` may be Futures (inputs still loading): the mesh is
     built first, the Lidar waited for by the elevation fit, the keyframes after it. `lidar_standing`: what the
     Lidar saw standing on the road, which the keyframes without semantics are tested against
-    (mapping.fits.lidar_occlusion; None: they are used whole)."""
+    (mapping.fits.lidar_occlusion; None: they are used whole). `origin`: the geodetic origin of the trajectory's
+    ENU frame, which places the exported map on the earth (None: unknown)."""
     start = time.perf_counter()
     runtime, model, windows = config.runtime, config.model, config.windows
     torch.set_num_threads(runtime.torch_threads_faithful_fit if faithful else runtime.torch_threads_fast_fit)
@@ -178,7 +181,8 @@ def reconstruct(
         train_s = time.perf_counter() - start
         drive_s = trajectory.duration_s
         # the export runs beside the evaluation's remaining work: both only read the finished map
-        exported = (side.submit(export_map, road_map, Path(out_dir), sorted(cameras), runtime.raster_threads)
+        exported = (side.submit(export_map, road_map, Path(out_dir), sorted(cameras), runtime.raster_threads,
+                                origin)
                     if out_dir is not None else None)
         side.shutdown(wait=False)
         metrics = finish_evaluation(evaluation)

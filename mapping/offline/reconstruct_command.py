@@ -98,7 +98,7 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
     result = reconstruct(loading.keyframes, loading.cameras, loading.path, loading.lidar_ground_points,
                          config.mapper, config.vehicle.reference_height_m, out_dir=out, ablation=ablation,
                          gt=truth.elevation if truth else None, faithful=faithful, progress=progress,
-                         lidar_standing=loading.lidar_standing)
+                         lidar_standing=loading.lidar_standing, origin=loading.trajectory.local_frame)
     drive = loading.result()
     lidar = drive.lidar_ground_points
     metrics = result.metrics

@@ -1,6 +1,6 @@
-"""Writing a reconstructed road map to disk: BEV rasters (RGB per camera, semantics, elevation as PNG and
-raw .npy with their origin and resolution), the mesh with vertex colours and labels (PLY, GLB) and a
-state_dict checkpoint. A map without semantics (no masks and no model) has no semantic files and no labels."""
+"""Writing a reconstructed road map to disk: BEV rasters (RGB per camera, semantics, elevation as PNG, GeoTIFF and
+raw .npy, bev.json with their origin, resolution and CRS), the mesh with vertex colours and labels (PLY, GLB) and
+a state_dict checkpoint. A map without semantics (no masks and no model) has no semantic files and no labels."""
 
 from __future__ import annotations
 
@@ -13,8 +13,10 @@ import numpy as np
 import torch
 import trimesh
 
+from daemon.spine.local_frame import LocalFrame
 from mapping.method.road_map import NO_LABEL, RoadMap
 from mapping.method.road_mesh import used_vertices
+from mapping.outputs import map_geotiff
 from mapping.outputs.map_colours import elevation_image, semantic_image
 from mapping.outputs.map_metrics import observed_triangles
 
@@ -57,15 +59,20 @@ def bev_rasters(road_map: RoadMap, cameras: list[str], resolution_m: float, thre
     return {"origin_xy": (float(lo[0]), float(lo[1])), "elevation": elevation, "labels": labels, "rgb": rgb}
 
 
-def export_map(road_map: RoadMap, out_dir: Path, cameras: list[str], raster_threads: int) -> dict[str, Path]:
+def export_map(road_map: RoadMap, out_dir: Path, cameras: list[str], raster_threads: int,
+               origin: LocalFrame | None = None) -> dict[str, Path]:
+    """The map's files in `out_dir`. `origin`: the geodetic origin of the map's ENU frame (None: unknown, the
+    GeoTIFFs have no CRS and bev.json no origin)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     with ThreadPoolExecutor(1, thread_name_prefix="export-mesh") as pool:  # the mesh beside the rasters
         mesh_files = pool.submit(_export_mesh, road_map, out_dir, cameras[0])
-        return _export_rasters(road_map, out_dir, cameras, raster_threads) | mesh_files.result()
+        return _export_rasters(road_map, out_dir, cameras, raster_threads, origin) | mesh_files.result()
 
 
-def _export_rasters(road_map: RoadMap, out_dir: Path, cameras: list[str], raster_threads: int) -> dict[str, Path]:
-    """The bird's-eye rasters: RGB per camera, semantics and elevation as PNGs, the grids as .npy, bev.json."""
+def _export_rasters(road_map: RoadMap, out_dir: Path, cameras: list[str], raster_threads: int,
+                    origin: LocalFrame | None) -> dict[str, Path]:
+    """The bird's-eye rasters: RGB per camera, semantics and elevation as PNGs and GeoTIFFs, the grids as .npy,
+    bev.json."""
     res = road_map.mesh.side_m
     bev = bev_rasters(road_map, cameras, res, raster_threads)
     files: dict[str, Path] = {}
@@ -85,7 +92,19 @@ def _export_rasters(road_map: RoadMap, out_dir: Path, cameras: list[str], raster
     for name, array in arrays:
         np.save(out_dir / name, array)
         files[name] = out_dir / name
+    crs = map_geotiff.local_crs(origin) if origin is not None else None
+    grid = (bev["origin_xy"], res)
+    tifs = {"bev_elevation.tif": lambda p: map_geotiff.write_elevation(p, bev["elevation"], grid, crs)}
+    if semantics:
+        tifs["bev_semantics.tif"] = lambda p: map_geotiff.write_semantics(p, bev["labels"], grid, crs)
+    for c in cameras:
+        tifs[f"bev_rgb_{c}.tif"] = lambda p, c=c: map_geotiff.write_rgb(p, bev["rgb"][c], np.isfinite(
+            bev["elevation"]), grid, crs)
+    for name, write in tifs.items():
+        files[name] = write(out_dir / name)
     meta = {
+        "origin_lat_lon_alt": [origin.lat_deg, origin.lon_deg, origin.alt_m] if origin is not None else None,
+        "crs": crs,  # PROJ string of the GeoTIFFs' CRS, whose x, y are the ENU frame's (map_geotiff.local_crs)
         "origin_xy": bev["origin_xy"],
         "resolution_m": res,
         "shape": list(bev["elevation"].shape),

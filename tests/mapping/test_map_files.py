@@ -1,15 +1,24 @@
 """The map's files as a user opens them: the PNGs' colours, the GeoTIFFs' place on the earth, the GLB's up axis,
 the origin in the metadata. One small synthetic drive reconstructed once, exported through reconstruct()."""
 
+import json
+
 import cv2
 import numpy as np
 import pytest
+import rasterio
+from rasterio.warp import transform
 
+from daemon.spine.local_frame import LocalFrame
+from daemon.spine.semantic_classes import CLASS_COLOURS, SemanticClass
 from mapping.fits.reconstruction import reconstruct
+from mapping.method.road_map import NO_LABEL
+from mapping.outputs.map_geotiff import local_crs
 from tests.mapping.synthetic_road_scene import make_scene
 from tests.mapping.test_mapping_reconstruction import CONFIG
 
 VIRIDIS_LOW, VIRIDIS_HIGH = (68, 1, 84), (253, 231, 37)  # RGB of the colour map's ends
+ORIGIN = LocalFrame(48.137, 11.575, 520.0)  # the drive's ENU origin: at 520 m the CRS's scale matters (8 cm/km)
 
 
 @pytest.fixture(scope="module")
@@ -17,7 +26,7 @@ def exported(tmp_path_factory):
     scene = make_scene(length_m=12.0, width=64, height=36, rate_hz=10.0)
     out = tmp_path_factory.mktemp("map")
     result = reconstruct(scene.keyframes, scene.cameras, scene.trajectory, scene.lidar, CONFIG,
-                         scene.reference_height_m, out, holdout_every=5, progress=False)
+                         scene.reference_height_m, out, holdout_every=5, progress=False, origin=ORIGIN)
     return result, out
 
 
@@ -35,3 +44,68 @@ def test_elevation_png_shows_the_highest_cell_yellow_and_the_lowest_purple(expor
     assert np.abs(png[top] - VIRIDIS_HIGH).max() <= 6, png[top]  # yellow, not cyan (red and blue swapped)
     assert np.abs(png[low] - VIRIDIS_LOW).max() <= 6, png[low]
     assert (png[~np.isfinite(elevation)] == 0).all()  # unmapped cells black
+
+
+def _metres_apart(frame: LocalFrame, lat_a, lon_a, lat_b, lon_b) -> np.ndarray:
+    """Horizontal distance (m) between geodetic points near `frame`'s origin, at its height."""
+    a = frame.geodetic_to_enu(lat_a, lon_a, np.full(np.shape(lat_a), frame.alt_m))
+    b = frame.geodetic_to_enu(lat_b, lon_b, np.full(np.shape(lat_b), frame.alt_m))
+    return np.hypot(*(a - b)[..., :2].T)
+
+
+def test_bev_json_carries_the_origin_and_the_crs(exported):
+    _, out = exported
+    meta = json.loads((out / "bev.json").read_text())
+    assert meta["origin_lat_lon_alt"] == [ORIGIN.lat_deg, ORIGIN.lon_deg, ORIGIN.alt_m]
+    assert meta["crs"] == local_crs(ORIGIN) and meta["crs"].startswith("+proj=tmerc +lat_0=48.137")
+
+
+def test_elevation_geotiff_places_a_mapped_cell_at_its_latitude_and_longitude(exported):
+    _, out = exported
+    grid = np.load(out / "bev_elevation.npy")
+    meta = json.loads((out / "bev.json").read_text())
+    (x0, y0), res = meta["origin_xy"], meta["resolution_m"]
+    with rasterio.open(out / "bev_elevation.tif") as tif:
+        assert tif.dtypes == ("float32",) and np.isnan(tif.nodata) and tif.units == ("metre",)
+        data = tif.read(1)
+        np.testing.assert_array_equal(data, np.flipud(grid))  # north up, NaN where not mapped
+        i, j = np.argwhere(np.isfinite(grid))[len(np.argwhere(np.isfinite(grid))) // 3]
+        x, y = x0 + j * res, y0 + i * res  # the cell's centre in the local frame
+        row, col = tif.index(x, y)
+        assert data[row, col] == grid[i, j]
+        (lon,), (lat,) = transform(tif.crs, "EPSG:4326", [x], [y])
+    true_lat, true_lon, _ = ORIGIN.enu_to_geodetic([x, y, float(grid[i, j])])
+    assert _metres_apart(ORIGIN, lat, lon, true_lat, true_lon) < 1e-3
+
+
+def test_the_crs_agrees_with_the_local_frame_kilometres_from_the_origin():
+    """Ground points at the origin's height (a road through the country), ENU -> lat/lon by the project's own
+    local frame and by the GeoTIFFs' CRS (PROJ, inside rasterio)."""
+    for frame in (ORIGIN, LocalFrame(-33.9, 151.2, 40.0), LocalFrame(64.1, -21.9, 1200.0)):
+        angle = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+        for d, tolerance_m in ((1000.0, 0.001), (5000.0, 0.005)):
+            on_ground = frame.enu_to_geodetic(np.stack([d * np.cos(angle), d * np.sin(angle), 0 * angle], 1))
+            enu = frame.geodetic_to_enu(on_ground[0], on_ground[1], np.full(12, frame.alt_m))
+            lon, lat = transform(local_crs(frame), "EPSG:4326", enu[:, 0].tolist(), enu[:, 1].tolist())
+            assert _metres_apart(frame, lat, lon, on_ground[0], on_ground[1]).max() < tolerance_m, (frame, d)
+
+
+def test_semantic_geotiff_has_the_class_ids_and_their_colours(exported):
+    _, out = exported
+    labels = np.load(out / "bev_semantics.npy")
+    with rasterio.open(out / "bev_semantics.tif") as tif:
+        assert tif.dtypes == ("uint8",) and tif.nodata == NO_LABEL and tif.crs is not None
+        np.testing.assert_array_equal(tif.read(1), np.flipud(labels))
+        table = tif.colormap(1)
+    for c in SemanticClass:
+        assert table[int(c)][:3] == tuple(CLASS_COLOURS[c])
+    assert table[NO_LABEL][3] == 0  # unlabelled cells transparent
+
+
+def test_rgb_geotiff_matches_the_png_and_masks_the_unmapped_cells(exported):
+    _, out = exported
+    elevation = np.load(out / "bev_elevation.npy")
+    with rasterio.open(out / "bev_rgb_front.tif") as tif:
+        assert tif.count == 3 and tif.crs is not None
+        np.testing.assert_array_equal(np.moveaxis(tif.read(), 0, 2), _png_rgb(out / "bev_rgb_front.png"))
+        np.testing.assert_array_equal(tif.read_masks(1) > 0, np.flipud(np.isfinite(elevation)))
