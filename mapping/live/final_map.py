@@ -1,5 +1,6 @@
-"""The live worker's final map, `<data>/map/final`: the tiles' mosaic as rasters (.npy), overview PNGs, a grid
-mesh (PLY, GLB) and `metadata.json` (FinalMapMetadata: the one definition its writers and readers share). A map
+"""The live worker's final map, `<data>/map/final`: the tiles' mosaic as rasters (.npy, and GeoTIFFs placed on the
+earth: elevation and semantics at the grid's resolution, RGB at the overviews'), overview PNGs, a grid mesh (PLY,
+GLB) and `metadata.json` (FinalMapMetadata: the one definition its writers and readers share). A map
 none of whose windows had semantics (no masks, no model) has no bev_semantics.* files."""
 
 from __future__ import annotations
@@ -11,9 +12,11 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from daemon.spine.local_frame import LocalFrame
 from mapping.live import map_tiles
 from mapping.live.map_images import atomic_png, atomic_write_text
 from mapping.method.road_map import NO_LABEL
+from mapping.outputs import map_geotiff
 from mapping.outputs.map_colours import elevation_image, semantic_image
 
 METADATA_NAME = "metadata.json"
@@ -50,6 +53,7 @@ class FinalMapMetadata:
     mesh: dict | None = None  # the mesh files and sizes
     semantics: str | None = None  # "available", "partial: ..." or "unavailable: ..." (map_semantics); unavailable:
     # no bev_semantics.* files
+    crs: str | None = None  # PROJ string of the GeoTIFFs' CRS (map_geotiff.local_crs; None: no origin known)
 
     def write(self, folder: Path) -> None:
         fields = {k: v for k, v in asdict(self).items() if v is not None or k == "origin_lat_lon_alt"}
@@ -92,6 +96,9 @@ def write_final_map(out: Path, tiles: TileStore, meta: FinalMapMetadata) -> Path
         if labelled:
             atomic_png(out / "bev_semantics.png", semantic_image(mos.labels))
         atomic_png(out / "bev_elevation.png", elevation_image(mos.elevation))
+        meta.crs = (map_geotiff.local_crs(LocalFrame(*meta.origin_lat_lon_alt))
+                    if meta.origin_lat_lon_alt is not None else None)
+        write_geotiffs(out, grid, mos, labelled, meta.crs)
         meta.origin_xy, meta.resolution_m, meta.shape = grid.origin_xy, grid.resolution_m, list(grid.shape)
         meta.png_resolution_m, meta.cell = mos.resolution_m, CELL_CONVENTION
         meta.semantics_no_label = NO_LABEL if labelled else None
@@ -99,6 +106,28 @@ def write_final_map(out: Path, tiles: TileStore, meta: FinalMapMetadata) -> Path
         meta.mesh = write_mesh(out, tiles)
     meta.write(out)
     return out
+
+
+def write_geotiffs(out: Path, grid: map_tiles.RasterGrid, mos: map_tiles.Mosaic, labelled: bool,
+                   crs: str | None) -> None:
+    """bev_elevation.tif and bev_semantics.tif from the .npy rasters (memory-mapped, written in blocks of rows),
+    bev_rgb_<camera>.tif from the overview mosaic (at its resolution)."""
+    at = (grid.origin_xy, grid.resolution_m)
+    _atomic(out / "bev_elevation.tif", lambda p: map_geotiff.write_elevation(
+        p, np.load(out / "bev_elevation.npy", mmap_mode="r"), at, crs))
+    if labelled:
+        _atomic(out / "bev_semantics.tif", lambda p: map_geotiff.write_semantics(
+            p, np.load(out / "bev_semantics.npy", mmap_mode="r"), at, crs))
+    for c, rgb in mos.rgb.items():
+        _atomic(out / f"bev_rgb_{c}.tif", lambda p, rgb=rgb: map_geotiff.write_rgb(
+            p, rgb, np.isfinite(mos.elevation), (mos.origin_xy, mos.resolution_m), crs))
+
+
+def _atomic(path: Path, write) -> None:
+    """`write(tmp)` then the finished file moved in place: a reader never opens half a GeoTIFF."""
+    tmp = path.with_name(path.name + ".tmp")
+    write(tmp)
+    tmp.replace(path)
 
 
 def write_mesh(out: Path, tiles: TileStore, max_vertices: int = 2_000_000) -> dict:

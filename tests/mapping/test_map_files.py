@@ -12,10 +12,13 @@ from rasterio.warp import transform
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.semantic_classes import CLASS_COLOURS, SemanticClass
 from mapping.fits.reconstruction import reconstruct
+from mapping.live import map_tiles
+from mapping.live.final_map import FinalMapMetadata, TileStore, write_final_map
 from mapping.method.road_map import NO_LABEL
 from mapping.outputs.map_geotiff import local_crs
 from tests.mapping.synthetic_road_scene import make_scene
 from tests.mapping.test_mapping_reconstruction import CONFIG
+from tests.mapping.test_mapping_worker import _raster
 
 VIRIDIS_LOW, VIRIDIS_HIGH = (68, 1, 84), (253, 231, 37)  # RGB of the colour map's ends
 ORIGIN = LocalFrame(48.137, 11.575, 520.0)  # the drive's ENU origin: at 520 m the CRS's scale matters (8 cm/km)
@@ -109,3 +112,23 @@ def test_rgb_geotiff_matches_the_png_and_masks_the_unmapped_cells(exported):
         assert tif.count == 3 and tif.crs is not None
         np.testing.assert_array_equal(np.moveaxis(tif.read(), 0, 2), _png_rgb(out / "bev_rgb_front.png"))
         np.testing.assert_array_equal(tif.read_masks(1) > 0, np.flipud(np.isfinite(elevation)))
+
+
+def test_the_live_final_map_has_geotiffs_and_the_origin_in_its_metadata(tmp_path):
+    tiles, n = tmp_path / "tiles", 10
+    map_tiles.write_window(tiles, n, 0, _raster(-2, -5, 5, 30, 1.0, np.ones((5, 30), bool)), ["cam"])
+    map_tiles.write_window(tiles, n, 1, _raster(23, 40, 5, 12, 2.0, np.ones((5, 12), bool)), ["cam"])
+    final = write_final_map(tmp_path / "final", TileStore(tiles, n, 0.1, ["cam"]), FinalMapMetadata(
+        windows=[{"status": "done"}], config={}, distance_m=10.0,
+        origin_lat_lon_alt=[ORIGIN.lat_deg, ORIGIN.lon_deg, ORIGIN.alt_m]))
+    meta = FinalMapMetadata.read(final)
+    assert meta.crs == local_crs(ORIGIN) and meta.origin_lat_lon_alt == [ORIGIN.lat_deg, ORIGIN.lon_deg, ORIGIN.alt_m]
+    assert not list(final.glob("*.tmp*")) and not list(final.glob("*.msk"))
+    with rasterio.open(final / "bev_elevation.tif") as tif:
+        assert tif.crs is not None and tif.res == (0.1, 0.1)
+        assert tif.read(1)[tif.index(4.5, 2.5)] == 2.0  # global cell (25, 45) of the second window
+        assert np.isnan(tif.read(1)[tif.index(4.5, 0.5)])  # between the windows: not mapped
+    with rasterio.open(final / "bev_semantics.tif") as tif:
+        assert tif.read(1)[tif.index(-0.3, -0.1)] == 1
+    with rasterio.open(final / "bev_rgb_cam.tif") as tif:
+        assert tif.read(1)[tif.index(4.5, 2.5)] == 2 and tif.read_masks(1)[tif.index(4.5, 0.5)] == 0
