@@ -18,6 +18,7 @@ from mapping.live.map_images import atomic_png, atomic_write_text
 from mapping.method.road_map import NO_LABEL
 from mapping.outputs import map_geotiff
 from mapping.outputs.map_colours import elevation_image, semantic_image
+from mapping.outputs.mesh_files import MESH_FILES, write_mesh_files
 
 METADATA_NAME = "metadata.json"
 OVERVIEW_MAX_CELLS = 4_000_000  # the final map's PNGs: an overview, coarser past 4 M cells of bounding box
@@ -150,7 +151,6 @@ def write_mesh(out: Path, tiles: TileStore, max_vertices: int = 2_000_000) -> di
     res = cells.resolution_m
     vertices = np.stack([cells.j * res, cells.i * res, cells.elevation], 1)
     mesh = trimesh.Trimesh(vertices, faces, vertex_colors=cells.rgb, process=False)
-    for name in ("mesh.ply", "mesh.glb"):
-        mesh.export(out / name)
-    return {"files": ["mesh.ply", "mesh.glb"], "vertices": len(vertices), "faces": len(faces),
+    write_mesh_files(mesh, out)
+    return {"files": list(MESH_FILES), "vertices": len(vertices), "faces": len(faces),
             "resolution_m": res}

@@ -1,6 +1,7 @@
 """Writing a reconstructed road map to disk: BEV rasters (RGB per camera, semantics, elevation as PNG, GeoTIFF and
-raw .npy, bev.json with their origin, resolution and CRS), the mesh with vertex colours and labels (PLY, GLB) and
-a state_dict checkpoint. A map without semantics (no masks and no model) has no semantic files and no labels."""
+raw .npy, bev.json with their origin, resolution and CRS), the mesh with vertex colours and labels (PLY, GLB:
+mesh_files) and a state_dict checkpoint. A map without semantics (no masks and no model) has no semantic files and
+no labels."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from mapping.method.road_mesh import used_vertices
 from mapping.outputs import map_geotiff
 from mapping.outputs.map_colours import elevation_image, semantic_image
 from mapping.outputs.map_metrics import observed_triangles
+from mapping.outputs.mesh_files import write_mesh_files
 
 _ROWS_PER_CHUNK = 256
 
@@ -128,10 +130,7 @@ def _export_mesh(road_map: RoadMap, out_dir: Path, camera: str) -> dict[str, Pat
     mesh = trimesh.Trimesh(vertices, local.reshape(-1, 3), vertex_colors=colours, process=False)
     if road_map.semantic_logits is not None:
         mesh.vertex_attributes["label"] = vertex_labels(road_map)[used]
-    files = {}
-    for name in ("mesh.ply", "mesh.glb"):
-        mesh.export(out_dir / name)
-        files[name] = out_dir / name
+    files = write_mesh_files(mesh, out_dir)
     torch.save(road_map.state_dict(), out_dir / "checkpoint.pt")
     files["checkpoint.pt"] = out_dir / "checkpoint.pt"
     return files

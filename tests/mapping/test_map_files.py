@@ -2,11 +2,16 @@
 the origin in the metadata. One small synthetic drive reconstructed once, exported through reconstruct()."""
 
 import json
+import os
+import shutil
+import struct
+import subprocess
 
 import cv2
 import numpy as np
 import pytest
 import rasterio
+import trimesh
 from rasterio.warp import transform
 
 from daemon.spine.local_frame import LocalFrame
@@ -16,10 +21,18 @@ from mapping.live import map_tiles
 from mapping.live.final_map import FinalMapMetadata, TileStore, write_final_map
 from mapping.method.road_map import NO_LABEL
 from mapping.outputs.map_geotiff import local_crs
+from tests.daemon_fixtures import REPO
 from tests.mapping.synthetic_road_scene import make_scene
 from tests.mapping.test_mapping_reconstruction import CONFIG
 from tests.mapping.test_mapping_worker import _raster
 
+NODE_MODULES = REPO / "tests" / ".node" / "node_modules"  # scripts/install.sh puts the glTF validator there
+VALIDATE_GLB = """
+const validator = require("gltf-validator");
+validator.validateBytes(new Uint8Array(require("fs").readFileSync(process.argv[1])))
+    .then((report) => console.log(JSON.stringify(report.issues)))
+    .catch((error) => { console.error(String(error)); process.exit(1); });
+"""
 VIRIDIS_LOW, VIRIDIS_HIGH = (68, 1, 84), (253, 231, 37)  # RGB of the colour map's ends
 ORIGIN = LocalFrame(48.137, 11.575, 520.0)  # the drive's ENU origin: at 520 m the CRS's scale matters (8 cm/km)
 
@@ -132,3 +145,48 @@ def test_the_live_final_map_has_geotiffs_and_the_origin_in_its_metadata(tmp_path
         assert tif.read(1)[tif.index(-0.3, -0.1)] == 1
     with rasterio.open(final / "bev_rgb_cam.tif") as tif:
         assert tif.read(1)[tif.index(4.5, 2.5)] == 2 and tif.read_masks(1)[tif.index(4.5, 0.5)] == 0
+
+
+def _glb(path):
+    """(glTF JSON, binary chunk) of a GLB file."""
+    data = path.read_bytes()
+    magic, version, _ = struct.unpack_from("<4sII", data)
+    assert magic == b"glTF" and version == 2
+    json_len = struct.unpack_from("<I", data, 12)[0]
+    doc = json.loads(data[20:20 + json_len])
+    return doc, data[20 + json_len + 8:]
+
+
+def _positions(doc, binary) -> np.ndarray:
+    accessor = doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]
+    view = doc["bufferViews"][accessor["bufferView"]]
+    start = view.get("byteOffset", 0) + accessor.get("byteOffset", 0)
+    assert accessor["componentType"] == 5126 and accessor["type"] == "VEC3"  # float32 x, y, z
+    return np.frombuffer(binary, np.float32, accessor["count"] * 3, start).reshape(-1, 3)
+
+
+def test_glb_is_y_up_by_the_gltf_spec_x_east_z_south(exported):
+    """glTF's +Y is up: the road's heights are the GLB's Y, its north is -Z; the PLY stays in the ENU frame."""
+    _, out = exported
+    doc, binary = _glb(out / "mesh.glb")
+    for node in doc["nodes"]:  # no root rotation: the vertices themselves are Y-up
+        assert "rotation" not in node and "matrix" not in node
+    glb = _positions(doc, binary).astype(np.float64)
+    enu = trimesh.load(out / "mesh.ply", process=False).vertices
+    np.testing.assert_allclose(glb, np.stack([enu[:, 0], enu[:, 2], -enu[:, 1]], 1), atol=1e-4)
+    extent = glb.max(0) - glb.min(0)
+    assert extent[1] < 0.1 * min(extent[0], extent[2])  # a road lies flat: its thin axis is Y
+
+
+def test_glb_passes_the_khronos_gltf_validator(exported):
+    if shutil.which("node") is None:
+        pytest.skip("node is not installed: the Khronos glTF validator (npm gltf-validator) runs on it")
+    if not (NODE_MODULES / "gltf-validator").is_dir():
+        pytest.skip(f"the Khronos glTF validator is not installed: npm install --prefix {NODE_MODULES.parent} "
+                    "gltf-validator (scripts/install.sh does when npm is there)")
+    _, out = exported
+    run = subprocess.run([shutil.which("node"), "-e", VALIDATE_GLB, str(out / "mesh.glb")], capture_output=True,
+                         text=True, timeout=60, env=os.environ | {"NODE_PATH": str(NODE_MODULES)})
+    assert run.returncode == 0, run.stderr
+    issues = json.loads(run.stdout)
+    assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"]
