@@ -17,7 +17,8 @@ from mapping.live import map_tiles
 from mapping.live.map_images import atomic_png, atomic_write_text
 from mapping.method.road_map import NO_LABEL
 from mapping.outputs import map_geotiff
-from mapping.outputs.map_colours import elevation_image, semantic_image
+from mapping.outputs.map_annotation import annotated_map
+from mapping.outputs.map_colours import elevation_image, elevation_range, semantic_image
 from mapping.outputs.mesh_files import MESH_FILES, write_mesh_files
 
 METADATA_NAME = "metadata.json"
@@ -92,11 +93,10 @@ def write_final_map(out: Path, tiles: TileStore, meta: FinalMapMetadata) -> Path
                                           | ({"labels": out / "bev_semantics.npy"} if labelled else {}))
         mos = map_tiles.mosaic(tiles.folder, tiles.tile_cells, tiles.resolution_m, tiles.cameras,
                                max_cells=OVERVIEW_MAX_CELLS)
-        for c in tiles.cameras:
-            atomic_png(out / f"bev_rgb_{c}.png", mos.rgb[c])
-        if labelled:
-            atomic_png(out / "bev_semantics.png", semantic_image(mos.labels))
-        atomic_png(out / "bev_elevation.png", elevation_image(mos.elevation))
+        for name, image, annotation in overview_images(mos, tiles.cameras, labelled):
+            atomic_png(out / f"{name}.png", image)
+            atomic_png(out / f"{name}_annotated.png", annotated_map(image, mos.resolution_m, **annotation),
+                       north_up=True)
         meta.crs = (map_geotiff.local_crs(LocalFrame(*meta.origin_lat_lon_alt))
                     if meta.origin_lat_lon_alt is not None else None)
         write_geotiffs(out, grid, mos, labelled, meta.crs)
@@ -107,6 +107,15 @@ def write_final_map(out: Path, tiles: TileStore, meta: FinalMapMetadata) -> Path
         meta.mesh = write_mesh(out, tiles)
     meta.write(out)
     return out
+
+
+def overview_images(mos: map_tiles.Mosaic, cameras: list[str], labelled: bool) -> list[tuple[str, np.ndarray, dict]]:
+    """(file name without .png, RGB raster, annotated_map's arguments) of each overview."""
+    images = [(f"bev_rgb_{c}", mos.rgb[c], {"title": f"colour: {c}"}) for c in cameras]
+    if labelled:
+        images.append(("bev_semantics", semantic_image(mos.labels), {"title": "semantics", "legend": True}))
+    return images + [("bev_elevation", elevation_image(mos.elevation),
+                      {"title": "elevation", "elevation_range_m": elevation_range(mos.elevation)})]
 
 
 def write_geotiffs(out: Path, grid: map_tiles.RasterGrid, mos: map_tiles.Mosaic, labelled: bool,

@@ -20,17 +20,24 @@ def atomic_write_text(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def north_up_png(rgb: np.ndarray, what: str) -> bytes:
-    """A bird's-eye RGB raster (row 0 south) as PNG bytes, north up."""
-    ok, data = cv2.imencode(".png", cv2.cvtColor(np.flipud(rgb), cv2.COLOR_RGB2BGR))
+def png_bytes(image: np.ndarray, what: str) -> bytes:
+    """An RGB image (row 0 the top) as PNG bytes."""
+    ok, data = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
     if not ok:
         raise ValueError(f"cannot encode {what}")
     return data.tobytes()
 
 
-def atomic_png(path: Path, rgb: np.ndarray) -> None:
+def north_up_png(rgb: np.ndarray, what: str) -> bytes:
+    """A bird's-eye RGB raster (row 0 south) as PNG bytes, north up."""
+    return png_bytes(np.flipud(rgb), what)
+
+
+def atomic_png(path: Path, rgb: np.ndarray, north_up: bool = False) -> None:
+    """A bird's-eye RGB raster (row 0 south) as a north-up PNG; `north_up`: `rgb` is an image already (row 0
+    the top), written as it is."""
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(north_up_png(rgb, path.name))
+    tmp.write_bytes(png_bytes(rgb, path.name) if north_up else north_up_png(rgb, path.name))
     os.replace(tmp, path)
 
 

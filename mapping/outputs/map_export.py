@@ -18,7 +18,8 @@ from daemon.spine.local_frame import LocalFrame
 from mapping.method.road_map import NO_LABEL, RoadMap
 from mapping.method.road_mesh import used_vertices
 from mapping.outputs import map_geotiff
-from mapping.outputs.map_colours import elevation_image, semantic_image
+from mapping.outputs.map_annotation import annotated_map
+from mapping.outputs.map_colours import elevation_image, elevation_range, semantic_image
 from mapping.outputs.map_metrics import observed_triangles
 from mapping.outputs.mesh_files import write_mesh_files
 
@@ -79,17 +80,20 @@ def _export_rasters(road_map: RoadMap, out_dir: Path, cameras: list[str], raster
     bev = bev_rasters(road_map, cameras, res, raster_threads)
     files: dict[str, Path] = {}
 
-    def save_png(name: str, rgb: np.ndarray) -> None:
-        path = out_dir / name
-        cv2.imwrite(str(path), cv2.cvtColor(np.flipud(rgb), cv2.COLOR_RGB2BGR))  # north up
-        files[name] = path
+    def save_png(name: str, rgb: np.ndarray, **annotation) -> None:
+        """`name`.png, one pixel per cell, and `name`_annotated.png with its legend or colour bar, scale, north."""
+        for file, image in ((f"{name}.png", np.flipud(rgb)),
+                            (f"{name}_annotated.png", annotated_map(rgb, res, **annotation))):
+            cv2.imwrite(str(out_dir / file), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))  # north up
+            files[file] = out_dir / file
 
     semantics = road_map.semantic_logits is not None  # without: no semantic files (not a raster of NO_LABEL)
     for c in cameras:
-        save_png(f"bev_rgb_{c}.png", bev["rgb"][c])
+        save_png(f"bev_rgb_{c}", bev["rgb"][c], title=f"colour: {c}")
     if semantics:
-        save_png("bev_semantics.png", semantic_image(bev["labels"]))
-    save_png("bev_elevation.png", elevation_image(bev["elevation"]))
+        save_png("bev_semantics", semantic_image(bev["labels"]), title="semantics", legend=True)
+    save_png("bev_elevation", elevation_image(bev["elevation"]), title="elevation",
+             elevation_range_m=elevation_range(bev["elevation"]))
     arrays = [("bev_elevation.npy", bev["elevation"])] + ([("bev_semantics.npy", bev["labels"])] if semantics else [])
     for name, array in arrays:
         np.save(out_dir / name, array)

@@ -59,7 +59,7 @@ def write_elevation(path: Path, elevation: np.ndarray, grid: tuple[tuple[float, 
                     crs: str | None) -> Path:
     with _open(path, elevation, 1, grid, crs, nodata=np.nan) as dst:
         dst.units = ("metre",)
-        dst.descriptions = ("ellipsoidal height above the local frame's origin, m (ENU z)",)
+        dst.descriptions = ("height above the local ENU frame's origin (its z), m",)
         _write_north_up(dst, elevation)
     return path
 

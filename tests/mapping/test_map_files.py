@@ -15,11 +15,12 @@ import trimesh
 from rasterio.warp import transform
 
 from daemon.spine.local_frame import LocalFrame
-from daemon.spine.semantic_classes import CLASS_COLOURS, SemanticClass
+from daemon.spine.semantic_classes import CLASS_COLOURS, MAP_CLASSES, SemanticClass
 from mapping.fits.reconstruction import reconstruct
 from mapping.live import map_tiles
 from mapping.live.final_map import FinalMapMetadata, TileStore, write_final_map
 from mapping.method.road_map import NO_LABEL
+from mapping.outputs.map_annotation import MIN_MAP_PX, nice_length_m
 from mapping.outputs.map_geotiff import local_crs
 from tests.daemon_fixtures import REPO
 from tests.mapping.synthetic_road_scene import make_scene
@@ -137,6 +138,9 @@ def test_the_live_final_map_has_geotiffs_and_the_origin_in_its_metadata(tmp_path
     meta = FinalMapMetadata.read(final)
     assert meta.crs == local_crs(ORIGIN) and meta.origin_lat_lon_alt == [ORIGIN.lat_deg, ORIGIN.lon_deg, ORIGIN.alt_m]
     assert not list(final.glob("*.tmp*")) and not list(final.glob("*.msk"))
+    for name in ("bev_rgb_cam", "bev_semantics", "bev_elevation"):  # each overview beside its annotated one
+        plain, shown = _png_rgb(final / f"{name}.png"), _png_rgb(final / f"{name}_annotated.png")
+        assert shown.shape[1] > plain.shape[1] and shown.shape[0] >= plain.shape[0]
     with rasterio.open(final / "bev_elevation.tif") as tif:
         assert tif.crs is not None and tif.res == (0.1, 0.1)
         assert tif.read(1)[tif.index(4.5, 2.5)] == 2.0  # global cell (25, 45) of the second window
@@ -190,3 +194,37 @@ def test_glb_passes_the_khronos_gltf_validator(exported):
     assert run.returncode == 0, run.stderr
     issues = json.loads(run.stdout)
     assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"]
+
+
+def _longest_black_run(rows: np.ndarray) -> int:
+    best = 0
+    for row in (rows.max(axis=2) < 40):
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], row.astype(np.int8), [0]])))
+        best = max([best] + list(edges[1::2] - edges[::2]))
+    return int(best)
+
+
+def test_annotated_pngs_show_the_map_with_legend_colour_bar_scale_and_north(exported):
+    _, out = exported
+    res = json.loads((out / "bev.json").read_text())["resolution_m"]
+    plain = _png_rgb(out / "bev_semantics.png")
+    shown = _png_rgb(out / "bev_semantics_annotated.png")
+    zoom = MIN_MAP_PX // max(plain.shape[:2])
+    assert zoom > 1  # a small map is enlarged, whole pixels per cell
+    np.testing.assert_array_equal(shown[:plain.shape[0] * zoom:zoom, :plain.shape[1] * zoom:zoom], plain)
+    panel = shown[:, plain.shape[1] * zoom + 1:]
+    swatches = {tuple(v) for v in panel.reshape(-1, 3)}
+    assert all(tuple(CLASS_COLOURS[c]) in swatches for c in MAP_CLASSES)  # the legend's colours
+    # the scale bar: its edge rows are black over its length, a round number of metres at the map's scale
+    px_per_m = zoom / res
+    bar_px = _longest_black_run(panel)
+    assert abs(bar_px - nice_length_m(bar_px / px_per_m + 0.01) * px_per_m) <= 1.5 and bar_px > 40
+    elevation = _png_rgb(out / "bev_elevation_annotated.png").astype(int)
+    bar = elevation[:, plain.shape[1] * zoom + 1:]
+    high = np.argwhere(np.abs(bar - VIRIDIS_HIGH).max(axis=2) <= 6)
+    low = np.argwhere(np.abs(bar - VIRIDIS_LOW).max(axis=2) <= 6)
+    assert len(high) and len(low) and high[:, 0].max() < low[:, 0].min()  # the colour bar: high end on top
+
+
+def test_scale_bar_lengths_are_round():
+    assert [nice_length_m(v) for v in (0.37, 1.0, 4.9, 7.0, 19.0, 230.0)] == [0.2, 1.0, 2.0, 5.0, 10.0, 200.0]
