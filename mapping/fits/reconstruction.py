@@ -210,7 +210,6 @@ def reconstruct(
         **timings,
         step_mean_s=(train_s - timings["setup_wall_s"]) / max(1, len(history)),
         drive_s=drive_s,
-        realtime_factor=drive_s / train_s if train_s > 0 else None,
         **(maskless_figures(*tested, occlusion) if maskless else {}),
     )
     if out_dir is not None:
