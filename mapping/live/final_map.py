@@ -104,7 +104,7 @@ def write_final_map(out: Path, tiles: TileStore, meta: FinalMapMetadata) -> Path
         meta.png_resolution_m, meta.cell = mos.resolution_m, CELL_CONVENTION
         meta.semantics_no_label = NO_LABEL if labelled else None
         meta.cameras = tiles.cameras
-        meta.mesh = write_mesh(out, tiles)
+        meta.mesh = write_mesh(out, tiles, meta.origin_lat_lon_alt)
     meta.write(out)
     return out
 
@@ -140,7 +140,8 @@ def _atomic(path: Path, write) -> None:
     tmp.replace(path)
 
 
-def write_mesh(out: Path, tiles: TileStore, max_vertices: int = 2_000_000) -> dict:
+def write_mesh(out: Path, tiles: TileStore, origin_lat_lon_alt: list[float] | None,
+               max_vertices: int = 2_000_000) -> dict:
     """A grid mesh of the mapped cells (cells as vertices, two triangles per fully mapped 2x2 block),
     built from the tiles' mapped cells only."""
     cells = map_tiles.mapped_cells(tiles.folder, tiles.tile_cells, tiles.resolution_m, tiles.cameras[0],
@@ -160,6 +161,6 @@ def write_mesh(out: Path, tiles: TileStore, max_vertices: int = 2_000_000) -> di
     res = cells.resolution_m
     vertices = np.stack([cells.j * res, cells.i * res, cells.elevation], 1)
     mesh = trimesh.Trimesh(vertices, faces, vertex_colors=cells.rgb, process=False)
-    write_mesh_files(mesh, out)
+    write_mesh_files(mesh, out, origin_lat_lon_alt)
     return {"files": list(MESH_FILES), "vertices": len(vertices), "faces": len(faces),
             "resolution_m": res}

@@ -68,7 +68,8 @@ def export_map(road_map: RoadMap, out_dir: Path, cameras: list[str], raster_thre
     GeoTIFFs have no CRS and bev.json no origin)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     with ThreadPoolExecutor(1, thread_name_prefix="export-mesh") as pool:  # the mesh beside the rasters
-        mesh_files = pool.submit(_export_mesh, road_map, out_dir, cameras[0])
+        mesh_files = pool.submit(_export_mesh, road_map, out_dir, cameras[0],
+                                 [origin.lat_deg, origin.lon_deg, origin.alt_m] if origin is not None else None)
         return _export_rasters(road_map, out_dir, cameras, raster_threads, origin) | mesh_files.result()
 
 
@@ -125,7 +126,8 @@ def _export_rasters(road_map: RoadMap, out_dir: Path, cameras: list[str], raster
     return files
 
 
-def _export_mesh(road_map: RoadMap, out_dir: Path, camera: str) -> dict[str, Path]:
+def _export_mesh(road_map: RoadMap, out_dir: Path, camera: str, origin_lat_lon_alt: list[float] | None
+                 ) -> dict[str, Path]:
     """The observed part of the mesh with `camera`'s vertex colours and the labels (PLY, GLB), the checkpoint."""
     faces = road_map.mesh.faces[(road_map.observed[road_map.mesh.faces] > 0).all(1)]
     used, local = used_vertices(faces, road_map.mesh.num_vertices)
@@ -134,7 +136,7 @@ def _export_mesh(road_map: RoadMap, out_dir: Path, camera: str) -> dict[str, Pat
     mesh = trimesh.Trimesh(vertices, local.reshape(-1, 3), vertex_colors=colours, process=False)
     if road_map.semantic_logits is not None:
         mesh.vertex_attributes["label"] = vertex_labels(road_map)[used]
-    files = write_mesh_files(mesh, out_dir)
+    files = write_mesh_files(mesh, out_dir, origin_lat_lon_alt)
     torch.save(road_map.state_dict(), out_dir / "checkpoint.pt")
     files["checkpoint.pt"] = out_dir / "checkpoint.pt"
     return files

@@ -141,6 +141,8 @@ def test_the_live_final_map_has_geotiffs_and_the_origin_in_its_metadata(tmp_path
     for name in ("bev_rgb_cam", "bev_semantics", "bev_elevation"):  # each overview beside its annotated one
         plain, shown = _png_rgb(final / f"{name}.png"), _png_rgb(final / f"{name}_annotated.png")
         assert shown.shape[1] > plain.shape[1] and shown.shape[0] >= plain.shape[0]
+    doc, _ = _glb(final / "mesh.glb")
+    assert doc["meshes"][0]["extras"]["roadlog"]["origin_lat_lon_alt"] == meta.origin_lat_lon_alt
     with rasterio.open(final / "bev_elevation.tif") as tif:
         assert tif.crs is not None and tif.res == (0.1, 0.1)
         assert tif.read(1)[tif.index(4.5, 2.5)] == 2.0  # global cell (25, 45) of the second window
@@ -175,6 +177,8 @@ def test_glb_is_y_up_by_the_gltf_spec_x_east_z_south(exported):
     doc, binary = _glb(out / "mesh.glb")
     for node in doc["nodes"]:  # no root rotation: the vertices themselves are Y-up
         assert "rotation" not in node and "matrix" not in node
+    extras = doc["meshes"][0]["extras"]["roadlog"]
+    assert extras["origin_lat_lon_alt"] == [ORIGIN.lat_deg, ORIGIN.lon_deg, ORIGIN.alt_m] and "Y up" in extras["axes"]
     glb = _positions(doc, binary).astype(np.float64)
     enu = trimesh.load(out / "mesh.ply", process=False).vertices
     np.testing.assert_allclose(glb, np.stack([enu[:, 0], enu[:, 2], -enu[:, 1]], 1), atol=1e-4)
