@@ -24,7 +24,7 @@ from mapping.outputs.mesh_files import MESH_FILES, write_mesh_files
 METADATA_NAME = "metadata.json"
 OVERVIEW_MAX_CELLS = 4_000_000  # the final map's PNGs: an overview, coarser past 4 M cells of bounding box
 CELL_CONVENTION = ("cell (i, j) of the .npy rasters is centred at (x0 + j*res, y0 + i*res); "
-                   "PNGs (at png_resolution_m) are flipped north-up")
+                   "PNGs and RGB GeoTIFFs (at png_resolution_m) and the other GeoTIFFs are flipped north-up")
 
 
 @dataclass(frozen=True)

@@ -115,7 +115,8 @@ def _export_rasters(road_map: RoadMap, out_dir: Path, cameras: list[str], raster
         "origin_xy": bev["origin_xy"],
         "resolution_m": res,
         "shape": list(bev["elevation"].shape),
-        "cell": "cell (i, j) of the .npy rasters is centred at (x0 + j*res, y0 + i*res); PNGs are flipped north-up",
+        "cell": ("cell (i, j) of the .npy rasters is centred at (x0 + j*res, y0 + i*res); PNGs and GeoTIFFs are "
+                 "flipped north-up"),
         "semantics": semantics,  # false: the map has no semantics, and no bev_semantics.* files
         "semantics_no_label": NO_LABEL,
         "cameras": cameras,
