@@ -15,7 +15,8 @@ from daemon.spine.semantic_classes import CLASS_COLOURS, SemanticClass
 from mapping.method.road_map import NO_LABEL
 
 ROWS_PER_WRITE = 1024  # rasters are written in blocks of rows: a large map's (memory-mapped) .npy is never all read
-_PROFILE = {"driver": "GTiff", "compress": "deflate", "tiled": True, "blockxsize": 256, "blockysize": 256}
+_PROFILE = {"driver": "GTiff", "compress": "deflate", "tiled": True, "blockxsize": 256, "blockysize": 256,
+            "bigtiff": "IF_SAFER"}  # BigTIFF where the raster could pass 4 GiB: compressed, GDAL cannot tell ahead
 
 
 def local_crs(origin: LocalFrame) -> str:
