@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
                                       for k, v in metrics.items()))
     print(f"time: simulate {timings['simulate_s']:.0f} s, daemon (replay + record + map) {timings['daemon_s']:.0f} s")
     print("\nfiles:")
-    for pattern in ("*.png", "*.ply", "*.glb", "*.npy", "*.json"):
+    for pattern in ("*.png", "*.tif", "*.ply", "*.glb", "*.npy", "*.json"):
         for f in sorted(map_dir.glob(pattern)):
             print(f"  {f}")
     print(f"  logs: {data}")

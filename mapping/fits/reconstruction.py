@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from daemon.spine.local_frame import LocalFrame
 from daemon.spine.mapper_config import MapperConfig
 from mapping.fits import faithful_fit, fast_fit
 from mapping.fits.lidar_occlusion import OcclusionTest
@@ -114,12 +115,14 @@ def reconstruct(
     holdout_every: int = 10,
     progress: bool = True,
     lidar_standing: StandingPoints | None | Future[StandingPoints | None] = None,
+    origin: LocalFrame | None = None,
 ) -> ReconstructionResult:
     """Reconstruct the road surface seen by `keyframes` along `trajectory`; evaluate; export if out_dir.
     `keyframes`, `lidar_ground_points` and `lidar_standing` may be Futures (inputs still loading): the mesh is
     built first, the Lidar waited for by the elevation fit, the keyframes after it. `lidar_standing`: what the
     Lidar saw standing on the road, which the keyframes without semantics are tested against
-    (mapping.fits.lidar_occlusion; None: they are used whole)."""
+    (mapping.fits.lidar_occlusion; None: they are used whole). `origin`: the geodetic origin of the trajectory's
+    ENU frame, which places the exported map on the earth (None: unknown)."""
     start = time.perf_counter()
     runtime, model, windows = config.runtime, config.model, config.windows
     torch.set_num_threads(runtime.torch_threads_faithful_fit if faithful else runtime.torch_threads_fast_fit)
@@ -178,7 +181,8 @@ def reconstruct(
         train_s = time.perf_counter() - start
         drive_s = trajectory.duration_s
         # the export runs beside the evaluation's remaining work: both only read the finished map
-        exported = (side.submit(export_map, road_map, Path(out_dir), sorted(cameras), runtime.raster_threads)
+        exported = (side.submit(export_map, road_map, Path(out_dir), sorted(cameras), runtime.raster_threads,
+                                origin)
                     if out_dir is not None else None)
         side.shutdown(wait=False)
         metrics = finish_evaluation(evaluation)
@@ -206,7 +210,6 @@ def reconstruct(
         **timings,
         step_mean_s=(train_s - timings["setup_wall_s"]) / max(1, len(history)),
         drive_s=drive_s,
-        realtime_factor=drive_s / train_s if train_s > 0 else None,
         **(maskless_figures(*tested, occlusion) if maskless else {}),
     )
     if out_dir is not None:

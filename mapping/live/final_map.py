@@ -1,5 +1,6 @@
-"""The live worker's final map, `<data>/map/final`: the tiles' mosaic as rasters (.npy), overview PNGs, a grid
-mesh (PLY, GLB) and `metadata.json` (FinalMapMetadata: the one definition its writers and readers share). A map
+"""The live worker's final map, `<data>/map/final`: the tiles' mosaic as rasters (.npy, and GeoTIFFs placed on the
+earth: elevation and semantics at the grid's resolution, RGB at the overviews'), overview PNGs, a grid mesh (PLY,
+GLB) and `metadata.json` (FinalMapMetadata: the one definition its writers and readers share). A map
 none of whose windows had semantics (no masks, no model) has no bev_semantics.* files."""
 
 from __future__ import annotations
@@ -11,15 +12,19 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from daemon.spine.local_frame import LocalFrame
 from mapping.live import map_tiles
-from mapping.live.map_images import atomic_png, atomic_write_text, semantic_image
+from mapping.live.map_images import atomic_png, atomic_write_text
 from mapping.method.road_map import NO_LABEL
-from mapping.outputs.map_export import elevation_image
+from mapping.outputs import map_geotiff
+from mapping.outputs.map_annotation import annotated_map
+from mapping.outputs.map_colours import elevation_image, elevation_range, semantic_image
+from mapping.outputs.mesh_files import MESH_FILES, write_mesh_files
 
 METADATA_NAME = "metadata.json"
 OVERVIEW_MAX_CELLS = 4_000_000  # the final map's PNGs: an overview, coarser past 4 M cells of bounding box
 CELL_CONVENTION = ("cell (i, j) of the .npy rasters is centred at (x0 + j*res, y0 + i*res); "
-                   "PNGs (at png_resolution_m) are flipped north-up")
+                   "PNGs and RGB GeoTIFFs (at png_resolution_m) and the other GeoTIFFs are flipped north-up")
 
 
 @dataclass(frozen=True)
@@ -50,6 +55,7 @@ class FinalMapMetadata:
     mesh: dict | None = None  # the mesh files and sizes
     semantics: str | None = None  # "available", "partial: ..." or "unavailable: ..." (map_semantics); unavailable:
     # no bev_semantics.* files
+    crs: str | None = None  # PROJ string of the GeoTIFFs' CRS (map_geotiff.local_crs; None: no origin known)
 
     def write(self, folder: Path) -> None:
         fields = {k: v for k, v in asdict(self).items() if v is not None or k == "origin_lat_lon_alt"}
@@ -87,21 +93,55 @@ def write_final_map(out: Path, tiles: TileStore, meta: FinalMapMetadata) -> Path
                                           | ({"labels": out / "bev_semantics.npy"} if labelled else {}))
         mos = map_tiles.mosaic(tiles.folder, tiles.tile_cells, tiles.resolution_m, tiles.cameras,
                                max_cells=OVERVIEW_MAX_CELLS)
-        for c in tiles.cameras:
-            atomic_png(out / f"bev_rgb_{c}.png", mos.rgb[c])
-        if labelled:
-            atomic_png(out / "bev_semantics.png", semantic_image(mos.labels))
-        atomic_png(out / "bev_elevation.png", elevation_image(mos.elevation))
+        for name, image, annotation in overview_images(mos, tiles.cameras, labelled):
+            atomic_png(out / f"{name}.png", image)
+            atomic_png(out / f"{name}_annotated.png", annotated_map(image, mos.resolution_m, **annotation),
+                       north_up=True)
+        meta.crs = (map_geotiff.local_crs(LocalFrame(*meta.origin_lat_lon_alt))
+                    if meta.origin_lat_lon_alt is not None else None)
+        write_geotiffs(out, grid, mos, labelled, meta.crs)
         meta.origin_xy, meta.resolution_m, meta.shape = grid.origin_xy, grid.resolution_m, list(grid.shape)
         meta.png_resolution_m, meta.cell = mos.resolution_m, CELL_CONVENTION
         meta.semantics_no_label = NO_LABEL if labelled else None
         meta.cameras = tiles.cameras
-        meta.mesh = write_mesh(out, tiles)
+        meta.mesh = write_mesh(out, tiles, meta.origin_lat_lon_alt)
     meta.write(out)
     return out
 
 
-def write_mesh(out: Path, tiles: TileStore, max_vertices: int = 2_000_000) -> dict:
+def overview_images(mos: map_tiles.Mosaic, cameras: list[str], labelled: bool) -> list[tuple[str, np.ndarray, dict]]:
+    """(file name without .png, RGB raster, annotated_map's arguments) of each overview."""
+    images = [(f"bev_rgb_{c}", mos.rgb[c], {"title": f"colour: {c}"}) for c in cameras]
+    if labelled:
+        images.append(("bev_semantics", semantic_image(mos.labels), {"title": "semantics", "legend": True}))
+    return images + [("bev_elevation", elevation_image(mos.elevation),
+                      {"title": "elevation", "elevation_range_m": elevation_range(mos.elevation)})]
+
+
+def write_geotiffs(out: Path, grid: map_tiles.RasterGrid, mos: map_tiles.Mosaic, labelled: bool,
+                   crs: str | None) -> None:
+    """bev_elevation.tif and bev_semantics.tif from the .npy rasters (memory-mapped, written in blocks of rows),
+    bev_rgb_<camera>.tif from the overview mosaic (at its resolution)."""
+    at = (grid.origin_xy, grid.resolution_m)
+    _atomic(out / "bev_elevation.tif", lambda p: map_geotiff.write_elevation(
+        p, np.load(out / "bev_elevation.npy", mmap_mode="r"), at, crs))
+    if labelled:
+        _atomic(out / "bev_semantics.tif", lambda p: map_geotiff.write_semantics(
+            p, np.load(out / "bev_semantics.npy", mmap_mode="r"), at, crs))
+    for c, rgb in mos.rgb.items():
+        _atomic(out / f"bev_rgb_{c}.tif", lambda p, rgb=rgb: map_geotiff.write_rgb(
+            p, rgb, np.isfinite(mos.elevation), (mos.origin_xy, mos.resolution_m), crs))
+
+
+def _atomic(path: Path, write) -> None:
+    """`write(tmp)` then the finished file moved in place: a reader never opens half a GeoTIFF."""
+    tmp = path.with_name(path.name + ".tmp")
+    write(tmp)
+    tmp.replace(path)
+
+
+def write_mesh(out: Path, tiles: TileStore, origin_lat_lon_alt: list[float] | None,
+               max_vertices: int = 2_000_000) -> dict:
     """A grid mesh of the mapped cells (cells as vertices, two triangles per fully mapped 2x2 block),
     built from the tiles' mapped cells only."""
     cells = map_tiles.mapped_cells(tiles.folder, tiles.tile_cells, tiles.resolution_m, tiles.cameras[0],
@@ -121,7 +161,6 @@ def write_mesh(out: Path, tiles: TileStore, max_vertices: int = 2_000_000) -> di
     res = cells.resolution_m
     vertices = np.stack([cells.j * res, cells.i * res, cells.elevation], 1)
     mesh = trimesh.Trimesh(vertices, faces, vertex_colors=cells.rgb, process=False)
-    for name in ("mesh.ply", "mesh.glb"):
-        mesh.export(out / name)
-    return {"files": ["mesh.ply", "mesh.glb"], "vertices": len(vertices), "faces": len(faces),
+    write_mesh_files(mesh, out, origin_lat_lon_alt)
+    return {"files": list(MESH_FILES), "vertices": len(vertices), "faces": len(faces),
             "resolution_m": res}

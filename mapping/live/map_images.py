@@ -1,5 +1,5 @@
-"""The live map's images on disk: north-up PNGs and JSON written atomically (a reader never sees half a file), the
-semantic colours, a window's previews."""
+"""The live map's images on disk: north-up PNGs and JSON written atomically (a reader never sees half a file), a
+window's previews (coloured by mapping.outputs.map_colours)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from daemon.spine.semantic_classes import CLASS_COLOURS
-from mapping.method.road_map import NO_LABEL
-from mapping.outputs.map_export import elevation_image
+from mapping.outputs.map_colours import elevation_image, semantic_image
 
 PREVIEW_NAMES = ("rgb", "semantics", "elevation")
 
@@ -22,23 +20,25 @@ def atomic_write_text(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def north_up_png(rgb: np.ndarray, what: str) -> bytes:
-    """A bird's-eye RGB raster (row 0 south) as PNG bytes, north up."""
-    ok, data = cv2.imencode(".png", cv2.cvtColor(np.flipud(rgb), cv2.COLOR_RGB2BGR))
+def png_bytes(image: np.ndarray, what: str) -> bytes:
+    """An RGB image (row 0 the top) as PNG bytes."""
+    ok, data = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
     if not ok:
         raise ValueError(f"cannot encode {what}")
     return data.tobytes()
 
 
-def atomic_png(path: Path, rgb: np.ndarray) -> None:
+def north_up_png(rgb: np.ndarray, what: str) -> bytes:
+    """A bird's-eye RGB raster (row 0 south) as PNG bytes, north up."""
+    return png_bytes(np.flipud(rgb), what)
+
+
+def atomic_png(path: Path, rgb: np.ndarray, north_up: bool = False) -> None:
+    """A bird's-eye RGB raster (row 0 south) as a north-up PNG; `north_up`: `rgb` is an image already (row 0
+    the top), written as it is."""
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(north_up_png(rgb, path.name))
+    tmp.write_bytes(png_bytes(rgb, path.name) if north_up else north_up_png(rgb, path.name))
     os.replace(tmp, path)
-
-
-def semantic_image(labels: np.ndarray) -> np.ndarray:
-    return CLASS_COLOURS[np.minimum(labels, len(CLASS_COLOURS) - 1)] * (labels != NO_LABEL)[..., None].astype(np.uint8)
-
 
 
 def preview_images(bev: dict, camera: str, semantics: bool) -> dict[str, np.ndarray]:

@@ -1,6 +1,7 @@
-"""Writing a reconstructed road map to disk: BEV rasters (RGB per camera, semantics, elevation as PNG and
-raw .npy with their origin and resolution), the mesh with vertex colours and labels (PLY, GLB) and a
-state_dict checkpoint. A map without semantics (no masks and no model) has no semantic files and no labels."""
+"""Writing a reconstructed road map to disk: BEV rasters (RGB per camera, semantics, elevation as PNG, GeoTIFF and
+raw .npy, bev.json with their origin, resolution and CRS), the mesh with vertex colours and labels (PLY, GLB:
+mesh_files) and a state_dict checkpoint. A map without semantics (no masks and no model) has no semantic files and
+no labels."""
 
 from __future__ import annotations
 
@@ -13,10 +14,14 @@ import numpy as np
 import torch
 import trimesh
 
-from daemon.spine.semantic_classes import CLASS_COLOURS
+from daemon.spine.local_frame import LocalFrame
 from mapping.method.road_map import NO_LABEL, RoadMap
 from mapping.method.road_mesh import used_vertices
+from mapping.outputs import map_geotiff
+from mapping.outputs.map_annotation import annotated_map
+from mapping.outputs.map_colours import elevation_image, elevation_range, semantic_image
 from mapping.outputs.map_metrics import observed_triangles
+from mapping.outputs.mesh_files import write_mesh_files
 
 _ROWS_PER_CHUNK = 256
 
@@ -57,51 +62,61 @@ def bev_rasters(road_map: RoadMap, cameras: list[str], resolution_m: float, thre
     return {"origin_xy": (float(lo[0]), float(lo[1])), "elevation": elevation, "labels": labels, "rgb": rgb}
 
 
-def elevation_image(elevation: np.ndarray) -> np.ndarray:
-    valid = np.isfinite(elevation)
-    out = np.zeros(elevation.shape + (3,), np.uint8)
-    if valid.any():
-        lo, hi = np.percentile(elevation[valid], [1, 99])
-        scaled = np.clip((elevation - lo) / max(hi - lo, 1e-6), 0, 1)
-        coloured = cv2.applyColorMap((np.nan_to_num(scaled) * 255).astype(np.uint8), cv2.COLORMAP_VIRIDIS)
-        out[valid] = coloured[valid]
-    return out
-
-
-def export_map(road_map: RoadMap, out_dir: Path, cameras: list[str], raster_threads: int) -> dict[str, Path]:
+def export_map(road_map: RoadMap, out_dir: Path, cameras: list[str], raster_threads: int,
+               origin: LocalFrame | None = None) -> dict[str, Path]:
+    """The map's files in `out_dir`. `origin`: the geodetic origin of the map's ENU frame (None: unknown, the
+    GeoTIFFs have no CRS and bev.json no origin)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     with ThreadPoolExecutor(1, thread_name_prefix="export-mesh") as pool:  # the mesh beside the rasters
-        mesh_files = pool.submit(_export_mesh, road_map, out_dir, cameras[0])
-        return _export_rasters(road_map, out_dir, cameras, raster_threads) | mesh_files.result()
+        mesh_files = pool.submit(_export_mesh, road_map, out_dir, cameras[0],
+                                 [origin.lat_deg, origin.lon_deg, origin.alt_m] if origin is not None else None)
+        return _export_rasters(road_map, out_dir, cameras, raster_threads, origin) | mesh_files.result()
 
 
-def _export_rasters(road_map: RoadMap, out_dir: Path, cameras: list[str], raster_threads: int) -> dict[str, Path]:
-    """The bird's-eye rasters: RGB per camera, semantics and elevation as PNGs, the grids as .npy, bev.json."""
+def _export_rasters(road_map: RoadMap, out_dir: Path, cameras: list[str], raster_threads: int,
+                    origin: LocalFrame | None) -> dict[str, Path]:
+    """The bird's-eye rasters: RGB per camera, semantics and elevation as PNGs and GeoTIFFs, the grids as .npy,
+    bev.json."""
     res = road_map.mesh.side_m
     bev = bev_rasters(road_map, cameras, res, raster_threads)
     files: dict[str, Path] = {}
 
-    def save_png(name: str, rgb: np.ndarray) -> None:
-        path = out_dir / name
-        cv2.imwrite(str(path), cv2.cvtColor(np.flipud(rgb), cv2.COLOR_RGB2BGR))  # north up
-        files[name] = path
+    def save_png(name: str, rgb: np.ndarray, **annotation) -> None:
+        """`name`.png, one pixel per cell, and `name`_annotated.png with its legend or colour bar, scale, north."""
+        for file, image in ((f"{name}.png", np.flipud(rgb)),
+                            (f"{name}_annotated.png", annotated_map(rgb, res, **annotation))):
+            cv2.imwrite(str(out_dir / file), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))  # north up
+            files[file] = out_dir / file
 
     semantics = road_map.semantic_logits is not None  # without: no semantic files (not a raster of NO_LABEL)
     for c in cameras:
-        save_png(f"bev_rgb_{c}.png", bev["rgb"][c])
+        save_png(f"bev_rgb_{c}", bev["rgb"][c], title=f"colour: {c}")
     if semantics:
-        save_png("bev_semantics.png", CLASS_COLOURS[np.minimum(bev["labels"], len(CLASS_COLOURS) - 1)]
-                 * (bev["labels"] != NO_LABEL)[..., None].astype(np.uint8))
-    save_png("bev_elevation.png", elevation_image(bev["elevation"]))
+        save_png("bev_semantics", semantic_image(bev["labels"]), title="semantics", legend=True)
+    save_png("bev_elevation", elevation_image(bev["elevation"]), title="elevation",
+             elevation_range_m=elevation_range(bev["elevation"]))
     arrays = [("bev_elevation.npy", bev["elevation"])] + ([("bev_semantics.npy", bev["labels"])] if semantics else [])
     for name, array in arrays:
         np.save(out_dir / name, array)
         files[name] = out_dir / name
+    crs = map_geotiff.local_crs(origin) if origin is not None else None
+    grid = (bev["origin_xy"], res)
+    tifs = {"bev_elevation.tif": lambda p: map_geotiff.write_elevation(p, bev["elevation"], grid, crs)}
+    if semantics:
+        tifs["bev_semantics.tif"] = lambda p: map_geotiff.write_semantics(p, bev["labels"], grid, crs)
+    for c in cameras:
+        tifs[f"bev_rgb_{c}.tif"] = lambda p, c=c: map_geotiff.write_rgb(p, bev["rgb"][c], np.isfinite(
+            bev["elevation"]), grid, crs)
+    for name, write in tifs.items():
+        files[name] = write(out_dir / name)
     meta = {
+        "origin_lat_lon_alt": [origin.lat_deg, origin.lon_deg, origin.alt_m] if origin is not None else None,
+        "crs": crs,  # PROJ string of the GeoTIFFs' CRS, whose x, y are the ENU frame's (map_geotiff.local_crs)
         "origin_xy": bev["origin_xy"],
         "resolution_m": res,
         "shape": list(bev["elevation"].shape),
-        "cell": "cell (i, j) of the .npy rasters is centred at (x0 + j*res, y0 + i*res); PNGs are flipped north-up",
+        "cell": ("cell (i, j) of the .npy rasters is centred at (x0 + j*res, y0 + i*res); PNGs and GeoTIFFs are "
+                 "flipped north-up"),
         "semantics": semantics,  # false: the map has no semantics, and no bev_semantics.* files
         "semantics_no_label": NO_LABEL,
         "cameras": cameras,
@@ -112,7 +127,8 @@ def _export_rasters(road_map: RoadMap, out_dir: Path, cameras: list[str], raster
     return files
 
 
-def _export_mesh(road_map: RoadMap, out_dir: Path, camera: str) -> dict[str, Path]:
+def _export_mesh(road_map: RoadMap, out_dir: Path, camera: str, origin_lat_lon_alt: list[float] | None
+                 ) -> dict[str, Path]:
     """The observed part of the mesh with `camera`'s vertex colours and the labels (PLY, GLB), the checkpoint."""
     faces = road_map.mesh.faces[(road_map.observed[road_map.mesh.faces] > 0).all(1)]
     used, local = used_vertices(faces, road_map.mesh.num_vertices)
@@ -121,10 +137,7 @@ def _export_mesh(road_map: RoadMap, out_dir: Path, camera: str) -> dict[str, Pat
     mesh = trimesh.Trimesh(vertices, local.reshape(-1, 3), vertex_colors=colours, process=False)
     if road_map.semantic_logits is not None:
         mesh.vertex_attributes["label"] = vertex_labels(road_map)[used]
-    files = {}
-    for name in ("mesh.ply", "mesh.glb"):
-        mesh.export(out_dir / name)
-        files[name] = out_dir / name
+    files = write_mesh_files(mesh, out_dir, origin_lat_lon_alt)
     torch.save(road_map.state_dict(), out_dir / "checkpoint.pt")
     files["checkpoint.pt"] = out_dir / "checkpoint.pt"
     return files

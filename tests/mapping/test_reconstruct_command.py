@@ -2,12 +2,16 @@
 own metadata, the truth beside it; the files and metrics it writes."""
 
 import json
+import re
 import subprocess
 import sys
 
 import numpy as np
+import rasterio
 import trimesh
+from rasterio.warp import transform
 
+from daemon.spine.local_frame import LocalFrame
 from tests.daemon_fixtures import REPO
 
 
@@ -36,6 +40,25 @@ def test_reconstruct_a_recorded_drive_against_its_truth(city_drive, tmp_path):
     assert len(mesh.faces) > 1000
     assert (out / "config.yaml").read_text().startswith("vehicle:")
     assert (out / "checkpoint.pt").stat().st_size > 0 and (out / "bev_semantics.png").stat().st_size > 0
+    assert not undocumented_metrics(metrics) and not {"rtf_mapping", "realtime_factor"} & set(metrics)
+    # the map on the earth: bev.json's origin is the drive's, and a mapped cell of the GeoTIFF lands at its lat/lon
+    origin = np.load(city_drive.with_name("city.gt.npz"))["enu_origin_lat_lon_alt"].tolist()
+    bev = json.loads((out / "bev.json").read_text())
+    assert bev["origin_lat_lon_alt"] == origin and bev["crs"].startswith("+proj=tmerc")
+    i, j = np.argwhere(np.isfinite(grid))[0]
+    x, y = bev["origin_xy"][0] + j * bev["resolution_m"], bev["origin_xy"][1] + i * bev["resolution_m"]
+    with rasterio.open(out / "bev_elevation.tif") as tif:
+        assert tif.read(1)[tif.index(x, y)] == grid[i, j]
+        (lon,), (lat,) = transform(tif.crs, "EPSG:4326", [x], [y])
+    frame = LocalFrame(*origin)
+    placed = frame.geodetic_to_enu(lat, lon, frame.alt_m + grid[i, j])
+    assert np.hypot(placed[0] - x, placed[1] - y) < 1e-3  # metres
+
+
+def undocumented_metrics(metrics: dict) -> set[str]:
+    """The keys of a metrics.json (and of its `inputs`, as inputs.KEY) that docs/map-outputs.md's table lacks."""
+    documented = set(re.findall(r"^\| `([a-z0-9_.]+)` \|", (REPO / "docs" / "map-outputs.md").read_text(), re.M))
+    return (set(metrics) | {f"inputs.{k}" for k in metrics.get("inputs", {})}) - documented
 
 
 def _reconstruct(logs, out, *extra):
@@ -69,6 +92,7 @@ def test_a_drive_without_masks_maps_colour_and_elevation_and_says_semantics_are_
         assert (out / name).stat().st_size > 0, name
     assert np.isfinite(np.load(out / "bev_elevation.npy")).sum() > 1000
     assert not list(out.glob("bev_semantics*")) and json.loads((out / "bev.json").read_text())["semantics"] is False
+    assert not undocumented_metrics(metrics)  # the maskless_* keys too
     header = (out / "mesh.ply").read_bytes()[:1000].split(b"end_header")[0]
     assert b"property uchar red" in header and b"label" not in header  # no vertex labels either
 
