@@ -168,6 +168,7 @@ class _ViewSeen:
     observed: np.ndarray  # (H', W', 3) float32 camera image at the sampled pixels, [0, 1]
     road_pixels: np.ndarray  # (H', W') bool: pixels that see the mesh and show road surface (without a mask: every
     # pixel that sees the mesh, whatever stands on it)
+    distance_m: np.ndarray  # (H', W') float32 distance from the camera to the surface the pixel sees (inf: none)
     confusion: np.ndarray  # (C, C) rendered semantics against the view's segmentation mask (zeros without one)
     masked: bool  # the view has semantics (a mask or a model's labels)
 
@@ -183,17 +184,65 @@ def _view_seen(road_map: RoadMap, cameras: dict[str, CameraModel], kf: Keyframe,
     at = sampled_pixels(camera, stride)
     image = kf.image.reshape(-1, 3)[at].astype(np.float32) / 255.0
     hit = geometry.hit.reshape(at.shape)
+    distance = np.full(hit.size, np.inf, np.float32)
+    w = geometry.weights.numpy()[..., None]
+    seen_at = (np.concatenate([road_map.mesh.xy[geometry.tri], road_map.z_now[geometry.tri][..., None]], -1) * w).sum(1)
+    distance[geometry.hit] = np.linalg.norm(seen_at - kf.T_world_camera[:3, 3], axis=1)
+    distance = distance.reshape(at.shape)
     if kf.semantics is None:
-        return _ViewSeen(kf.camera, geometry, image, hit, np.zeros((NUM_MAP_CLASSES, NUM_MAP_CLASSES), np.int64), False)
+        return _ViewSeen(kf.camera, geometry, image, hit, distance,
+                         np.zeros((NUM_MAP_CLASSES, NUM_MAP_CLASSES), np.int64), False)
     semantics = kf.semantics.ravel()[at]
     labels = view_labels(road_map, geometry)
     labelled = hit & (semantics < NUM_MAP_CLASSES) & (labels != NO_LABEL)
-    return _ViewSeen(kf.camera, geometry, image, hit & np.isin(semantics, np.array(ROAD_SURFACE_CLASSES)),
+    return _ViewSeen(kf.camera, geometry, image, hit & np.isin(semantics, np.array(ROAD_SURFACE_CLASSES)), distance,
                      confusion(labels, semantics, labelled), True)
 
 
-def _view_psnr(road_map: RoadMap, seen: _ViewSeen) -> float | None:
-    return psnr_db(view_rgb(road_map, seen.geometry, seen.camera), seen.observed, seen.road_pixels)
+DISTANCE_BANDS_M = ((0.0, 10.0), (10.0, 20.0), (20.0, 40.0), (40.0, np.inf))  # PSNR by distance from the camera
+
+
+@dataclass(frozen=True)
+class _ViewScore:
+    """A shaded view's PSNR, and its sums for the figures pooled over views."""
+
+    psnr: float | None
+    band_squared_error: np.ndarray  # (bands,) summed over the band's pixels and channels
+    band_values: np.ndarray  # (bands,) pixel channels summed over
+    saturation: np.ndarray  # (2,) sums over the road pixels of the rendered and the observed HSV saturation
+    pixels: int
+
+
+def _saturation(rgb: np.ndarray) -> np.ndarray:
+    """HSV saturation of (N, 3) colours in [0, 1]: (max - min) / max, 0 for black."""
+    top = rgb.max(axis=1)
+    return np.where(top > 0, (top - rgb.min(axis=1)) / np.maximum(top, 1e-12), 0.0)
+
+
+def _view_score(road_map: RoadMap, seen: _ViewSeen) -> _ViewScore:
+    rendered = view_rgb(road_map, seen.geometry, seen.camera)
+    road = seen.road_pixels
+    squared = ((rendered - seen.observed) ** 2).sum(-1)
+    bands = [road & (seen.distance_m >= lo) & (seen.distance_m < hi) for lo, hi in DISTANCE_BANDS_M]
+    saturation = np.array([_saturation(rendered[road]).sum(), _saturation(seen.observed[road]).sum()])
+    return _ViewScore(psnr_db(rendered, seen.observed, road), np.array([squared[b].sum() for b in bands]),
+                      np.array([3 * b.sum() for b in bands], np.float64), saturation, int(road.sum()))
+
+
+def _pooled(scores: list[_ViewScore]) -> dict:
+    """PSNR per distance band over the pixels of every view pooled (a band's mean squared error, then its PSNR),
+    and the mean HSV saturation of the rendered and the observed road pixels with their ratio."""
+    error = sum((v.band_squared_error for v in scores), np.zeros(len(DISTANCE_BANDS_M)))
+    values = sum((v.band_values for v in scores), np.zeros(len(DISTANCE_BANDS_M)))
+    bands = {f"{lo:g}-{hi:g} m" if np.isfinite(hi) else f"{lo:g}+ m":
+             (10.0 * np.log10(n / max(e, 1e-12 * n)) if n > 0 else None)
+             for (lo, hi), e, n in zip(DISTANCE_BANDS_M, error, values, strict=True)}
+    pixels = sum(v.pixels for v in scores)
+    rendered, observed = sum((v.saturation for v in scores), np.zeros(2)) / max(pixels, 1)
+    return {"psnr_by_distance_db": bands if pixels else None,
+            "saturation_rendered_pct": 100.0 * rendered if pixels else None,
+            "saturation_observed_pct": 100.0 * observed if pixels else None,
+            "saturation_ratio": rendered / observed if pixels and observed > 0 else None}
 
 
 def _evenly(views: list[Keyframe], count: int) -> list[Keyframe]:
@@ -260,16 +309,22 @@ PSNR_PIXELS = {  # which pixels the PSNRs are taken over, by whether the evaluat
 
 def finish_evaluation(pending: PendingEvaluation) -> dict:
     """The metrics of a started evaluation, its views shaded with the map's colours as they are now.
-    `psnr_pixels` says which pixels the PSNRs are over (PSNR_PIXELS).
+    `psnr_pixels` says which pixels the PSNRs are over (PSNR_PIXELS); `psnr_by_distance_db` and the saturations
+    are over the held-out views' same pixels, pooled (_pooled).
     `miou_mask_pct` compares rendered semantics with the held-out frames' segmentation masks; `miou_pct` is
     the bird's-eye mIoU against the true grid when the truth has one, else `miou_mask_pct`; `iou_pct` holds
     the per-class IoUs `miou_pct` is the mean of."""
     road_map = pending.road_map
     with pending.pool as pool:
-        def mean_psnr(views: list[Future]) -> float | None:
-            shaded = [pool.submit(_view_psnr, road_map, view.result()) for view in views]
-            values = [v for v in (f.result() for f in shaded) if v is not None]
+        def scores(views: list[Future]) -> list[_ViewScore]:
+            shaded = [pool.submit(_view_score, road_map, view.result()) for view in views]
+            return [f.result() for f in shaded]
+
+        def mean_psnr(views: list[_ViewScore]) -> float | None:
+            values = [v.psnr for v in views if v.psnr is not None]
             return float(np.mean(values)) if values else None
+
+        held, trained = scores(pending.held), scores(pending.trained)
 
         conf = sum((f.result().confusion for f in pending.held), np.zeros((NUM_MAP_CLASSES, NUM_MAP_CLASSES),
                                                                          np.int64))
@@ -278,9 +333,10 @@ def finish_evaluation(pending: PendingEvaluation) -> dict:
         bev = pending.bev_confusion.result()
         scored = bev if bev is not None else conf
         return {
-            "psnr_db": mean_psnr(pending.held),
-            "psnr_train_db": mean_psnr(pending.trained),
+            "psnr_db": mean_psnr(held),
+            "psnr_train_db": mean_psnr(trained),
             "psnr_pixels": PSNR_PIXELS[frozenset(masked)],
+            **_pooled(held),
             "miou_pct": miou_pct(scored) if labelled else None,
             "iou_pct": iou_pct(scored) if labelled else None,
             "miou_mask_pct": miou_pct(conf) if labelled else None,
