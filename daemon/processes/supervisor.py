@@ -4,8 +4,9 @@ Each process runs as `python -m module`. A process that exits is restarted with 
 (each restart recorded); one whose health topic stops updating for its `heartbeat_s` is considered
 hung, killed and restarted. SIGTERM/SIGINT stop everything within each process's `stop_timeout_s`
 (SIGTERM first, SIGKILL after), so open log files are closed properly. The supervisor's own state is
-published as JSON in the `detail` of its health topic; systemd gets READY=1 once the required drivers
-report ok, and WATCHDOG=1 only while the daemon is healthy.
+published as JSON in the `detail` of its health topic. A dead or crash-looping sensor degrades the daemon, it
+never stops it: systemd gets READY=1 once the recorder runs (not waiting for every driver), a STATUS= line naming
+what is missing or crash-looping whenever that changes, and WATCHDOG=1 for as long as this loop runs.
 """
 
 from __future__ import annotations
@@ -27,8 +28,9 @@ from daemon.spine.topics import health_topic
 
 MAX_BACKOFF_S = 30.0
 CRASH_LOOP_RESTARTS = 3  # this many restarts of one process ...
-CRASH_LOOP_WINDOW_S = 60.0  # ... within this window: the daemon is unhealthy (systemd's watchdog starves)
+CRASH_LOOP_WINDOW_S = 60.0  # ... within this window: it is crash-looping (named in STATUS= and /status)
 STARTUP_GRACE_S = 20.0
+FRESH_HEALTH_S = 3.0  # a process whose newest health is older than this is not (yet) up
 
 
 def sd_notify(state: str) -> bool:
@@ -38,9 +40,13 @@ def sd_notify(state: str) -> bool:
         return False
     if address.startswith("@"):
         address = "\0" + address[1:]
-    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
-        sock.connect(address)
-        sock.sendall(state.encode())
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+            sock.connect(address)
+            sock.sendall(state.encode())
+    except OSError as exc:  # systemd's socket gone for a moment: say so, and keep supervising
+        print(f"supervisor: sd_notify {state.splitlines()[0]!r} failed: {exc}", file=sys.stderr, flush=True)
+        return False
     return True
 
 
@@ -86,6 +92,7 @@ class Supervisor:
         self._publisher = None
         self._last_health = 0.0
         self._last_watchdog = 0.0
+        self._last_status = ""
 
     # --- process control -----------------------------------------------------------------------
     def _start(self, child: Child) -> None:
@@ -185,31 +192,61 @@ class Supervisor:
                 for name, c in self.children.items()
             },
             "ready_sent": self.ready_sent,
+            "degraded": self.degraded(),
         }
 
-    def healthy(self) -> bool:
-        """Healthy while no process is crash-looping (CRASH_LOOP_RESTARTS within CRASH_LOOP_WINDOW_S)."""
+    def crash_looping(self) -> list[str]:
+        """The processes restarted CRASH_LOOP_RESTARTS times or more within CRASH_LOOP_WINDOW_S."""
         now = time.monotonic()
-        return all(sum(1 for r in c.restart_log if now - r["at_mono_s"] < CRASH_LOOP_WINDOW_S) < CRASH_LOOP_RESTARTS
-                   for c in self.children.values())
+        return [name for name, c in self.children.items()
+                if sum(1 for r in c.restart_log if now - r["at_mono_s"] < CRASH_LOOP_WINDOW_S) >= CRASH_LOOP_RESTARTS]
 
-    def _drivers_ok(self) -> bool:
-        for c in (c for c in self.children.values() if c.spec.required):
-            age = self._last_health_age_s(c)
-            if c.state != "running" or age is None or age > 3.0:
-                return False
-        return True
+    def healthy(self) -> bool:
+        """No process crash-looping (a degraded daemon is still fed to the watchdog: see `_report`)."""
+        return not self.crash_looping()
+
+    def _up(self, child: Child) -> bool:
+        age = self._last_health_age_s(child)
+        return child.state == "running" and age is not None and age <= FRESH_HEALTH_S
+
+    def recording(self) -> bool:
+        """The recorder runs and reports (or this run records nothing): the daemon is ready, degraded or not."""
+        recorder = self.children.get("recorder")
+        return recorder is None or self._up(recorder)
+
+    def degraded(self) -> list[str]:
+        """What is missing: each crash-looping process, failed one, and required driver not up, with why."""
+        looping = set(self.crash_looping())
+        problems = []
+        for name, c in self.children.items():
+            if name in looping:
+                problems.append(f"{name} crash-looping ({c.restarts} restarts, last: {c.last_reason})")
+            elif c.state == "failed":
+                problems.append(f"{name} failed ({c.last_reason.split(':')[0]})")
+            elif c.spec.required and not self._up(c):
+                problems.append(f"{name} " + ("restarting" if c.state == "backoff" else "not up"))
+        return problems
+
+    def status_line(self) -> str:
+        """systemd's STATUS=: whether it records, and what is missing."""
+        problems = self.degraded()
+        head = "recording" if self.recording() else "starting: waiting for the recorder"
+        return f"{head}; degraded: {'; '.join(problems)}" if problems else f"{head}; all processes up"
 
     def _report(self) -> None:
         now = time.monotonic()
         if now - self._last_health < 1.0:
             return
         self._last_health = now
-        if not self.ready_sent and self._drivers_ok():
+        status = self.status_line()
+        if not self.ready_sent and self.recording():
             self.ready_sent = True
-            sd_notify("READY=1\nSTATUS=drivers up")
+            sd_notify(f"READY=1\nSTATUS={status}")
+        elif status != self._last_status:
+            sd_notify(f"STATUS={status}")
+        self._last_status = status
         interval = watchdog_interval_s()
-        if interval and self.healthy() and now - self._last_watchdog >= interval:
+        if interval and now - self._last_watchdog >= interval:  # this loop runs: the supervisor is alive
             self._last_watchdog = now
             sd_notify("WATCHDOG=1")
         if self.publish_health:
