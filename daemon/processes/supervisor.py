@@ -6,11 +6,13 @@ hung, killed and restarted. SIGTERM/SIGINT stop everything within each process's
 (SIGTERM first, SIGKILL after), so open log files are closed properly. The supervisor's own state is
 published as JSON in the `detail` of its health topic. A dead or crash-looping sensor degrades the daemon, it
 never stops it: systemd gets READY=1 once the recorder runs (not waiting for every driver), a STATUS= line naming
-what is missing or crash-looping whenever that changes, and WATCHDOG=1 for as long as this loop runs.
+what is missing or crash-looping whenever that changes, and WATCHDOG=1 for as long as this loop runs. A child
+dies with the supervisor (PR_SET_PDEATHSIG), however the supervisor ends.
 """
 
 from __future__ import annotations
 
+import ctypes
 import json
 import os
 import signal
@@ -59,6 +61,22 @@ def watchdog_interval_s() -> float | None:
     return int(usec) / 2e6
 
 
+PR_SET_PDEATHSIG = 1  # prctl(2): the signal a process gets when the thread that started it dies
+_libc = ctypes.CDLL(None, use_errno=True)
+
+
+def _die_with_parent(parent_pid: int):
+    """A child's preexec_fn: SIGKILL it when the supervisor dies (a killed daemon leaves no orphan holding its
+    rings, ports and segments; the open segment is recovered at the next start, as after a power cut)."""
+
+    def preexec() -> None:
+        _libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        if os.getppid() != parent_pid:  # the supervisor died before prctl: no signal will come
+            os._exit(1)
+
+    return preexec
+
+
 @dataclass
 class Child:
     spec: ProcessSpec
@@ -93,13 +111,15 @@ class Supervisor:
         self._last_health = 0.0
         self._last_watchdog = 0.0
         self._last_status = ""
+        self.inherit_fds: tuple[int, ...] = ()  # the daemon's instance locks: its children hold them too
 
     # --- process control -----------------------------------------------------------------------
     def _start(self, child: Child) -> None:
         cmd = [sys.executable, "-m", child.spec.module, *child.spec.args]
         if child.spec.nice:  # coreutils `nice` execs the process: its pid and parent stay the same
             cmd = ["nice", "-n", str(child.spec.nice), *cmd]
-        child.popen = subprocess.Popen(cmd, env=dict(self.env, **{RESTARTS_ENV: str(child.restarts)}))
+        child.popen = subprocess.Popen(cmd, env=dict(self.env, **{RESTARTS_ENV: str(child.restarts)}),
+                                       pass_fds=self.inherit_fds, preexec_fn=_die_with_parent(os.getpid()))
         child.state = "running"
         child.started_at = time.monotonic()
 

@@ -1,0 +1,89 @@
+"""One daemon per bus and per data folder: lock files held with `flock`, which the kernel releases when the last
+process holding them dies (the daemon and the children it passes them to), so a killed daemon's lock never blocks.
+
+A second `roadlog run`/`replay` on the same bus prefix would unlink the first one's rings; on the same data folder
+its recorder would "recover" the first one's open segment. It is refused with one line and EXIT_ALREADY_RUNNING.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import time
+from pathlib import Path
+
+from daemon.bus.pubsub import SHM_DIR
+from daemon.spine.config import CarConfig, ConfigError
+
+EXIT_ALREADY_RUNNING = 3  # `roadlog run`/`replay` exit status when another daemon holds the bus or the data folder
+LOCK_WAIT_S = 3.0  # a killed daemon's children hold its locks until they die too (SIGKILLed with it: milliseconds)
+DATA_LOCK = ".roadlog.lock"
+
+
+class AlreadyRunning(Exception):
+    """Another daemon holds one of this run's locks; the message is the one line to print."""
+
+
+def bus_lock_path(config: CarConfig) -> Path:
+    """Beside the rings, outside their `<prefix>.*` names (which a starting daemon removes)."""
+    return Path(SHM_DIR) / f"{config.bus.shm_prefix}-daemon.lock"
+
+
+def _holder(fd: int) -> int | None:
+    """The pid of the daemon that took the lock (written in the file), None when unreadable."""
+    text = os.pread(fd, 32, 0).decode(errors="replace").strip()
+    return int(text) if text.isdigit() else None
+
+
+def _alive(pid: int | None) -> bool:
+    if not pid:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def _lock(path: Path, what: str, wait_s: float) -> int:
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+    except OSError as exc:
+        raise ConfigError(f"cannot open the lock file {path} ({what}): {exc.strerror}") from None
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            break
+        except BlockingIOError:
+            holder = _holder(fd)
+            # a live holder is a running daemon: refuse at once; a dead one's children are still going: wait a little
+            if _alive(holder) or time.monotonic() >= deadline:
+                os.close(fd)
+                who = f"pid {holder}" if _alive(holder) else f"the processes of pid {holder}, which is gone"
+                raise AlreadyRunning(f"roadlog: another daemon ({who}) already runs on {what} (it holds {path}); "
+                                     f"stop it first") from None
+            time.sleep(0.05)
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    return fd
+
+
+def hold_instance_locks(config: CarConfig, data_folder: Path, wait_s: float = LOCK_WAIT_S) -> list[int]:
+    """Lock the bus prefix and the data folder (made if missing) for this daemon: their file descriptors, to keep
+    open for as long as it runs (and to pass to its children). AlreadyRunning when another daemon holds either."""
+    try:
+        data_folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"data folder {str(data_folder)!r} cannot be made: {exc.strerror}") from None
+    fds: list[int] = []
+    try:
+        fds.append(_lock(bus_lock_path(config), f"bus prefix {config.bus.shm_prefix!r}", wait_s))
+        fds.append(_lock(data_folder.absolute() / DATA_LOCK, f"data folder {str(data_folder.absolute())!r}", wait_s))
+    except BaseException:
+        for fd in fds:
+            os.close(fd)
+        raise
+    return fds
