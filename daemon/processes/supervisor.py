@@ -137,8 +137,8 @@ class Supervisor:
         print(f"supervisor: {child.spec.name} {reason}; restart #{child.restarts} in "
               f"{child.next_start_at - now:.1f} s", file=sys.stderr, flush=True)
 
-    def _last_health_age_s(self, child: Child) -> float | None:
-        """Seconds since the process's newest health message, None when it has published none."""
+    def _latest_health(self, child: Child):
+        """The process's newest DriverHealth on the bus, None when it has published none."""
         from daemon.bus.pubsub import open_subscriber
 
         topic = health_topic(child.spec.name)
@@ -148,7 +148,11 @@ class Supervisor:
                 sub = self._subscribers[topic] = open_subscriber(self.config, topic, start="latest")
             except (FileNotFoundError, OSError):
                 return None
-        msg = sub.latest(copy=True)
+        return sub.latest(copy=True)
+
+    def _last_health_age_s(self, child: Child) -> float | None:
+        """Seconds since the process's newest health message (by its own stamp), None when it has published none."""
+        msg = self._latest_health(child)
         if msg is None:
             return None
         return (time.monotonic_ns() - msg.host_mono_ns) / 1e9
@@ -235,7 +239,8 @@ class Supervisor:
         return recorder is None or self._up(recorder)
 
     def degraded(self) -> list[str]:
-        """What is missing: each crash-looping process, failed one, and required driver not up, with why."""
+        """What is missing: each crash-looping process, failed one, required driver not up or not delivering (its
+        health not `ok`), with why."""
         looping = set(self.crash_looping())
         problems = []
         for name, c in self.children.items():
@@ -245,12 +250,17 @@ class Supervisor:
                 problems.append(f"{name} failed ({c.last_reason.split(':')[0]})")
             elif c.spec.required and not self._up(c):
                 problems.append(f"{name} " + ("restarting" if c.state == "backoff" else "not up"))
+            elif c.spec.required and (health := self._latest_health(c)) is not None and health.state != "ok":
+                problems.append(f"{name} {health.state} ({health.rate_hz:.1f} Hz)")  # runs, but no or too little data
         return problems
 
     def status_line(self) -> str:
         """systemd's STATUS=: whether it records, and what is missing."""
         problems = self.degraded()
-        head = "recording" if self.recording() else "starting: waiting for the recorder"
+        if "recorder" not in self.children:
+            head = "running, not recording"
+        else:
+            head = "recording" if self.recording() else "starting: waiting for the recorder"
         return f"{head}; degraded: {'; '.join(problems)}" if problems else f"{head}; all processes up"
 
     def _report(self) -> None:

@@ -1,5 +1,6 @@
-"""One daemon at a time, through `roadlog run` itself: a second one on the same bus or data folder is refused with
-one line, a killed daemon's children die with it, and the next start gets the ports and runs without restarts."""
+"""`roadlog run` as systemd sees it: ready and fed while sensors are dead, logging the rest; one daemon at a time (a
+second one on the same bus or data folder is refused with one line); a killed daemon's children die with it, and
+the next start gets the ports and runs without restarts."""
 
 import json
 import os
@@ -174,3 +175,57 @@ def test_a_killed_daemons_children_die_and_the_next_start_runs(daemons):
     assert orphans_gone_s < 1.0, orphans_gone_s
     os.killpg(second.proc.pid, signal.SIGTERM)
     assert second.proc.wait(60) == 0
+
+
+def test_a_daemon_with_dead_sensors_is_ready_fed_and_logs_the_rest(daemons):
+    """No camera can start (exit 2: nothing to play), no GNSS receiver, no Lidar or CAN data: READY=1 still comes
+    once the recorder runs (before, it waited for every driver: a start time-out and a restart loop), STATUS= names
+    each, WATCHDOG=1 keeps coming, and what there is (the processes' health) is logged."""
+    make, tmp_path, _ = daemons
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(tmp_path / "notify.sock"))
+    sock.settimeout(0.2)
+    daemon = make()
+    t0 = time.monotonic()
+    daemon.start(env=dict(os.environ, NOTIFY_SOCKET=str(tmp_path / "notify.sock"), WATCHDOG_USEC="2000000"))
+    received = []
+
+    def drain(seconds):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            try:
+                received.append((time.monotonic(), sock.recv(4096).decode()))
+            except TimeoutError:
+                pass
+
+    try:
+        _wait(lambda: drain(0.5) or any(m.startswith("READY=1") for _, m in received), 60, "READY=1")
+        _wait(lambda: drain(0.5) or any("camera_front_right failed" in m for _, m in received), 30,
+              "the cameras' failure")
+        written = _wait(lambda: _recorder_written(daemon), 10, "the recorder's first messages")
+        watched_from = time.monotonic()
+        drain(3.0)
+        daemon_written = _recorder_written(daemon)
+    finally:
+        sock.close()
+    ready_at, ready = next((t, m) for t, m in received if m.startswith("READY=1"))
+    assert ready.startswith("READY=1\nSTATUS=recording; degraded: ") and ready_at - t0 < 45
+    status = [m for _, m in received if m.startswith("STATUS=")][-1]
+    for name in ("camera_front_wide", "camera_front_left", "camera_front_right"):
+        assert f"{name} failed (configuration error (exit 2))" in status, status
+    for name in ("lidar", "gnss", "can"):  # running, nothing to read
+        assert f"{name} error (0.0 Hz)" in status, status
+    dogs = [watched_from] + [t for t, m in received if m == "WATCHDOG=1" and t >= watched_from] + [time.monotonic()]
+    assert max(b - a for a, b in zip(dogs, dogs[1:], strict=False)) < 2.0, dogs  # WatchdogSec=2 s: never starved
+    assert daemon_written > written  # the recorder logs on
+    assert daemon.proc.poll() is None
+
+
+def _recorder_written(daemon: Daemon) -> int:
+    """Messages the recorder reports written, from /status."""
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{daemon.port}/status", timeout=3) as r:
+            written = json.loads(r.read()).get("recorder", {}).get("written", {})
+    except (OSError, ValueError):
+        return 0
+    return sum(written.values()) if isinstance(written, dict) else 0
