@@ -73,14 +73,15 @@ def _lock(path: Path, what: str, wait_s: float) -> int:
 
 def hold_instance_locks(config: CarConfig, data_folder: Path, wait_s: float = LOCK_WAIT_S) -> list[int]:
     """Lock the bus prefix and the data folder (made if missing) for this daemon: their file descriptors, to keep
-    open for as long as it runs (and to pass to its children). AlreadyRunning when another daemon holds either."""
-    try:
-        data_folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"data folder {str(data_folder)!r} cannot be made: {exc.strerror}") from None
+    open for as long as it runs (and to pass to its children). AlreadyRunning when another daemon holds either. A
+    data folder that cannot be made is not locked: no daemon can write there, and the recorder reports why."""
     fds: list[int] = []
     try:
         fds.append(_lock(bus_lock_path(config), f"bus prefix {config.bus.shm_prefix!r}", wait_s))
+        try:
+            data_folder.mkdir(parents=True, exist_ok=True)
+        except OSError:
+            return fds
         fds.append(_lock(data_folder.absolute() / DATA_LOCK, f"data folder {str(data_folder.absolute())!r}", wait_s))
     except BaseException:
         for fd in fds:

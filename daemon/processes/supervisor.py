@@ -5,7 +5,8 @@ Each process runs as `python -m module`. A process that exits is restarted with 
 hung, killed and restarted. SIGTERM/SIGINT stop everything within each process's `stop_timeout_s`
 (SIGTERM first, SIGKILL after), so open log files are closed properly. The supervisor's own state is
 published as JSON in the `detail` of its health topic. A dead or crash-looping sensor degrades the daemon, it
-never stops it: systemd gets READY=1 once the recorder runs (not waiting for every driver), a STATUS= line naming
+never stops it: systemd gets READY=1 once the recorder runs (not waiting for every driver; or once it failed on its
+configuration, which no restart mends), a STATUS= line naming
 what is missing or crash-looping whenever that changes, and WATCHDOG=1 for as long as this loop runs. A child
 dies with the supervisor (PR_SET_PDEATHSIG), however the supervisor ends.
 """
@@ -238,6 +239,10 @@ class Supervisor:
         recorder = self.children.get("recorder")
         return recorder is None or self._up(recorder)
 
+    def ready(self) -> bool:
+        """READY=1: the recorder runs, or cannot (a configuration error, which no restart of the daemon mends)."""
+        return self.recording() or self.children["recorder"].state == "failed"
+
     def degraded(self) -> list[str]:
         """What is missing: each crash-looping process, failed one, required driver not up or not delivering (its
         health not `ok`), with why."""
@@ -257,7 +262,7 @@ class Supervisor:
     def status_line(self) -> str:
         """systemd's STATUS=: whether it records, and what is missing."""
         problems = self.degraded()
-        if "recorder" not in self.children:
+        if "recorder" not in self.children or self.children["recorder"].state == "failed":
             head = "running, not recording"
         else:
             head = "recording" if self.recording() else "starting: waiting for the recorder"
@@ -269,7 +274,7 @@ class Supervisor:
             return
         self._last_health = now
         status = self.status_line()
-        if not self.ready_sent and self.recording():
+        if not self.ready_sent and self.ready():
             self.ready_sent = True
             sd_notify(f"READY=1\nSTATUS={status}")
         elif status != self._last_status:

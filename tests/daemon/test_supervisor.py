@@ -211,6 +211,31 @@ def test_degraded_mode_ready_status_and_watchdog_through_a_crash_loop(config, tm
         sock.close()
 
 
+def test_ready_when_the_recorder_cannot_start_on_its_configuration(config, tmp_path, monkeypatch):
+    """A recorder refusing its config (exit 2) is not retried, and no restart of the daemon would mend it: READY=1
+    comes (a start time-out would only restart the drivers forever), STATUS= says nothing is recorded and why."""
+    cfg, path = config
+    sock, sock_path = _notify_socket(tmp_path)
+    monkeypatch.setenv("NOTIFY_SOCKET", sock_path)
+    sup = Supervisor(cfg, [_spec("recorder", path, "bad-config", after=0.0), _spec("gnss", path, required=True)],
+                     env=ENV)
+    thread = _run_in_thread(sup)
+    ready = None
+    try:
+        deadline = time.monotonic() + 20
+        while ready is None and time.monotonic() < deadline:
+            try:
+                message = sock.recv(4096).decode()
+            except TimeoutError:
+                continue
+            ready = message if message.startswith("READY=1") else None
+    finally:
+        sup.stop_event.set()
+        thread.join(30)
+        sock.close()
+    assert ready == "READY=1\nSTATUS=running, not recording; degraded: recorder failed (configuration error (exit 2))"
+
+
 def test_process_table_live_and_replay(config):
     cfg, path = config
     live = process_table(cfg, str(path), "live")
