@@ -5,7 +5,6 @@ Each first takes the bus's and the data folder's locks (`instance_lock`): a seco
 from __future__ import annotations
 
 import argparse
-import os
 import signal
 import sys
 from pathlib import Path
@@ -42,16 +41,16 @@ def _serve(supervisor: Supervisor, config, data_folder: Path) -> int:
     except AlreadyRunning as exc:
         print(exc, file=sys.stderr, flush=True)
         return EXIT_ALREADY_RUNNING
-    supervisor.inherit_fds = tuple(locks)  # held until the last of its children is gone too
+    supervisor.inherit_fds = locks.fds  # held until the last of its children is gone too
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
     create_rings(config)
     try:
-        return supervisor.run()
+        code = supervisor.run()
     finally:
         unlink_all(config)
-        for fd in locks:
-            os.close(fd)
+    locks.release()  # its children are gone (if run() raised, they hold the locks until they die with it)
+    return code
 
 
 @reports_config_errors

@@ -19,7 +19,14 @@ import pytest
 import yaml
 
 from daemon.bus.pubsub import unlink_all
-from daemon.processes.instance_lock import EXIT_ALREADY_RUNNING
+from daemon.processes.instance_lock import (
+    DATA_LOCK,
+    EXIT_ALREADY_RUNNING,
+    LOCK_WAIT_S,
+    AlreadyRunning,
+    bus_lock_path,
+    hold_instance_locks,
+)
 from daemon.spine.config import load_config
 from tests.daemon_fixtures import REPO
 
@@ -115,6 +122,7 @@ def daemons(tmp_path):
         d.kill_group()
     for p in {d.config_path for d in started}:
         unlink_all(load_config(p))
+        bus_lock_path(load_config(p)).unlink(missing_ok=True)  # a killed daemon leaves it (unlocked)
 
 
 def test_a_second_daemon_is_refused_with_one_line(daemons):
@@ -151,6 +159,8 @@ def test_a_second_daemon_is_refused_with_one_line(daemons):
     assert all(info["restarts"] == 0 for name, info in first.processes().items() if name in LIVE)
     os.killpg(first.proc.pid, signal.SIGTERM)
     assert first.proc.wait(60) == 0
+    assert not bus_lock_path(load_config(first.config_path)).exists()  # a clean end removes its lock files
+    assert not (tmp_path / "logs" / DATA_LOCK).exists()
 
 
 def test_a_killed_daemons_children_die_and_the_next_start_runs(daemons):
@@ -229,3 +239,21 @@ def _recorder_written(daemon: Daemon) -> int:
     except (OSError, ValueError):
         return 0
     return sum(written.values()) if isinstance(written, dict) else 0
+
+
+def test_instance_locks_refuse_at_once_and_a_clean_release_frees_them(tmp_path):
+    """flock conflicts between two opens of the file even in one process: the second hold is refused without the
+    wait a dead holder's children get, and once released (files removed) the next hold takes fresh files."""
+    config = load_config(_write_config(tmp_path, f"t{uuid.uuid4().hex[:10]}", _free_port()))
+    folder = tmp_path / "logs" / "not-yet-made"
+    first = hold_instance_locks(config, folder)
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(AlreadyRunning, match=rf"another daemon \(pid {os.getpid()}\) already runs on bus prefix"):
+            hold_instance_locks(config, folder)
+        assert time.monotonic() - t0 < LOCK_WAIT_S / 2
+        assert bus_lock_path(config).read_text() == f"{os.getpid()}\n" and (folder / DATA_LOCK).exists()
+    finally:
+        first.release()
+    assert not bus_lock_path(config).exists() and not (folder / DATA_LOCK).exists()
+    hold_instance_locks(config, folder).release()
