@@ -64,20 +64,22 @@ def status_server(tmp_path):
     procs = [subprocess.Popen([sys.executable, "-m", "daemon.processes.status_server", "--config", str(path)],
                               env=ENV)]
     port = cfg.status.port
-    _wait(lambda: _get(port, "/livez")[0] is not None or None, 30, "the status endpoint")
 
     def start_fake(name):
         procs.append(subprocess.Popen([sys.executable, "-m", "fake_process", "--config", str(path), "--name", name],
                                       env=ENV))
         return procs[-1]
 
-    yield cfg, port, start_fake
-    for p in procs:
-        if p.poll() is None:
-            p.send_signal(signal.SIGCONT)
-            p.kill()
-            p.wait()
-    unlink_all(cfg)
+    try:
+        _wait(lambda: _get(port, "/livez")[0] is not None or None, 30, "the status endpoint")
+        yield cfg, port, start_fake
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGCONT)
+                p.kill()
+                p.wait()
+        unlink_all(cfg)
 
 
 def test_readyz_fails_for_a_sigstopped_driver_and_recovers(status_server):
