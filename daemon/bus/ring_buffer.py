@@ -426,10 +426,13 @@ class RingReader:
     def latest(self, *, copy: bool = True) -> Record | None:
         """The newest record in the ring (again, if this reader already returned it); None if there is none.
 
-        Records between the last one returned and the newest are skipped (counted in `skipped`).
+        Records between the last one returned and the newest are skipped (counted in `skipped`). A retired ring is
+        followed to its replacement, when there is one (else its newest record is returned again).
         """
         while True:
             m = self._m
+            if m.q[W_RETIRED] and self._reopen(time.monotonic()):
+                continue
             _, _, next_seq, last_pos = m.snapshot()
             if last_pos == NO_RECORD:
                 return None

@@ -1,15 +1,19 @@
-"""`roadlog run` (the car's daemon, live drivers) and `roadlog replay` (the same daemon fed by a log player)."""
+"""`roadlog run` (the car's daemon, live drivers) and `roadlog replay` (the same daemon fed by a log player).
+
+Each first takes the bus's and the data folder's locks (`instance_lock`): a second daemon on either is refused."""
 
 from __future__ import annotations
 
 import argparse
 import signal
 import sys
+from pathlib import Path
 
 from daemon.bus.pubsub import open_publisher, unlink_all
 from daemon.bus.ring_space import check_rings
+from daemon.processes.instance_lock import EXIT_ALREADY_RUNNING, AlreadyRunning, hold_instance_locks
 from daemon.processes.supervisor import Supervisor
-from daemon.spine.config import load_config, reports_config_errors
+from daemon.spine.config import data_dir, load_config, reports_config_errors
 from daemon.spine.process_table import process_table
 from daemon.spine.topics import topic_table
 
@@ -17,9 +21,7 @@ from daemon.spine.topics import topic_table
 def create_rings(config) -> None:
     """Make every topic's ring afresh before any process starts (rings left by a crashed run are removed
     first: their messages are in the recovered segments), so consumers can subscribe, and register as
-    lossless readers, before their producers exist. Rings that cannot work (too small for their messages,
-    more than /dev/shm holds) are a ConfigError first."""
-    check_rings(config)
+    lossless readers, before their producers exist (the rings were checked before: `_serve`)."""
     unlink_all(config)
     for name in topic_table(config):
         try:
@@ -28,18 +30,27 @@ def create_rings(config) -> None:
             pass
 
 
-def _serve(supervisor: Supervisor, config) -> int:
+def _serve(supervisor: Supervisor, config, data_folder: Path) -> int:
     def stop(signum, _frame):
         print(f"roadlog: signal {signal.Signals(signum).name}, shutting down", file=sys.stderr, flush=True)
         supervisor.stop_event.set()
 
+    check_rings(config)  # rings that cannot work (too small for their messages, beyond /dev/shm): ConfigError
+    try:  # before anything touches the rings or the segments: they may be another daemon's
+        locks = hold_instance_locks(config, data_folder)
+    except AlreadyRunning as exc:
+        print(exc, file=sys.stderr, flush=True)
+        return EXIT_ALREADY_RUNNING
+    supervisor.inherit_fds = locks.fds  # held until the last of its children is gone too
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
     create_rings(config)
     try:
-        return supervisor.run()
+        code = supervisor.run()
     finally:
         unlink_all(config)
+    locks.release()  # its children are gone (if run() raised, they hold the locks until they die with it)
+    return code
 
 
 @reports_config_errors
@@ -51,7 +62,7 @@ def run_main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     config = load_config(args.config)
     table = process_table(config, args.config, "live", record=not args.no_record, output_dir=args.output_dir)
-    return _serve(Supervisor(config, table), config)
+    return _serve(Supervisor(config, table), config, data_dir(config, args.config, args.output_dir))
 
 
 @reports_config_errors
@@ -68,4 +79,5 @@ def replay_main(argv: list[str] | None = None) -> int:
     config = load_config(args.config)
     table = process_table(config, args.config, "replay", replay_logs=tuple(args.logs), replay_rate=args.rate,
                           record=not args.no_record, output_dir=args.output_dir)
-    return _serve(Supervisor(config, table, exit_when_done=True), config)
+    return _serve(Supervisor(config, table, exit_when_done=True), config,
+                  data_dir(config, args.config, args.output_dir))

@@ -32,8 +32,17 @@ LISTEN_BACKLOG = 256  # connections the kernel queues before the server accepts 
 IDLE_TIMEOUT_S = 10.0  # a client that sends nothing (or stops reading) for this long is disconnected
 
 
+def health_age_s(health: DriverHealth, now_ns: int | None = None) -> float:
+    """Seconds since the process published this health, by its own stamp (host CLOCK_MONOTONIC, which every process
+    shares): the age of a stopped or hung publisher's last message grows, however often it is read again."""
+    if health.host_mono_ns <= 0:
+        return float("inf")
+    return max(0.0, ((time.monotonic_ns() if now_ns is None else now_ns) - health.host_mono_ns) / 1e9)
+
+
 class HealthBoard:
-    """The latest DriverHealth of every process, read from the bus by a background thread."""
+    """The latest DriverHealth of every process, read from the bus by a background thread (each with the time the
+    board last read it; how old it is comes from the publisher's stamp: `health_age_s`)."""
 
     def __init__(self, config: CarConfig):
         self.config = config
@@ -104,12 +113,12 @@ def _restarts(detail: dict) -> tuple[dict[str, float], int]:
 
 
 def status_document(config: CarConfig, board: HealthBoard) -> dict:
-    now = time.monotonic()
+    now_ns = time.monotonic_ns()
     processes = {}
-    for name, (h, seen) in sorted(board.snapshot().items()):
+    for name, (h, _) in sorted(board.snapshot().items()):
         entry = asdict(h)
         entry.pop("detail")
-        entry["health_age_s"] = round(now - seen, 3)
+        entry["health_age_s"] = round(health_age_s(h, now_ns), 3)
         entry["detail"] = _detail(h) or h.detail
         processes[name] = entry
     supervisor = processes.get("supervisor", {}).get("detail", {})
@@ -127,17 +136,19 @@ def status_document(config: CarConfig, board: HealthBoard) -> dict:
 
 
 def readiness(config: CarConfig, board: HealthBoard, max_health_age_s: float = 3.0) -> tuple[bool, list[str]]:
-    """Ready only when every required driver reports `ok` (delivering at its expected rate) recently."""
-    now = time.monotonic()
+    """Ready only when every required driver reports `ok` (delivering at its expected rate) in a health message it
+    published within `max_health_age_s` (a stopped or hung driver's last one grows old)."""
+    now_ns = time.monotonic_ns()
     snapshot = board.snapshot()
     problems = []
     for process in required_drivers(config):
         if process not in snapshot:
             problems.append(f"{process}: no health yet")
             continue
-        h, seen = snapshot[process]
-        if now - seen > max_health_age_s:
-            problems.append(f"{process}: health is {now - seen:.1f} s old")
+        h, _ = snapshot[process]
+        age = health_age_s(h, now_ns)
+        if age > max_health_age_s:
+            problems.append(f"{process}: health is {age:.1f} s old")
         elif h.state != "ok":
             problems.append(f"{process}: {h.state} ({h.rate_hz:.1f} Hz)")
     return not problems, problems

@@ -4,12 +4,16 @@ Each process runs as `python -m module`. A process that exits is restarted with 
 (each restart recorded); one whose health topic stops updating for its `heartbeat_s` is considered
 hung, killed and restarted. SIGTERM/SIGINT stop everything within each process's `stop_timeout_s`
 (SIGTERM first, SIGKILL after), so open log files are closed properly. The supervisor's own state is
-published as JSON in the `detail` of its health topic; systemd gets READY=1 once the required drivers
-report ok, and WATCHDOG=1 only while the daemon is healthy.
+published as JSON in the `detail` of its health topic. A dead or crash-looping sensor degrades the daemon, it
+never stops it: systemd gets READY=1 once the recorder runs (not waiting for every driver; or once it failed on its
+configuration, which no restart mends), a STATUS= line naming
+what is missing or crash-looping whenever that changes, and WATCHDOG=1 for as long as this loop runs. A child
+dies with the supervisor (PR_SET_PDEATHSIG), however the supervisor ends.
 """
 
 from __future__ import annotations
 
+import ctypes
 import json
 import os
 import signal
@@ -27,8 +31,9 @@ from daemon.spine.topics import health_topic
 
 MAX_BACKOFF_S = 30.0
 CRASH_LOOP_RESTARTS = 3  # this many restarts of one process ...
-CRASH_LOOP_WINDOW_S = 60.0  # ... within this window: the daemon is unhealthy (systemd's watchdog starves)
+CRASH_LOOP_WINDOW_S = 60.0  # ... within this window: it is crash-looping (named in STATUS= and /status)
 STARTUP_GRACE_S = 20.0
+FRESH_HEALTH_S = 3.0  # a process whose newest health is older than this is not (yet) up
 
 
 def sd_notify(state: str) -> bool:
@@ -38,9 +43,13 @@ def sd_notify(state: str) -> bool:
         return False
     if address.startswith("@"):
         address = "\0" + address[1:]
-    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
-        sock.connect(address)
-        sock.sendall(state.encode())
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+            sock.connect(address)
+            sock.sendall(state.encode())
+    except OSError as exc:  # systemd's socket gone for a moment: say so, and keep supervising
+        print(f"supervisor: sd_notify {state.splitlines()[0]!r} failed: {exc}", file=sys.stderr, flush=True)
+        return False
     return True
 
 
@@ -51,6 +60,22 @@ def watchdog_interval_s() -> float | None:
     if not usec or (pid and int(pid) != os.getpid()):
         return None
     return int(usec) / 2e6
+
+
+PR_SET_PDEATHSIG = 1  # prctl(2): the signal a process gets when the thread that started it dies
+_libc = ctypes.CDLL(None, use_errno=True)
+
+
+def _die_with_parent(parent_pid: int):
+    """A child's preexec_fn: SIGKILL it when the supervisor dies (a killed daemon leaves no orphan holding its
+    rings, ports and segments; the open segment is recovered at the next start, as after a power cut)."""
+
+    def preexec() -> None:
+        _libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        if os.getppid() != parent_pid:  # the supervisor died before prctl: no signal will come
+            os._exit(1)
+
+    return preexec
 
 
 @dataclass
@@ -86,13 +111,16 @@ class Supervisor:
         self._publisher = None
         self._last_health = 0.0
         self._last_watchdog = 0.0
+        self._last_status = ""
+        self.inherit_fds: tuple[int, ...] = ()  # the daemon's instance locks: its children hold them too
 
     # --- process control -----------------------------------------------------------------------
     def _start(self, child: Child) -> None:
         cmd = [sys.executable, "-m", child.spec.module, *child.spec.args]
         if child.spec.nice:  # coreutils `nice` execs the process: its pid and parent stay the same
             cmd = ["nice", "-n", str(child.spec.nice), *cmd]
-        child.popen = subprocess.Popen(cmd, env=dict(self.env, **{RESTARTS_ENV: str(child.restarts)}))
+        child.popen = subprocess.Popen(cmd, env=dict(self.env, **{RESTARTS_ENV: str(child.restarts)}),
+                                       pass_fds=self.inherit_fds, preexec_fn=_die_with_parent(os.getpid()))
         child.state = "running"
         child.started_at = time.monotonic()
 
@@ -110,8 +138,8 @@ class Supervisor:
         print(f"supervisor: {child.spec.name} {reason}; restart #{child.restarts} in "
               f"{child.next_start_at - now:.1f} s", file=sys.stderr, flush=True)
 
-    def _last_health_age_s(self, child: Child) -> float | None:
-        """Seconds since the process's newest health message, None when it has published none."""
+    def _latest_health(self, child: Child):
+        """The process's newest DriverHealth on the bus, None when it has published none."""
         from daemon.bus.pubsub import open_subscriber
 
         topic = health_topic(child.spec.name)
@@ -121,7 +149,11 @@ class Supervisor:
                 sub = self._subscribers[topic] = open_subscriber(self.config, topic, start="latest")
             except (FileNotFoundError, OSError):
                 return None
-        msg = sub.latest(copy=True)
+        return sub.latest(copy=True)
+
+    def _last_health_age_s(self, child: Child) -> float | None:
+        """Seconds since the process's newest health message (by its own stamp), None when it has published none."""
+        msg = self._latest_health(child)
         if msg is None:
             return None
         return (time.monotonic_ns() - msg.host_mono_ns) / 1e9
@@ -185,31 +217,71 @@ class Supervisor:
                 for name, c in self.children.items()
             },
             "ready_sent": self.ready_sent,
+            "degraded": self.degraded(),
         }
 
-    def healthy(self) -> bool:
-        """Healthy while no process is crash-looping (CRASH_LOOP_RESTARTS within CRASH_LOOP_WINDOW_S)."""
+    def crash_looping(self) -> list[str]:
+        """The processes restarted CRASH_LOOP_RESTARTS times or more within CRASH_LOOP_WINDOW_S."""
         now = time.monotonic()
-        return all(sum(1 for r in c.restart_log if now - r["at_mono_s"] < CRASH_LOOP_WINDOW_S) < CRASH_LOOP_RESTARTS
-                   for c in self.children.values())
+        return [name for name, c in self.children.items()
+                if sum(1 for r in c.restart_log if now - r["at_mono_s"] < CRASH_LOOP_WINDOW_S) >= CRASH_LOOP_RESTARTS]
 
-    def _drivers_ok(self) -> bool:
-        for c in (c for c in self.children.values() if c.spec.required):
-            age = self._last_health_age_s(c)
-            if c.state != "running" or age is None or age > 3.0:
-                return False
-        return True
+    def healthy(self) -> bool:
+        """No process crash-looping (a degraded daemon is still fed to the watchdog: see `_report`)."""
+        return not self.crash_looping()
+
+    def _up(self, child: Child) -> bool:
+        age = self._last_health_age_s(child)
+        return child.state == "running" and age is not None and age <= FRESH_HEALTH_S
+
+    def recording(self) -> bool:
+        """The recorder runs and reports (or this run records nothing): the daemon is ready, degraded or not."""
+        recorder = self.children.get("recorder")
+        return recorder is None or self._up(recorder)
+
+    def ready(self) -> bool:
+        """READY=1: the recorder runs, or cannot (a configuration error, which no restart of the daemon mends)."""
+        return self.recording() or self.children["recorder"].state == "failed"
+
+    def degraded(self) -> list[str]:
+        """What is missing: each crash-looping process, failed one, required driver not up or not delivering (its
+        health not `ok`), with why."""
+        looping = set(self.crash_looping())
+        problems = []
+        for name, c in self.children.items():
+            if name in looping:
+                problems.append(f"{name} crash-looping ({c.restarts} restarts, last: {c.last_reason})")
+            elif c.state == "failed":
+                problems.append(f"{name} failed ({c.last_reason.split(':')[0]})")
+            elif c.spec.required and not self._up(c):
+                problems.append(f"{name} " + ("restarting" if c.state == "backoff" else "not up"))
+            elif c.spec.required and (health := self._latest_health(c)) is not None and health.state != "ok":
+                problems.append(f"{name} {health.state} ({health.rate_hz:.1f} Hz)")  # runs, but no or too little data
+        return problems
+
+    def status_line(self) -> str:
+        """systemd's STATUS=: whether it records, and what is missing."""
+        problems = self.degraded()
+        if "recorder" not in self.children or self.children["recorder"].state == "failed":
+            head = "running, not recording"
+        else:
+            head = "recording" if self.recording() else "starting: waiting for the recorder"
+        return f"{head}; degraded: {'; '.join(problems)}" if problems else f"{head}; all processes up"
 
     def _report(self) -> None:
         now = time.monotonic()
         if now - self._last_health < 1.0:
             return
         self._last_health = now
-        if not self.ready_sent and self._drivers_ok():
+        status = self.status_line()
+        if not self.ready_sent and self.ready():
             self.ready_sent = True
-            sd_notify("READY=1\nSTATUS=drivers up")
+            sd_notify(f"READY=1\nSTATUS={status}")
+        elif status != self._last_status:
+            sd_notify(f"STATUS={status}")
+        self._last_status = status
         interval = watchdog_interval_s()
-        if interval and self.healthy() and now - self._last_watchdog >= interval:
+        if interval and now - self._last_watchdog >= interval:  # this loop runs: the supervisor is alive
             self._last_watchdog = now
             sd_notify("WATCHDOG=1")
         if self.publish_health:

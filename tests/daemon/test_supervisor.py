@@ -162,47 +162,78 @@ def _notify_socket(tmp_path):
     return sock, path
 
 
-def test_systemd_notify_ready_and_watchdog_only_while_healthy(config, tmp_path, monkeypatch):
+def test_degraded_mode_ready_status_and_watchdog_through_a_crash_loop(config, tmp_path, monkeypatch):
+    """A required driver that never comes up and crash-loops: READY=1 still comes once the recorder runs, STATUS=
+    names the driver, WATCHDOG=1 keeps coming (it stopped for the whole loop before), the other driver runs on."""
     cfg, path = config
     sock, sock_path = _notify_socket(tmp_path)
     monkeypatch.setenv("NOTIFY_SOCKET", sock_path)
     monkeypatch.setenv("WATCHDOG_USEC", "1000000")
     monkeypatch.delenv("WATCHDOG_PID", raising=False)
-    table = [_spec("lidar", path, required=True), _spec("gnss", path, "crash", after=0.5, required=False)]
+    table = [_spec("lidar", path, "crash", after=0.0, required=True), _spec("gnss", path, required=True),
+             _spec("recorder", path)]
     sup = Supervisor(cfg, table, env=ENV, max_backoff_s=2.0)
+    t0 = time.monotonic()
     thread = _run_in_thread(sup)
     received = []
 
-    def drain(seconds):
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
+    def drain(until):
+        while time.monotonic() < until():
             try:
                 received.append((time.monotonic(), sock.recv(4096).decode()))
             except TimeoutError:
                 pass
 
     try:
-        drain(4.0)
-        states = [m for _, m in received]
-        assert any(m.startswith("READY=1") for m in states)
-        ready_at = next(t for t, m in received if m.startswith("READY=1"))
-        assert any(m == "WATCHDOG=1" for t, m in received if t <= ready_at + 3.5)
-        # gnss crash-loops (three restarts within a minute): the watchdog is no longer fed
-        assert _wait(lambda: not sup.healthy(), timeout=20)
-        time.sleep(0.6)  # a WATCHDOG=1 may have been sent just before the third restart
-        drain(0.3)  # flush what was queued while healthy
-        received.clear()
-        drain(2.5)
-        assert not sup.healthy()
-        assert [m for _, m in received if m == "WATCHDOG=1"] == []
+        drain(lambda: t0 + 30 if sup.children["lidar"].restarts < 3 else 0)  # three within a minute: a crash loop
+        looping_at = time.monotonic()
+        end = looping_at + 4.0
+        drain(lambda: end)
+        ready = [t for t, m in received if m.startswith("READY=1")]
+        assert ready and ready[0] - t0 < 10  # the recorder was up: not waiting for the dead Lidar
+        statuses = [m.split("STATUS=", 1)[1] for _, m in received if "STATUS=" in m]
+        ready_status = next(m for _, m in received if m.startswith("READY=1")).split("STATUS=", 1)[1]
+        assert ready_status.startswith("recording; degraded: lidar ")
+        assert any("lidar crash-looping" in m for m in statuses) and "gnss" not in statuses[-1]
+        dogs = [t0] + [t for t, m in received if m == "WATCHDOG=1"]
+        gaps = [b - a for a, b in zip(dogs, dogs[1:], strict=False)]
+        assert dogs[-1] > end - 1.5 and max(gaps) < 1.5, gaps  # fed every 0.5 s, through the crash loop
+        assert sup.crash_looping() == ["lidar"] and "lidar crash-looping" in sup.state_document()["degraded"][0]
+        assert sup.children["gnss"].restarts == 0 and sup._up(sup.children["gnss"])
         sup.stop_event.set()
         thread.join(30)
-        drain(0.5)
-        assert "STOPPING=1" in [m for _, m in received]
+        stop_by = time.monotonic() + 5
+        drain(lambda: stop_by if not received or received[-1][1] != "STOPPING=1" else 0)
+        assert received[-1][1] == "STOPPING=1"
     finally:
         sup.stop_event.set()
         thread.join(30)
         sock.close()
+
+
+def test_ready_when_the_recorder_cannot_start_on_its_configuration(config, tmp_path, monkeypatch):
+    """A recorder refusing its config (exit 2) is not retried, and no restart of the daemon would mend it: READY=1
+    comes (a start time-out would only restart the drivers forever), STATUS= says nothing is recorded and why."""
+    cfg, path = config
+    sock, sock_path = _notify_socket(tmp_path)
+    monkeypatch.setenv("NOTIFY_SOCKET", sock_path)
+    sup = Supervisor(cfg, [_spec("recorder", path, "bad-config", after=0.0), _spec("gnss", path, required=True)],
+                     env=ENV)
+    thread = _run_in_thread(sup)
+    ready = None
+    try:
+        deadline = time.monotonic() + 20
+        while ready is None and time.monotonic() < deadline:
+            try:
+                message = sock.recv(4096).decode()
+            except TimeoutError:
+                continue
+            ready = message if message.startswith("READY=1") else None
+    finally:
+        sup.stop_event.set()
+        thread.join(30)
+        sock.close()
+    assert ready == "READY=1\nSTATUS=running, not recording; degraded: recorder failed (configuration error (exit 2))"
 
 
 def test_process_table_live_and_replay(config):
