@@ -169,6 +169,10 @@ class _BoardCollector:
                                     labels=["topic"])
         quarantined = GaugeMetricFamily("roadlog_recorder_quarantined_segments", "unclosed segments that could not "
                                         "be read in full, kept as .mcap.damaged (since the recorder started)")
+        policy = GaugeMetricFamily("roadlog_recorder_disk_policy", "the recorder's disk policy since it started: "
+                                   "deleted_segments, deleted_drive_s (seconds of drive), deleted_bytes, "
+                                   "deletions_undone (space another program took), held_off_s, at_floor",
+                                   labels=["figure"])
         restarts = GaugeMetricFamily("roadlog_process_restarts", "restarts by the supervisor", labels=["process"])
         malformed = CounterMetricFamily("roadlog_status_malformed_details", "health detail entries of the wrong "
                                         "shape, skipped (in the latest health of each process)", labels=["process"])
@@ -190,6 +194,10 @@ class _BoardCollector:
                 bad += wrong
                 for n in figures.values():
                     quarantined.add_metric([], n)
+                figures, wrong = _numbers(detail.get("disk_policy", {}))
+                bad += wrong
+                for figure, n in figures.items():
+                    policy.add_metric([figure], n)
             if name == "supervisor":
                 figures, bad = _restarts(detail)
                 for proc, n in figures.items():
@@ -197,7 +205,7 @@ class _BoardCollector:
             malformed.add_metric([name], bad)
         yield from gauges.values()
         yield from counters.values()
-        yield from (lost, written, quarantined, restarts, malformed)
+        yield from (lost, written, quarantined, policy, restarts, malformed)
         yield CounterMetricFamily("roadlog_status_refused_connections", "connections answered 503 because every "
                                   "server thread was busy", value=self.refused())
 
