@@ -8,7 +8,7 @@ UBX header never costs the valid frames behind it (the trap of the libraries' ow
 What a hostile stream costs stays within a few times a real one's (bench/gnss_framer.py): a long UBX body's
 checksum comes from prefix sums of the buffer, made once per `feed` that needs one, not from a walk over the
 claimed length for every false header; a run of '$' is rejected in one step (each '$' but the last is cut short
-by the next).
+by the next), and so is a run of UBX syncs (each but the last two claims a length of 0x62B5 bytes).
 
 Rejection kinds (keys of `StreamFramer.counts`): garbage (a run of bytes outside any frame),
 nmea_bad_checksum, nmea_no_checksum, nmea_truncated, nmea_too_long, ubx_bad_checksum, ubx_too_long,
@@ -38,6 +38,7 @@ _NMEA_PARTIAL_BYTES = _NMEA_BODY_BYTES + b"\r"
 _HEX_DIGITS = b"0123456789ABCDEFabcdef"
 _DIRECT_CHECKSUM_BYTES = 128  # a UBX body up to this long is summed directly, a longer one from _PrefixSums
 _DOLLAR_RUN = re.compile(rb"\$+")
+_UBX_SYNC_RUN = re.compile(rb"(?:\xb5\x62)+")
 
 
 @dataclass(frozen=True, slots=True)
@@ -140,6 +141,13 @@ class StreamFramer:
                     continue
                 outcome, end = _nmea_candidate(buf, start, final)
             else:
+                run = (_UBX_SYNC_RUN.match(buf, start).end() - start) // 2 - 2
+                if run > 0:  # in a run of syncs, each but the last two claims the length B5 62: too long
+                    self._reject("ubx_too_long", run)
+                    self.skipped_bytes += 2 * run
+                    self._after_rejection = True
+                    pos = start + 2 * run
+                    continue
                 outcome, end = _ubx_candidate(buf, start, final)
                 if outcome == "check":
                     if end - start - 4 <= _DIRECT_CHECKSUM_BYTES:
