@@ -128,16 +128,8 @@ class Recorder:
         self._sync_fd: int | None = None
         self._last_sync = 0.0
         self.segments_closed = 0
-        self.segments_deleted = 0
-        self.deleted_seconds = 0.0  # of drive, in the deleted segments
-        self.deleted_bytes = 0
-        self.deletions_undone = 0  # deletions whose space another program took
-        self.at_floor = False  # a deficit only the newest keep_newest_s of drive could pay: nothing deleted
-        self._hold_off_until = 0.0
-        self._undone_in_a_row = 0
-        self._batch = 1  # segments one round may delete: doubles while their space stays free
-        self._last_round: tuple[float, int, int, int] | None = None  # (when, free before, own bytes, bytes deleted)
-        self._seconds: dict[Path, float] = {}
+        self.deleter = disk_policy.SegmentDeleter(config.recorder.keep_newest_s, lambda: oldest_first(output_dir),
+                                                  drive_seconds, self.health.count_error)
         self._closed_bytes = 0  # bytes written to the segments this recorder closed or abandoned
         self.tally = TopicTally()
         self._at_last_close = TopicTally()
@@ -229,75 +221,11 @@ class Recorder:
         """Bytes this recorder has written (uncompressed: at least what its segments took on the disk)."""
         return self._closed_bytes + (self.writer.bytes_written_estimate if self.writer else 0)
 
-    def _drive_seconds(self, seg: disk_policy.Segment) -> float:
-        if seg.path not in self._seconds:
-            self._seconds[seg.path] = drive_seconds(seg.path)
-        return self._seconds[seg.path]
-
-    def _deletion_undone(self, why: str) -> None:
-        self.deletions_undone += 1
-        self._undone_in_a_row += 1
-        self._batch = 1
-        hold_off = disk_policy.hold_off_s(self._undone_in_a_row)
-        self._hold_off_until = time.monotonic() + hold_off
-        self._last_round = None
-        self.health.count_error(f"disk policy: {why}")
-        log.error("disk policy: %s: another program takes the space; no deletion for %.0f s", why, hold_off)
-
     def _make_room(self) -> tuple[int, int]:
-        """Delete the oldest closed segments, one at a time while it frees space, until the required space is free
-        (never the newest keep_newest_s of drive): (free, required) bytes."""
+        """Let the disk policy delete toward the required free space: (free, required) bytes."""
         usage = disk_policy.disk_usage(self.output_dir)
         required = disk_policy.required_free_bytes(usage.total_bytes, self.rc.min_free_gib, self.rc.min_free_pct)
-        free, now = usage.free_bytes, time.monotonic()
-        if self._last_round is not None:  # did the space of the last deletions stay free?
-            when, before, own_then, deleted = self._last_round
-            if now - when < disk_policy.JUDGE_AFTER_S:
-                return free, required  # too early to tell: no more deletions meanwhile
-            self._last_round = None
-            if disk_policy.freed(before, free, self._own_bytes() - own_then, deleted):
-                self._undone_in_a_row = 0
-                self._batch = min(2 * self._batch, disk_policy.MAX_BATCH)
-            else:
-                self._deletion_undone(f"the {deleted} bytes deleted {now - when:.1f} s ago were taken again "
-                                      f"({before} bytes free before, {free} now)")
-        if free >= required or now < self._hold_off_until:
-            self.at_floor = False
-            return free, required
-        round_start, own_at_start, deleted_now = free, self._own_bytes(), 0
-        # a quarantined segment goes when its turn comes, like the closed segments of its time
-        candidates = disk_policy.deletable(oldest_first(self.output_dir), self._drive_seconds, self.rc.keep_newest_s)
-        for seg in candidates[: self._batch]:
-            if free >= required:
-                break
-            seconds = self._drive_seconds(seg)
-            try:
-                seg.path.unlink()
-            except FileNotFoundError:
-                continue
-            except OSError as exc:
-                self.health.count_error(f"deleting {seg.path.name}: {exc}")
-                continue
-            self._seconds.pop(seg.path, None)
-            after = disk_policy.disk_usage(self.output_dir).free_bytes
-            self.segments_deleted += 1
-            self.deleted_seconds += seconds
-            self.deleted_bytes += seg.size_bytes
-            deleted_now += seg.size_bytes
-            log.warning("disk policy: deleted %s (%.1f s of drive, %d bytes): %d -> %d bytes free, %d required",
-                        seg.path.name, seconds, seg.size_bytes, free, after, required)
-            if not disk_policy.freed(free, after, 0, seg.size_bytes):
-                self._deletion_undone(f"deleting {seg.path.name} freed {after - free} of its {seg.size_bytes} bytes")
-                return after, required
-            free = after
-        if deleted_now:
-            self._last_round = (time.monotonic(), round_start, own_at_start, deleted_now)
-        at_floor = free < required and not self._last_round and all(not seg.path.exists() for seg in candidates)
-        if at_floor and not self.at_floor:
-            log.error("disk policy: only the newest %.0f s of drive are left to delete (recorder.keep_newest_s): "
-                      "they are kept", self.rc.keep_newest_s)
-        self.at_floor = at_floor
-        return free, required
+        return self.deleter.make_room(usage, required, self._own_bytes()), required
 
     def check_disk(self, force: bool = False) -> None:
         """Apply the disk policy (at most every DISK_CHECK_PERIOD_S or DISK_CHECK_BYTES); stop or resume."""
@@ -308,7 +236,7 @@ class Recorder:
             return
         self._last_disk_check, self._bytes_at_disk_check = now, written
         free, required = self._make_room()
-        if free < required and self._last_round is not None:  # deletions being judged: more may follow
+        if free < required and self.deleter.judging:  # deletions being judged: more may follow
             self.disk_free_bytes = free  # (writing goes on, or stays stopped, until then)
             return
         if free < required and self.writer is not None:
@@ -368,16 +296,8 @@ class Recorder:
         msg.detail = json.dumps({
             "segment": str(self.open_path) if self.open_path else None,
             "segments_closed": self.segments_closed,
-            "segments_deleted": self.segments_deleted,
-            "disk_policy": {
-                "deleted_segments": self.segments_deleted,
-                "deleted_drive_s": round(self.deleted_seconds, 3),
-                "deleted_bytes": self.deleted_bytes,
-                "deletions_undone": self.deletions_undone,
-                "held_off_s": round(max(0.0, self._hold_off_until - time.monotonic()), 1),
-                "at_floor": int(self.at_floor),
-                "keep_newest_s": self.rc.keep_newest_s,
-            },
+            "segments_deleted": self.deleter.segments,
+            "disk_policy": self.deleter.report(),
             "disk_free_bytes": self.disk_free_bytes,
             "disk_full": self.disk_full,
             "written": dict(sorted(self.tally.written.items())),
@@ -483,7 +403,7 @@ def main(argv: list[str] | None = None) -> int:
     rec = run(config, output_dir, stop, args.config, time_anchors=not args.no_time_anchors, lossless=args.lossless)
     log.info("stopped: %d segments closed, %d messages written, %d lost; disk policy deleted %d segments "
              "(%.1f s of drive, %d bytes)", rec.segments_closed, sum(rec.tally.written.values()),
-             sum(rec.tally.lost().values()), rec.segments_deleted, rec.deleted_seconds, rec.deleted_bytes)
+             sum(rec.tally.lost().values()), rec.deleter.segments, rec.deleter.seconds, rec.deleter.bytes)
     return 0
 
 
