@@ -19,6 +19,7 @@ The ring's protocol (daemon.bus.ring_buffer) relies on x86-64 memory ordering, s
 from __future__ import annotations
 
 import ctypes
+import errno
 import mmap
 import os
 import platform
@@ -132,12 +133,30 @@ class RingMapping:
             self.fd = -1
 
 
+def reserve_space(fd: int, size: int, path: str) -> None:
+    """Give the file `size` bytes of real pages now: a sparse ring on a /dev/shm that fills later would die by SIGBUS
+    at the first page the kernel cannot give, mid-drive and without a message. No room is a ConfigError naming the
+    ring and what its file system has free."""
+    try:
+        os.posix_fallocate(fd, 0, size)
+    except OSError as exc:
+        if exc.errno in (errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):  # a file system that cannot reserve
+            return
+        st = os.statvfs(os.path.dirname(path) or ".")
+        raise ConfigError(f"cannot reserve {size / 2**20:.1f} MiB for the ring {path} ({exc.strerror}; its file "
+                          f"system has {st.f_bavail * st.f_frsize / 2**20:.1f} MiB free of "
+                          f"{st.f_blocks * st.f_frsize / 2**20:.1f} MiB): enlarge /dev/shm (Docker: --shm-size) "
+                          f"or lower bus.ring_bytes") from None
+
+
 def create_ring_file(path: str, capacity: int, next_seq: int) -> None:
-    """Create an initialized ring file at `path` atomically (FileExistsError if one is there)."""
+    """Create an initialized ring file at `path` atomically (FileExistsError if one is there), its space reserved
+    (reserve_space)."""
     tmp = f"{path}.creating.{os.getpid()}"
     fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o660)
     try:
         os.ftruncate(fd, DATA_OFFSET + capacity)
+        reserve_space(fd, DATA_OFFSET + capacity, path)
         with mmap.mmap(fd, HEADER_BYTES, mmap.MAP_SHARED) as header:
             q = memoryview(header).cast("Q")
             q[W_CAPACITY] = capacity

@@ -1,7 +1,7 @@
 """Whether the car's rings can work, checked before the daemon makes them (and by `roadlog check-config`): each ring
-holds a few of its topic's largest messages, and all of them fit in /dev/shm. Rings are sparse files that fill as
-they are written; one that outgrows its tmpfs dies by SIGBUS when the writer touches a page the kernel cannot give,
-with no message (Docker's default /dev/shm is 64 MiB; the default rings of a three-camera car need ~480 MiB).
+holds a few of its topic's largest messages, and all of them fit in /dev/shm (Docker's default /dev/shm is 64 MiB;
+the default rings of a three-camera car need ~480 MiB). Each ring's pages are also reserved when it is made
+(ring_layout.reserve_space), so a /dev/shm that another program fills later cannot SIGBUS a writer mid-drive.
 
 Setting ROADLOG_SIMULATED_SHM_BYTES makes the check see an empty /dev/shm of that size, so tests can try a small one.
 """

@@ -10,7 +10,9 @@ run's segments hold (`daemon_run` in their metadata, the highest seq per topic i
 so what was published while it was down, or torn off with the crash's unfinished chunk, is recorded once,
 as long as the ring still holds it (older messages count as lost).
 The disk policy (daemon/processes/disk_policy.py) deletes the oldest closed (or quarantined) segments to
-keep the configured free space; when that is not enough the recorder closes its segment, counts what it
+keep the configured free space, one at a time and only while that frees space (not when another program takes
+it), never the newest `recorder.keep_newest_s` of drive; what it deleted (segments, seconds of drive, bytes) is in
+the health detail and the log. When that is not enough the recorder closes its segment, counts what it
 cannot write per topic, and resumes once space returns. Messages written, lost to bus overtaking and dropped
 for lack of disk go per topic into each segment's closing metadata and, as JSON, into the `detail` of the
 recorder's health. Once a second it publishes a TimeAnchor (host monotonic + UTC), which it logs like any
@@ -46,6 +48,7 @@ from daemon.processes.segment_files import (
     OPEN_SUFFIX,
     check_output_dir,
     closed_segments,
+    drive_seconds,
     next_segment_index,
     oldest_first,
     recover_unclosed,
@@ -125,7 +128,9 @@ class Recorder:
         self._sync_fd: int | None = None
         self._last_sync = 0.0
         self.segments_closed = 0
-        self.segments_deleted = 0
+        self.deleter = disk_policy.SegmentDeleter(config.recorder.keep_newest_s, lambda: oldest_first(output_dir),
+                                                  drive_seconds, self.health.count_error)
+        self._closed_bytes = 0  # bytes written to the segments this recorder closed or abandoned
         self.tally = TopicTally()
         self._at_last_close = TopicTally()
         self.disk_full = False
@@ -149,8 +154,13 @@ class Recorder:
         name = segment_name(time.time_ns(), self.next_index)
         self.next_index += 1
         self.open_path = self.output_dir / (name + OPEN_SUFFIX)
-        self.writer = LogWriter(self.open_path, self.config, config_path=self.config_path,
-                                metadata={"daemon_run": self.run})
+        try:
+            self.writer = LogWriter(self.open_path, self.config, config_path=self.config_path,
+                                    metadata={"daemon_run": self.run})
+        except OSError:  # a full disk while writing its header: a file with no message is not kept
+            self.open_path.unlink(missing_ok=True)
+            self.open_path = None
+            raise
         self._sync_fd = os.open(self.open_path, os.O_RDONLY)  # fsync through it: LogWriter keeps its file private
         self.opened_mono = self._last_sync = time.monotonic()
         self._bytes_at_disk_check = 0
@@ -163,6 +173,7 @@ class Recorder:
             return None
         self.writer, self.open_path = None, None
         self._close_sync_fd()
+        self._closed_bytes += writer.bytes_written_estimate
         lost_bus = _delta(self.tally.lost_bus, self._at_last_close.lost_bus)
         dropped = _delta(self.tally.dropped_disk_full, self._at_last_close.dropped_disk_full)
         lost = {t: lost_bus.get(t, 0) + dropped.get(t, 0) for t in sorted(set(lost_bus) | set(dropped))}
@@ -206,24 +217,15 @@ class Recorder:
 
     # --- disk ----------------------------------------------------------------------------------
 
+    def _own_bytes(self) -> int:
+        """Bytes this recorder has written (uncompressed: at least what its segments took on the disk)."""
+        return self._closed_bytes + (self.writer.bytes_written_estimate if self.writer else 0)
+
     def _make_room(self) -> tuple[int, int]:
-        """Delete the oldest closed segments until the required space is free: (free, required) bytes."""
+        """Let the disk policy delete toward the required free space: (free, required) bytes."""
         usage = disk_policy.disk_usage(self.output_dir)
         required = disk_policy.required_free_bytes(usage.total_bytes, self.rc.min_free_gib, self.rc.min_free_pct)
-        if usage.free_bytes >= required:
-            return usage.free_bytes, required
-        # a quarantined segment goes when its turn comes, like the closed segments of its time
-        for seg in disk_policy.segments_to_delete(oldest_first(self.output_dir), usage.free_bytes, required):
-            try:
-                seg.path.unlink()
-            except FileNotFoundError:
-                continue
-            except OSError as exc:
-                self.health.count_error(f"deleting {seg.path.name}: {exc}")
-                continue
-            self.segments_deleted += 1
-            log.warning("disk policy: deleted %s (%d bytes)", seg.path.name, seg.size_bytes)
-        return disk_policy.disk_usage(self.output_dir).free_bytes, required
+        return self.deleter.make_room(usage, required, self._own_bytes()), required
 
     def check_disk(self, force: bool = False) -> None:
         """Apply the disk policy (at most every DISK_CHECK_PERIOD_S or DISK_CHECK_BYTES); stop or resume."""
@@ -234,6 +236,9 @@ class Recorder:
             return
         self._last_disk_check, self._bytes_at_disk_check = now, written
         free, required = self._make_room()
+        if free < required and self.deleter.judging:  # deletions being judged: more may follow
+            self.disk_free_bytes = free  # (writing goes on, or stays stopped, until then)
+            return
         if free < required and self.writer is not None:
             self.close_segment()  # the open segment may be what fills the disk: let the policy weigh it too
             free, required = self._make_room()
@@ -254,16 +259,17 @@ class Recorder:
         if self.disk_full:
             self.tally.dropped_disk_full[topic] = self.tally.dropped_disk_full.get(topic, 0) + 1
             return
-        if self.writer is None:
-            self._open_segment()
         try:
+            if self.writer is None:
+                self._open_segment()
             self.writer.write(topic, message)
         except OSError as exc:  # ENOSPC and the like: stop and let the disk check decide when to go on
             self.health.count_error(f"writing {topic}: {exc}")
-            log.error("write failed on %s: %s", self.open_path, exc)
+            log.error("write failed on %s: %s", self.open_path or self.output_dir, exc)
             self.tally.dropped_disk_full[topic] = self.tally.dropped_disk_full.get(topic, 0) + 1
             self.disk_full = True
-            self._abandon_segment()
+            if self.writer is not None:
+                self._abandon_segment()
             return
         self.tally.written[topic] = self.tally.written.get(topic, 0) + 1
         self.health.count_published()
@@ -273,6 +279,7 @@ class Recorder:
 
     def _abandon_segment(self) -> None:
         """Drop a segment that could not be written; its `.open` file is recovered when space returns."""
+        self._closed_bytes += self.writer.bytes_written_estimate
         self.writer, self.open_path = None, None
         self._close_sync_fd()
 
@@ -289,7 +296,8 @@ class Recorder:
         msg.detail = json.dumps({
             "segment": str(self.open_path) if self.open_path else None,
             "segments_closed": self.segments_closed,
-            "segments_deleted": self.segments_deleted,
+            "segments_deleted": self.deleter.segments,
+            "disk_policy": self.deleter.report(),
             "disk_free_bytes": self.disk_free_bytes,
             "disk_full": self.disk_full,
             "written": dict(sorted(self.tally.written.items())),
@@ -393,8 +401,9 @@ def main(argv: list[str] | None = None) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     rec = run(config, output_dir, stop, args.config, time_anchors=not args.no_time_anchors, lossless=args.lossless)
-    log.info("stopped: %d segments closed, %d messages written, %d lost", rec.segments_closed,
-              sum(rec.tally.written.values()), sum(rec.tally.lost().values()))
+    log.info("stopped: %d segments closed, %d messages written, %d lost; disk policy deleted %d segments "
+             "(%.1f s of drive, %d bytes)", rec.segments_closed, sum(rec.tally.written.values()),
+             sum(rec.tally.lost().values()), rec.deleter.segments, rec.deleter.seconds, rec.deleter.bytes)
     return 0
 
 

@@ -14,6 +14,9 @@ import os
 from datetime import UTC, datetime
 from pathlib import Path
 
+from daemon.log_format.metadata_records import METADATA_NAME
+from daemon.log_format.reader import read_metadata
+from daemon.log_format.record_scan import trusted_summary
 from daemon.log_format.recovery import recover_log
 from daemon.processes import disk_policy
 from daemon.spine.config import CarConfig, ConfigError, data_dir
@@ -64,6 +67,24 @@ def oldest_first(output_dir: Path) -> list[disk_policy.Segment]:
     """The closed and the quarantined segments together, oldest first: what the disk policy may delete."""
     return sorted(closed_segments(output_dir) + quarantined_segments(output_dir),
                   key=lambda seg: (_segment_index(seg.path.name) or 0, seg.path.name))
+
+
+def drive_seconds(path: Path) -> float:
+    """The seconds of drive a segment holds, its first to its last message (from its trusted summary); 0 for one
+    without (a quarantined segment)."""
+    try:
+        with open(path, "rb") as f:
+            summary, _ = trusted_summary(f, os.fstat(f.fileno()).st_size)
+    except OSError:
+        return 0.0
+    stats = summary.statistics if summary is not None else None
+    if stats is None or not stats.message_count:
+        return 0.0
+    start = stats.message_start_time
+    if start == 0:  # the camera calibrations are logged at time 0: the drive began when the segment was opened
+        opened = read_metadata(path).get(METADATA_NAME, {}).get("start_mono_ns", "")
+        start = int(opened) if opened.isdigit() else stats.message_end_time
+    return max(0, stats.message_end_time - start) / 1e9
 
 
 def next_segment_index(output_dir: Path) -> int:

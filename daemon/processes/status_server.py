@@ -3,7 +3,8 @@
 Everything it shows comes from the processes' health topics on the bus (the latest DriverHealth of
 each; recorder, mapper, replay and supervisor put their extras as JSON in `detail`) and from the
 preview PNGs the mapping worker writes. No request changes the daemon's state; any other path,
-including path tricks, gets 404. Requests are served by threads, so a busy mapper never blocks it.
+including path tricks, gets 404. Requests are served by threads, so a busy mapper never blocks it; at most
+MAX_THREADS at once (more connections are answered 503 and counted on /metrics), each closed when idle.
 """
 
 from __future__ import annotations
@@ -11,9 +12,11 @@ from __future__ import annotations
 import argparse
 import json
 import signal
+import socket
 import sys
 import threading
 import time
+from collections import deque
 from dataclasses import asdict
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -30,6 +33,10 @@ from daemon.spine.topics import topic_table
 
 LISTEN_BACKLOG = 256  # connections the kernel queues before the server accepts them
 IDLE_TIMEOUT_S = 10.0  # a client that sends nothing (or stops reading) for this long is disconnected
+MAX_THREADS = 32  # connections served at once (one thread each); more are answered 503 and closed
+REFUSED_LINGER_S = 1.0  # longest wait for a refused client's request before its connection is closed
+BUSY_RESPONSE = (b"HTTP/1.0 503 Service Unavailable\r\nContent-Type: text/plain\r\nContent-Length: 5\r\n"
+                 b"Retry-After: 1\r\nConnection: close\r\n\r\nbusy\n")
 
 
 def health_age_s(health: DriverHealth, now_ns: int | None = None) -> float:
@@ -155,8 +162,9 @@ def readiness(config: CarConfig, board: HealthBoard, max_health_age_s: float = 3
 
 
 class _BoardCollector:
-    def __init__(self, board: HealthBoard):
+    def __init__(self, board: HealthBoard, refused=lambda: 0):
         self.board = board
+        self.refused = refused  # connections the server answered 503 (all its threads busy)
 
     def collect(self):
         gauges = {
@@ -172,6 +180,10 @@ class _BoardCollector:
                                     labels=["topic"])
         quarantined = GaugeMetricFamily("roadlog_recorder_quarantined_segments", "unclosed segments that could not "
                                         "be read in full, kept as .mcap.damaged (since the recorder started)")
+        policy = GaugeMetricFamily("roadlog_recorder_disk_policy", "the recorder's disk policy since it started: "
+                                   "deleted_segments, deleted_drive_s (seconds of drive), deleted_bytes, "
+                                   "deletions_undone (space another program took), held_off_s, at_floor",
+                                   labels=["figure"])
         restarts = GaugeMetricFamily("roadlog_process_restarts", "restarts by the supervisor", labels=["process"])
         malformed = CounterMetricFamily("roadlog_status_malformed_details", "health detail entries of the wrong "
                                         "shape, skipped (in the latest health of each process)", labels=["process"])
@@ -193,6 +205,10 @@ class _BoardCollector:
                 bad += wrong
                 for n in figures.values():
                     quarantined.add_metric([], n)
+                figures, wrong = _numbers(detail.get("disk_policy", {}))
+                bad += wrong
+                for figure, n in figures.items():
+                    policy.add_metric([figure], n)
             if name == "supervisor":
                 figures, bad = _restarts(detail)
                 for proc, n in figures.items():
@@ -200,7 +216,9 @@ class _BoardCollector:
             malformed.add_metric([name], bad)
         yield from gauges.values()
         yield from counters.values()
-        yield from (lost, written, quarantined, restarts, malformed)
+        yield from (lost, written, quarantined, policy, restarts, malformed)
+        yield CounterMetricFamily("roadlog_status_refused_connections", "connections answered 503 because every "
+                                  "server thread was busy", value=self.refused())
 
 
 def make_handler(config: CarConfig, board: HealthBoard, registry: CollectorRegistry, data_folder: Path,
@@ -259,15 +277,77 @@ def make_handler(config: CarConfig, board: HealthBoard, registry: CollectorRegis
 
 
 class StatusHTTPServer(ThreadingHTTPServer):
+    """One thread per connection, at most `max_threads` at once: a connection beyond them is answered 503 by the
+    accepting thread itself (without waiting for its request) and closed once its request is read or after
+    REFUSED_LINGER_S, so many slow clients cannot make unbounded threads. Refusals are counted (`refused`)."""
+
     request_queue_size = LISTEN_BACKLOG  # socketserver's default of 5 left clients waiting seconds under load
+
+    def __init__(self, address, handler, max_threads: int = MAX_THREADS):
+        super().__init__(address, handler)
+        self.max_threads = max_threads
+        self.refused = 0
+        self._slots = threading.BoundedSemaphore(max_threads)
+        self._refused: deque[tuple[float, socket.socket]] = deque()  # answered, waiting for the client's bytes
+
+    def process_request(self, request, client_address):
+        if not self._slots.acquire(blocking=False):
+            self._refuse(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:  # no thread started: give its slot back
+            self._slots.release()
+            raise
+
+    def process_request_thread(self, request, client_address):
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._slots.release()
+
+    def _refuse(self, request: socket.socket) -> None:
+        self.refused += 1
+        try:
+            request.setblocking(False)
+            request.send(BUSY_RESPONSE)
+            request.shutdown(socket.SHUT_WR)
+        except OSError:
+            self.shutdown_request(request)
+            return
+        # closing now, with the request still to come, would reset the connection and lose the answer
+        self._refused.append((time.monotonic() + REFUSED_LINGER_S, request))
+        while len(self._refused) > LISTEN_BACKLOG:
+            self._refused.popleft()[1].close()
+
+    def service_actions(self) -> None:
+        """Between accepts: close the refused connections whose client has sent its request (or that waited long)."""
+        now = time.monotonic()
+        for _ in range(len(self._refused)):
+            deadline, sock = self._refused.popleft()
+            try:
+                done = sock.recv(65536) == b"" or now > deadline
+            except BlockingIOError:
+                done = now > deadline
+            except OSError:
+                done = True
+            if done:
+                sock.close()
+            else:
+                self._refused.append((deadline, sock))
+
+    def server_close(self) -> None:
+        super().server_close()
+        while self._refused:
+            self._refused.popleft()[1].close()
 
 
 def make_server(config: CarConfig, board: HealthBoard, data_folder: Path, port: int | None = None,
-                idle_timeout_s: float = IDLE_TIMEOUT_S) -> ThreadingHTTPServer:
+                idle_timeout_s: float = IDLE_TIMEOUT_S, max_threads: int = MAX_THREADS) -> StatusHTTPServer:
     registry = CollectorRegistry()
-    registry.register(_BoardCollector(board))
     server = StatusHTTPServer((config.status.bind_address, config.status.port if port is None else port),
-                              make_handler(config, board, registry, data_folder, idle_timeout_s))
+                              make_handler(config, board, registry, data_folder, idle_timeout_s), max_threads)
+    registry.register(_BoardCollector(board, lambda: server.refused))
     server.daemon_threads = True
     return server
 

@@ -232,6 +232,8 @@ class RecorderConfig(StrictModel):
     segment_bytes: int = Field(2 * 1024**3, gt=0)
     min_free_gib: float = Field(5.0, ge=0)
     min_free_pct: float = Field(5.0, ge=0, le=100)
+    # the newest segments holding at least this many seconds of drive are never deleted to make room
+    keep_newest_s: float = Field(300.0, ge=0, allow_inf_nan=False)
     compression: Literal["zstd", "lz4", "none"] = "lz4"
 
 

@@ -181,3 +181,40 @@ def test_idle_connections_are_closed_and_many_clients_are_served(tmp_path):
     finally:
         server.shutdown()
         server.server_close()
+
+
+def test_slow_clients_cannot_make_more_threads_than_the_cap(tmp_path):
+    cfg, _ = private_config(tmp_path)
+    server = make_server(cfg, HealthBoard(cfg), tmp_path / "logs", port=0, idle_timeout_s=30.0, max_threads=8)
+    threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True).start()
+    host, port = server.server_address[:2]
+    before = threading.active_count()
+    slow = []
+    try:
+        for _ in range(40):  # each sends half a request line and then nothing: a thread waits on every one
+            s = socket.create_connection((host, port), timeout=5)
+            s.sendall(b"GET /liv")
+            slow.append(s)
+        time.sleep(0.5)
+        assert threading.active_count() - before <= 8  # the old server: one thread per connection, 40
+        refused = []
+        for s in slow:  # those beyond the cap were answered at once, without waiting for their request
+            s.settimeout(0.05)
+            try:
+                refused.append(s.recv(4096))
+            except TimeoutError:
+                pass
+        assert len(refused) == 32 and all(r.startswith(b"HTTP/1.0 503") for r in refused)
+        answer = socket.create_connection((host, port), timeout=5)
+        answer.sendall(b"GET /livez HTTP/1.0\r\n\r\n")
+        assert answer.recv(4096).startswith(b"HTTP/1.0 503")  # still full: refused, and the answer arrives
+        answer.close()
+        for s in slow:
+            s.close()
+        time.sleep(0.5)  # the held threads see their clients gone and end
+        code, _, body = _get(f"http://{host}:{port}/livez")
+        assert (code, body) == (200, b"ok\n")
+        assert "roadlog_status_refused_connections_total 33.0" in _get(f"http://{host}:{port}/metrics")[2].decode()
+    finally:
+        server.shutdown()
+        server.server_close()
