@@ -94,6 +94,12 @@ def _numbers(value: object) -> tuple[dict[str, float], int]:
     return good, len(value) - len(good)
 
 
+def _flags(value: dict[str, object]) -> tuple[dict[str, float], int]:
+    """{label: true/false} as 1/0, and how many entries were not booleans (skipped and counted)."""
+    good = {k: float(v) for k, v in value.items() if isinstance(v, bool)}
+    return good, len(value) - len(good)
+
+
 def _restarts(detail: dict) -> tuple[dict[str, float], int]:
     """The supervisor's restart count per process, and how many entries were badly shaped."""
     processes = detail.get("processes", {})
@@ -143,9 +149,27 @@ def readiness(config: CarConfig, board: HealthBoard, max_health_age_s: float = 3
     return not problems, problems
 
 
+RECORDER_GAUGES = {  # /status recorder detail key -> (gauge name, help): its state now
+    "disk_free_bytes": ("roadlog_recorder_disk_free_bytes", "free bytes on the recorder's disk (last check)"),
+    "disk_full": ("roadlog_recorder_disk_full", "1 while the recorder is paused for lack of disk"),
+    "segment_open": ("roadlog_recorder_segment_open", "1 while a segment is open for writing"),
+}
+RECORDER_COUNTERS = {  # /status recorder detail key -> (counter name without _total, help): counts since it started
+    "segments_closed": ("roadlog_recorder_segments_closed", "segments closed"),
+    "segments_deleted": ("roadlog_recorder_segments_deleted", "closed segments the disk policy deleted"),
+    "segments_quarantined": ("roadlog_recorder_segments_quarantined", "unclosed segments that could not be read in "
+                             "full, kept as .mcap.damaged"),
+}
+
+
 class _BoardCollector:
+    """Everything /metrics shows, made from the board at each scrape. Counts are counters (`*_total`), states are
+    gauges; the recorder's per-topic counters have a series for every logged topic from the start (0 until the
+    recorder counts one), and the restarts one for every process the supervisor runs."""
+
     def __init__(self, board: HealthBoard):
         self.board = board
+        self.logged_topics = sorted(name for name, t in topic_table(board.config).items() if t.logged)
 
     def collect(self):
         gauges = {
@@ -156,14 +180,16 @@ class _BoardCollector:
         }
         counters = {k: CounterMetricFamily(f"roadlog_{k}", f"{k} messages or events", labels=["process"])
                     for k in ("received", "published", "dropped", "rejected", "errors", "sequence_gaps")}
-        lost = GaugeMetricFamily("roadlog_recorder_lost_messages", "messages the recorder lost", labels=["topic"])
-        written = GaugeMetricFamily("roadlog_recorder_written_messages", "messages written to the log",
-                                    labels=["topic"])
-        quarantined = GaugeMetricFamily("roadlog_recorder_quarantined_segments", "unclosed segments that could not "
-                                        "be read in full, kept as .mcap.damaged (since the recorder started)")
-        restarts = GaugeMetricFamily("roadlog_process_restarts", "restarts by the supervisor", labels=["process"])
+        lost = CounterMetricFamily("roadlog_recorder_lost_messages", "messages the recorder lost (overwritten on "
+                                   "the bus before it read them, or dropped for lack of disk)", labels=["topic"])
+        written = CounterMetricFamily("roadlog_recorder_written_messages", "messages written to the log",
+                                      labels=["topic"])
+        recorder_gauges = {k: GaugeMetricFamily(name, text) for k, (name, text) in RECORDER_GAUGES.items()}
+        recorder_counters = {k: CounterMetricFamily(name, text) for k, (name, text) in RECORDER_COUNTERS.items()}
+        restarts = CounterMetricFamily("roadlog_process_restarts", "restarts by the supervisor", labels=["process"])
         malformed = CounterMetricFamily("roadlog_status_malformed_details", "health detail entries of the wrong "
                                         "shape, skipped (in the latest health of each process)", labels=["process"])
+        recorder_seen = False
         for name, (h, _) in sorted(self.board.snapshot().items()):
             gauges["rate_hz"].add_metric([name], h.rate_hz)
             gauges["age"].add_metric([name], h.last_message_age_s if h.last_message_age_s != float("inf") else -1)
@@ -173,23 +199,30 @@ class _BoardCollector:
             detail = _detail(h)
             bad = 0
             if name == "recorder":
+                recorder_seen = True
                 for family, key in ((lost, "lost"), (written, "written")):
                     figures, wrong = _numbers(detail.get(key, {}))
                     bad += wrong
-                    for topic, n in figures.items():
-                        family.add_metric([topic], n)
-                figures, wrong = _numbers({"": detail.get("segments_quarantined", 0)})
-                bad += wrong
-                for n in figures.values():
-                    quarantined.add_metric([], n)
+                    for topic in sorted(set(self.logged_topics) | set(figures)):
+                        family.add_metric([topic], figures.get(topic, 0.0))
+                figures, wrong = _numbers({k: detail.get(k, 0) for k in ("disk_free_bytes", *RECORDER_COUNTERS)})
+                flags, wrong_flags = _flags({"disk_full": detail.get("disk_full", False),
+                                             "segment_open": detail.get("segment") is not None})
+                bad += wrong + wrong_flags
+                for k, n in {**figures, **flags}.items():
+                    (recorder_gauges.get(k) or recorder_counters[k]).add_metric([], n)
             if name == "supervisor":
                 figures, bad = _restarts(detail)
                 for proc, n in figures.items():
                     restarts.add_metric([proc], n)
             malformed.add_metric([name], bad)
+        if not recorder_seen:  # the series exist, at 0, before the recorder's first report
+            for family in (lost, written):
+                for topic in self.logged_topics:
+                    family.add_metric([topic], 0.0)
         yield from gauges.values()
         yield from counters.values()
-        yield from (lost, written, quarantined, restarts, malformed)
+        yield from (lost, written, *recorder_gauges.values(), *recorder_counters.values(), restarts, malformed)
 
 
 def make_handler(config: CarConfig, board: HealthBoard, registry: CollectorRegistry, data_folder: Path,
