@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import signal
-import sys
 
 from daemon.bus.pubsub import open_publisher, unlink_all
 from daemon.bus.ring_space import check_rings
 from daemon.processes.supervisor import Supervisor
 from daemon.spine.config import load_config, reports_config_errors
+from daemon.spine.process_logging import LEVELS, LOG_LEVEL_ENV, setup_logging
 from daemon.spine.process_table import process_table
 from daemon.spine.topics import topic_table
+
+log = logging.getLogger(__name__)
 
 
 def create_rings(config) -> None:
@@ -30,7 +33,7 @@ def create_rings(config) -> None:
 
 def _serve(supervisor: Supervisor, config) -> int:
     def stop(signum, _frame):
-        print(f"roadlog: signal {signal.Signals(signum).name}, shutting down", file=sys.stderr, flush=True)
+        log.info("signal %s, shutting down", signal.Signals(signum).name)
         supervisor.stop_event.set()
 
     signal.signal(signal.SIGTERM, stop)
@@ -42,16 +45,29 @@ def _serve(supervisor: Supervisor, config) -> int:
         unlink_all(config)
 
 
+def _add_log_level(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--log-level", choices=LEVELS, default=None,
+                        help=f"the daemon's and its processes' log level (default: ${LOG_LEVEL_ENV}, else info)")
+
+
+def _supervisor(config, table, args, **options) -> Supervisor:
+    """The supervisor of this run, logging at --log-level and passing it to every process it starts."""
+    setup_logging("supervisor", args.log_level)
+    env = {LOG_LEVEL_ENV: args.log_level} if args.log_level else {}
+    return Supervisor(config, table, env=env, **options)
+
+
 @reports_config_errors
 def run_main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="roadlog run", description="Run the daemon on the car's live sensors.")
     parser.add_argument("--config", required=True, help="car config YAML")
     parser.add_argument("--output-dir", help="log and map folder (default: recorder.output_dir)")
     parser.add_argument("--no-record", action="store_true", help="do not record logs")
+    _add_log_level(parser)
     args = parser.parse_args(argv)
     config = load_config(args.config)
     table = process_table(config, args.config, "live", record=not args.no_record, output_dir=args.output_dir)
-    return _serve(Supervisor(config, table), config)
+    return _serve(_supervisor(config, table, args), config)
 
 
 @reports_config_errors
@@ -64,8 +80,9 @@ def replay_main(argv: list[str] | None = None) -> int:
                                                      "the mapper takes it)")
     parser.add_argument("--output-dir", help="log and map folder (default: recorder.output_dir)")
     parser.add_argument("--no-record", action="store_true", help="do not record the replayed messages again")
+    _add_log_level(parser)
     args = parser.parse_args(argv)
     config = load_config(args.config)
     table = process_table(config, args.config, "replay", replay_logs=tuple(args.logs), replay_rate=args.rate,
                           record=not args.no_record, output_dir=args.output_dir)
-    return _serve(Supervisor(config, table, exit_when_done=True), config)
+    return _serve(_supervisor(config, table, args, exit_when_done=True), config)

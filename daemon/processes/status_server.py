@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import signal
 import sys
 import threading
@@ -25,11 +26,13 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from daemon.spine.config import CarConfig, data_dir, load_config, reports_config_errors
 from daemon.spine.data_layout import PREVIEWS, preview_dir
 from daemon.spine.messages import DriverHealth
+from daemon.spine.process_logging import setup_logging
 from daemon.spine.process_table import required_drivers
 from daemon.spine.topics import topic_table
 
 LISTEN_BACKLOG = 256  # connections the kernel queues before the server accepts them
 IDLE_TIMEOUT_S = 10.0  # a client that sends nothing (or stops reading) for this long is disconnected
+log = logging.getLogger(__name__)
 
 
 class HealthBoard:
@@ -301,12 +304,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--port", type=int, default=None, help="override the config's port")
     parser.add_argument("--output-dir", help="log and map folder (default: recorder.output_dir)")
     args = parser.parse_args(argv)
+    setup_logging("status")
     config = load_config(args.config)
     board = HealthBoard(config)
     board.start()
     server = make_server(config, board, data_dir(config, args.config, args.output_dir), args.port)
     signal.signal(signal.SIGTERM, lambda *_: threading.Thread(target=server.shutdown).start())
-    print(f"status endpoint on http://{server.server_address[0]}:{server.server_address[1]}", file=sys.stderr)
+    log.info("status endpoint on http://%s:%s", *server.server_address[:2])
     try:
         server.serve_forever(poll_interval=0.2)
     except KeyboardInterrupt:

@@ -11,6 +11,7 @@ report ok, and WATCHDOG=1 only while the daemon is healthy.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import socket
@@ -29,6 +30,7 @@ MAX_BACKOFF_S = 30.0
 CRASH_LOOP_RESTARTS = 3  # this many restarts of one process ...
 CRASH_LOOP_WINDOW_S = 60.0  # ... within this window: the daemon is unhealthy (systemd's watchdog starves)
 STARTUP_GRACE_S = 20.0
+log = logging.getLogger(__name__)
 
 
 def sd_notify(state: str) -> bool:
@@ -107,8 +109,8 @@ class Supervisor:
         child.state = "backoff"
         child.next_start_at = now + child.backoff_s
         child.backoff_s = min(self.max_backoff_s, child.backoff_s * 2)
-        print(f"supervisor: {child.spec.name} {reason}; restart #{child.restarts} in "
-              f"{child.next_start_at - now:.1f} s", file=sys.stderr, flush=True)
+        log.warning("%s %s; restart #%d in %.1f s", child.spec.name, reason, child.restarts,
+                    child.next_start_at - now)
 
     def _last_health_age_s(self, child: Child) -> float | None:
         """Seconds since the process's newest health message, None when it has published none."""
@@ -143,7 +145,7 @@ class Supervisor:
             if code == EXIT_CONFIG_ERROR:
                 child.state = "failed"
                 child.last_reason = "configuration error (exit 2): not restarted, see its log"
-                print(f"supervisor: {child.spec.name} {child.last_reason}", file=sys.stderr, flush=True)
+                log.error("%s %s", child.spec.name, child.last_reason)
                 return
             self._schedule_restart(child, f"exited with {code}")
             return

@@ -46,6 +46,7 @@ from daemon.spine.config import CarConfig, data_dir, load_config, reports_config
 from daemon.spine.data_layout import preview_dir
 from daemon.spine.health import HealthCounters, process_memory_mb
 from daemon.spine.local_frame import LocalFrame
+from daemon.spine.process_logging import setup_logging
 from daemon.spine.topics import (
     GNSS_FIX,
     IMU,
@@ -485,7 +486,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--config", required=True, help="car config YAML")
     parser.add_argument("--output-dir", help="data folder (default: recorder.output_dir of the config)")
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s mapper %(levelname)s %(message)s")
+    setup_logging("mapper")
     config = load_config(args.config)
     worker = MappingWorker(config, args.config, args.output_dir)  # a ConfigError here: exit 2, not retried
     stop = threading.Event()
