@@ -5,15 +5,17 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
+from pathlib import Path
 
 from daemon.bus.pubsub import open_publisher, unlink_all
 from daemon.bus.ring_space import check_rings
 from daemon.processes.supervisor import Supervisor
-from daemon.spine.config import load_config, reports_config_errors
+from daemon.spine.config import ConfigError, load_config, reports_config_errors
 from daemon.spine.process_logging import LEVELS, LOG_LEVEL_ENV, setup_logging
 from daemon.spine.process_table import process_table
 from daemon.spine.topics import topic_table
 
+REPLAY_OUTPUT_DIR = "roadlog-output"  # a replay's logs and map without --output-dir: in the current directory
 log = logging.getLogger(__name__)
 
 
@@ -78,11 +80,16 @@ def replay_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--config", required=True, help="car config YAML")
     parser.add_argument("--rate", default="1.0", help="playback speed factor, or 'max' (lossless, as fast as "
                                                      "the mapper takes it)")
-    parser.add_argument("--output-dir", help="log and map folder (default: recorder.output_dir)")
+    parser.add_argument("--output-dir", default=REPLAY_OUTPUT_DIR,
+                        help=f"log and map folder (default: ./{REPLAY_OUTPUT_DIR}, in the current directory)")
     parser.add_argument("--no-record", action="store_true", help="do not record the replayed messages again")
     _add_log_level(parser)
     args = parser.parse_args(argv)
     config = load_config(args.config)
+    unusable = [f"{p}: {'a folder, not a log' if Path(p).is_dir() else 'no such file'}"
+                for p in args.logs if not Path(p).is_file()]
+    if unusable:  # before any process starts: the player would refuse them (exit 2) with the others up
+        raise ConfigError("; ".join(unusable))
     table = process_table(config, args.config, "replay", replay_logs=tuple(args.logs), replay_rate=args.rate,
                           record=not args.no_record, output_dir=args.output_dir)
     return _serve(_supervisor(config, table, args, exit_when_done=True), config)

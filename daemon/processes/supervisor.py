@@ -81,6 +81,7 @@ class Supervisor:
         self.startup_grace_s = startup_grace_s
         self.max_backoff_s = max_backoff_s
         self._mapper_told = False
+        self.exit_code = 0  # run()'s: not 0 when a replay ends because its player failed
         self.stop_event = threading.Event()
         self.health = HealthCounters("supervisor")
         self.ready_sent = False
@@ -245,11 +246,16 @@ class Supervisor:
             self.stop_event.wait(0.1)
         sd_notify("STOPPING=1")
         self.stop_all()
-        return 0
+        return self.exit_code
 
     def _drive_done(self) -> bool:
         """Replay mode: once the player finished, let the mapper finish its windows, then stop."""
         replay = self.children.get("replay")
+        if replay is not None and (replay.state == "failed" or (replay.state == "backoff" and replay.last_exit)):
+            # the player cannot play its logs (exit 2) or crashed: a replay that restarts would play them twice
+            self.exit_code = EXIT_CONFIG_ERROR if replay.last_exit == EXIT_CONFIG_ERROR else 1
+            log.error("the log player failed (exit %s): stopping the replay", replay.last_exit)
+            return True
         if replay is None or replay.state != "finished":
             return False
         mapper = self.children.get("mapper")

@@ -251,9 +251,9 @@ class MappingWorker:
     # ---- windows -----------------------------------------------------------------------------------------
     def _window_ready(self, k: int, end_of_drive: bool) -> bool:
         _, _, s_hi = window_span(k, self.mapper.windows.before_m, self.mapper.windows.after_m)
-        if end_of_drive:
-            return k < windows_for_drive(self.state.distance_m, self.mapper.windows.before_m,
-                                         self.mapper.windows.after_m)
+        if end_of_drive:  # a drive without odometry (an empty replay: no wheel speed at all) has no window
+            return bool(self.odometry.knots_s) and k < windows_for_drive(
+                self.state.distance_m, self.mapper.windows.before_m, self.mapper.windows.after_m)
         # the road reaches the window's end, and every input it reads has arrived: its map is then the same
         # whenever the worker gets to it
         return (bool(self.odometry.knots_s) and self.state.distance_m >= s_hi
