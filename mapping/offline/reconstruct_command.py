@@ -17,6 +17,7 @@ import json
 import sys
 import tempfile
 import time
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -55,7 +56,16 @@ class DriveTruth:
 
     @staticmethod
     def load(path: str | Path) -> DriveTruth:
-        gt = np.load(path)
+        """The truth file; one that is missing or not a simulated drive's truth is a ConfigError."""
+        try:
+            gt = np.load(path)
+            return DriveTruth._of(gt)
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:  # missing, not an .npz, other arrays
+            raise ConfigError(f"--gt {path}: not a simulated drive's ground truth (PATH.gt.npz): "
+                              f"{getattr(exc, 'strerror', None) or exc}") from None
+
+    @staticmethod
+    def _of(gt) -> DriveTruth:
         res = float(gt["grid_resolution_m"])
         origin_xy = tuple(float(v) + res / 2 for v in gt["grid_origin_xy"])  # the file gives cell corners
         return DriveTruth(LocalFrame(*(float(v) for v in gt["enu_origin_lat_lon_alt"])),
@@ -137,6 +147,9 @@ def main(argv: list[str] | None = None) -> int:
     problems = [why for why in map(not_a_log, args.logs) if why]
     if problems:
         raise ConfigError("; ".join(problems))
+    truth = DriveTruth.load(args.gt) if args.gt else None
+    if args.out.exists() and not args.out.is_dir():  # found now, not after the reconstruction
+        raise ConfigError(f"--out {args.out}: a file, not a folder")
     if given is not None:
         config, config_path = given, Path(args.config)
     else:
@@ -144,7 +157,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.epochs is not None:
         faithful_fit = config.mapper.faithful_fit.model_copy(update={"epochs": args.epochs})
         config = config.model_copy(update={"mapper": config.mapper.model_copy(update={"faithful_fit": faithful_fit})})
-    truth = DriveTruth.load(args.gt) if args.gt else None
     result, _ = run_reconstruction(args.logs, args.out, config, config_path, truth=truth,  # ConfigError: exit 2
                                    use_lidar=not args.no_lidar, ablation=args.ablation, faithful=args.faithful)
     keys = ("psnr_db", "psnr_train_db", "miou_pct", "iou_pct", "semantics", "elev_error_cm", "elev_mae_gt_cm",
