@@ -73,6 +73,22 @@ class DriveTruth:
                           gt["lidar_points_enu"])
 
 
+class PhaseLines:
+    """One stderr line as each phase of a reconstruction ends: `roadlog reconstruct: [  12.3 s] PHASE (+4.1 s)`,
+    the time since the start and the phase's own."""
+
+    def __init__(self, enabled: bool = True):
+        self.enabled = enabled
+        self.started = self.last = time.perf_counter()
+
+    def __call__(self, what: str) -> None:
+        now = time.perf_counter()
+        if self.enabled:
+            print(f"roadlog reconstruct: [{now - self.started:7.1f} s] {what} (+{now - self.last:.1f} s)",
+                  file=sys.stderr, flush=True)
+        self.last = now
+
+
 def config_from_logs(paths: list[str]) -> tuple[CarConfig, Path]:
     """The car config recorded in the first log, and a file holding its Lidar metadata (if recorded)."""
     meta = read_metadata(paths[0]).get("roadlog", {})
@@ -100,15 +116,18 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
                        truth: DriveTruth | None = None, use_lidar: bool = True, ablation: str | None = None,
                        faithful: bool = False, progress: bool = True) -> tuple[ReconstructionResult, DriveInputs]:
     started = time.perf_counter()
+    phase = PhaseLines(progress)
+    phase(f"reading {len(logs)} log(s) in the background, writing to {out}")
     loading = start_loading_drive(logs, config, config_path, origin=truth.origin if truth else None,
                                   use_lidar=use_lidar)
+    phase("drive path read")
     warning = missing_masks_warning(loading.counts["frames"], loading.counts["frames_without_mask"])
     if warning is not None:
         print(f"roadlog reconstruct: warning: {warning}", file=sys.stderr, flush=True)
     result = reconstruct(loading.keyframes, loading.cameras, loading.path, loading.lidar_ground_points,
                          config.mapper, config.vehicle.reference_height_m, out_dir=out, ablation=ablation,
                          gt=truth.elevation if truth else None, faithful=faithful, progress=progress,
-                         lidar_standing=loading.lidar_standing)
+                         lidar_standing=loading.lidar_standing, phase=phase)
     drive = loading.result()
     lidar = drive.lidar_ground_points
     metrics = result.metrics
@@ -127,6 +146,7 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
     out.mkdir(parents=True, exist_ok=True)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
     (out / "config.yaml").write_text(config_to_yaml(config))
+    phase("metrics.json and config.yaml written")
     return result, drive
 
 
