@@ -3,22 +3,12 @@ one `error:` line on stderr and exit status 2 (never a traceback), `--version`, 
 
 import os
 import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
 from daemon.bus.pubsub import unlink_all
-from daemon.log_format.writer import LogWriter
-from daemon.spine.messages import CanFrame
-from daemon.spine.topics import CAN_FRAMES
-from tests.daemon_fixtures import REPO, private_config
-
-
-def roadlog(*args: str, cwd: Path = REPO, timeout: float = 120) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if k not in ("JOURNAL_STREAM", "INVOCATION_ID")}
-    return subprocess.run([sys.executable, "-m", "daemon.commands.cli", *map(str, args)], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=timeout)
+from tests.daemon_fixtures import private_config
+from tests.roadlog_cli import can_only_log, roadlog
 
 
 def assert_one_line_error(run: subprocess.CompletedProcess, *words: str) -> None:
@@ -39,7 +29,7 @@ def files(tmp_path):
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(os.urandom(4096))
     car, config = private_config(tmp_path)
-    log = _can_log(tmp_path / "drive.mcap", car)
+    log = can_only_log(tmp_path / "drive.mcap", car)
     return {"missing": tmp_path / "nope.mcap", "junk": junk, "folder": tmp_path, "config": config, "log": log,
             "missing_config": tmp_path / "nope.yaml", "junk_config": junk}
 
@@ -72,21 +62,13 @@ def test_a_bad_path_or_input_is_one_error_line_and_exit_2(files, args, words):
     assert_one_line_error(roadlog(*(a.format(**files) for a in args), timeout=120), *words)
 
 
-def _can_log(path: Path, config) -> Path:
-    with LogWriter(path, config) as writer:
-        for i in range(50):
-            writer.write(CAN_FRAMES, CanFrame(sensor_time_ns=i * 10_000_000, arbitration_id=0x100, channel="can0",
-                                              data=bytes(8), host_mono_ns=10**9 + i * 10_000_000))
-    return path
-
-
 def test_replay_writes_under_roadlog_output_in_the_current_folder_never_beside_the_config(tmp_path):
     """Without --output-dir a replay's recording and map go to ./roadlog-output, not to recorder.output_dir (which
     sits beside the config: configs/logs for configs/sim.yaml). A drive the mapper gets no odometry from (no wheel
     speeds) ends without a map window, not with an IndexError."""
     (tmp_path / "configs").mkdir()
     config, path = private_config(tmp_path / "configs", status={"port": 0})
-    log = _can_log(tmp_path / "drive.mcap", config)
+    log = can_only_log(tmp_path / "drive.mcap", config)
     work = tmp_path / "work"
     work.mkdir()
     try:

@@ -9,10 +9,8 @@ import subprocess
 import sys
 
 from daemon.bus.pubsub import unlink_all
-from daemon.log_format.writer import LogWriter
-from daemon.spine.messages import CanFrame
-from daemon.spine.topics import CAN_FRAMES
 from tests.daemon_fixtures import REPO, private_config
+from tests.roadlog_cli import can_only_log, roadlog
 
 TIMESTAMP = re.compile(r"\d{4}-\d\d-\d\d[ T]\d\d:\d\d:\d\d")
 PRIORITY = re.compile(r"^<([0-7])>")
@@ -25,27 +23,18 @@ def _env(journal: bool, **extra: str) -> dict[str, str]:
     return dict(env, **extra)
 
 
-def _roadlog(*args: str, env: dict[str, str], timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "daemon.commands.cli", *args], cwd=REPO, env=env, text=True,
-                          capture_output=True, timeout=timeout)
-
-
 def _small_log(tmp_path):
     """A config without the mapper (fast to start) and a log of 50 CAN frames recorded with it."""
     config, path = private_config(tmp_path, mapper={"enabled": False}, status={"port": 0})
-    log = tmp_path / "drive.mcap"
-    with LogWriter(log, config) as writer:
-        for i in range(50):
-            writer.write(CAN_FRAMES, CanFrame(sensor_time_ns=i * 10_000_000, arbitration_id=0x100, channel="can0",
-                                              data=bytes(8), host_mono_ns=10**9 + i * 10_000_000))
+    log = can_only_log(tmp_path / "drive.mcap", config)
     return config, path, log
 
 
 def test_under_the_journal_every_line_has_its_priority_and_no_timestamp(tmp_path):
     config, path, log = _small_log(tmp_path)
     try:
-        run = _roadlog("replay", str(log), "--config", str(path), "--rate", "max", "--output-dir",
-                       str(tmp_path / "out"), env=_env(journal=True))
+        run = roadlog("replay", str(log), "--config", str(path), "--rate", "max", "--output-dir",
+                      str(tmp_path / "out"), env=_env(journal=True))
     finally:
         unlink_all(config)
     assert run.returncode == 0, run.stderr[-3000:]
@@ -55,22 +44,22 @@ def test_under_the_journal_every_line_has_its_priority_and_no_timestamp(tmp_path
     assert any(line.startswith("<6>recorder: ") for line in lines), lines  # info, named by its process
     assert any(line.startswith("<6>replay: replayed 50 messages") for line in lines), lines
 
-    bad = _roadlog("status-server", "--config", str(tmp_path / "nope.yaml"), env=_env(journal=True))
+    bad = roadlog("status-server", "--config", str(tmp_path / "nope.yaml"), env=_env(journal=True))
     assert bad.returncode == 2 and bad.stderr.startswith("<3>error: ") and len(bad.stderr.splitlines()) == 1
 
 
 def test_log_level_reaches_every_process_the_daemon_starts(tmp_path):
     config, path, log = _small_log(tmp_path)
     try:
-        run = _roadlog("replay", str(log), "--config", str(path), "--rate", "max", "--output-dir",
-                       str(tmp_path / "out"), "--log-level", "warning", env=_env(journal=True))
+        run = roadlog("replay", str(log), "--config", str(path), "--rate", "max", "--output-dir",
+                      str(tmp_path / "out"), "--log-level", "warning", env=_env(journal=True))
     finally:
         unlink_all(config)
     assert run.returncode == 0, run.stderr[-3000:]
     # the recorder and the player log at info on every run: at warning, none of it
     assert [line for line in run.stderr.splitlines() if PRIORITY.match(line) and int(line[1]) > 4] == []
     assert "replayed 50 messages" not in run.stderr
-    bad = _roadlog("run", "--config", str(path), "--log-level", "chatty", env=_env(journal=False))
+    bad = roadlog("run", "--config", str(path), "--log-level", "chatty", env=_env(journal=False))
     assert bad.returncode == 2 and "--log-level" in bad.stderr
 
 
