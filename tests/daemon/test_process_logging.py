@@ -2,6 +2,7 @@
 its syslog priority `<N>` and has no timestamp of its own; elsewhere lines start with one; `--log-level` reaches
 every process the daemon starts."""
 
+import logging
 import os
 import re
 import signal
@@ -9,6 +10,7 @@ import subprocess
 import sys
 
 from daemon.bus.pubsub import unlink_all
+from daemon.spine.process_logging import JournalFormatter, level_from, priority
 from tests.daemon_fixtures import REPO, private_config
 from tests.roadlog_cli import can_only_log, roadlog
 
@@ -76,3 +78,17 @@ def test_outside_the_journal_lines_start_with_a_timestamp(tmp_path):
         if proc.poll() is None:
             proc.kill()
         unlink_all(config)
+
+
+def test_every_line_of_a_traceback_carries_the_priority_and_levels_map_to_syslog():
+    try:
+        raise RuntimeError("boom")
+    except RuntimeError:
+        record = logging.getLogger("t").makeRecord("t", logging.ERROR, __file__, 1, "window %d failed", (3,),
+                                                   sys.exc_info())
+    lines = JournalFormatter("mapper").format(record).splitlines()
+    assert lines[0] == "<3>mapper: window 3 failed" and len(lines) > 3
+    assert all(line.startswith("<3>") for line in lines) and lines[-1] == "<3>RuntimeError: boom"
+    assert [priority(n) for n in (5, 10, 15, 20, 30, 40, 50, 60)] == [7, 7, 7, 6, 4, 3, 2, 2]
+    assert level_from(None, {"ROADLOG_LOG_LEVEL": "DEBUG"}) == logging.DEBUG and level_from(None, {}) == logging.INFO
+    assert level_from("warning", {"ROADLOG_LOG_LEVEL": "debug"}) == logging.WARNING  # the flag wins
