@@ -56,6 +56,7 @@ def setup_logging(process: str, level: str | None = None) -> None:
     handler = logging.StreamHandler(sys.stderr)
     if under_journal():
         handler.setFormatter(JournalFormatter(process))
+        sys.excepthook = _logged_crash  # a crash's traceback at critical priority, not as info lines
     else:
         handler.setFormatter(logging.Formatter(f"%(asctime)s {process} %(levelname)s %(message)s"))
     root = logging.getLogger()
@@ -63,6 +64,13 @@ def setup_logging(process: str, level: str | None = None) -> None:
         root.removeHandler(old)
     root.addHandler(handler)
     root.setLevel(chosen)
+
+
+def _logged_crash(kind, value, traceback) -> None:
+    if issubclass(kind, KeyboardInterrupt):
+        sys.__excepthook__(kind, value, traceback)
+        return
+    logging.getLogger().critical("crashed: %s: %s", kind.__name__, value, exc_info=(kind, value, traceback))
 
 
 def error_line(text: str) -> str:

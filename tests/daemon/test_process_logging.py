@@ -92,3 +92,13 @@ def test_every_line_of_a_traceback_carries_the_priority_and_levels_map_to_syslog
     assert [priority(n) for n in (5, 10, 15, 20, 30, 40, 50, 60)] == [7, 7, 7, 6, 4, 3, 2, 2]
     assert level_from(None, {"ROADLOG_LOG_LEVEL": "DEBUG"}) == logging.DEBUG and level_from(None, {}) == logging.INFO
     assert level_from("warning", {"ROADLOG_LOG_LEVEL": "debug"}) == logging.WARNING  # the flag wins
+
+
+def test_a_crash_under_the_journal_is_logged_at_critical_priority_line_by_line():
+    code = ("from daemon.spine.process_logging import setup_logging; setup_logging('mapper'); "
+            "[][0]")
+    run = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=_env(journal=True), capture_output=True,
+                         text=True, timeout=60)
+    lines = run.stderr.splitlines()
+    assert run.returncode == 1 and lines[0] == "<2>mapper: crashed: IndexError: list index out of range", lines
+    assert all(line.startswith("<2>") for line in lines) and lines[-1] == "<2>IndexError: list index out of range"
