@@ -2,6 +2,8 @@
 its syslog priority `<N>` and has no timestamp of its own; elsewhere lines start with one; `--log-level` reaches
 every process the daemon starts."""
 
+import importlib
+import inspect
 import logging
 import os
 import re
@@ -11,6 +13,7 @@ import sys
 
 from daemon.bus.pubsub import unlink_all
 from daemon.spine.process_logging import JournalFormatter, level_from, priority
+from daemon.spine.process_table import process_table
 from tests.daemon_fixtures import REPO, private_config
 from tests.roadlog_cli import can_only_log, roadlog
 
@@ -102,3 +105,14 @@ def test_a_crash_under_the_journal_is_logged_at_critical_priority_line_by_line()
     lines = run.stderr.splitlines()
     assert run.returncode == 1 and lines[0] == "<2>mapper: crashed: IndexError: list index out of range", lines
     assert all(line.startswith("<2>") for line in lines) and lines[-1] == "<2>IndexError: list index out of range"
+
+
+def test_every_process_the_daemon_runs_sets_up_its_logging_the_one_way(tmp_path):
+    """No process keeps a logging set-up of its own (basicConfig with its timestamps): each main() calls
+    setup_logging, itself or through the camera processes' common main."""
+    config, path = private_config(tmp_path)
+    modules = {s.module for mode in ("live", "replay") for s in process_table(config, str(path), mode)}
+    for name in sorted(modules):
+        source = inspect.getsource(importlib.import_module(name))
+        assert "basicConfig" not in source, name
+        assert "setup_logging(" in source or "camera_process_main(" in source, name
