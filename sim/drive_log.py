@@ -431,6 +431,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--print-scenario", action="store_true",
                         help="print the scenario (a random world's drawn parameters) as YAML and exit")
     args = parser.parse_args(argv)
+    for flag, value, ok, want in (("--seconds", args.seconds, args.seconds is None or args.seconds > 0, "> 0"),
+                                  ("--seed", args.seed, args.seed is None or args.seed >= 0, ">= 0"),
+                                  ("--workers", args.workers, args.workers >= 1, ">= 1")):
+        if not ok:
+            raise ConfigError(f"{flag} {value}: must be {want}")
     config = load_config(args.config)
     if args.print_scenario:
         sc = scenario_for(args.scenario, args.seed, [cam.name for cam in config.sensors.cameras])

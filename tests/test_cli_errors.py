@@ -2,6 +2,7 @@
 one `error:` line on stderr and exit status 2 (never a traceback), `--version`, and where `replay` writes."""
 
 import os
+import socket
 import subprocess
 
 import pytest
@@ -50,9 +51,12 @@ def files(tmp_path):
     (("simulate", "--scenario", "city", "--out", "{folder}/no/such/folder/x.mcap"), ("no folder",)),
     (("simulate", "--scenario", "city", "--out", "{folder}"), ("a folder",)),
     (("simulate", "--scenario", "nowhere", "--out", "{folder}/x.mcap"), ("unknown scenario 'nowhere'",)),
+    (("simulate", "--scenario", "random", "--seed", "-1", "--out", "{folder}/x.mcap"), ("--seed -1",)),
+    (("simulate", "--scenario", "city", "--seconds", "0", "--out", "{folder}/x.mcap"), ("--seconds 0",)),
     (("simulate", "--scenario", "city", "--config", "{missing_config}", "--out", "{folder}/x.mcap"), ("nope.yaml",)),
     (("replay", "{missing}", "--config", "{config}"), ("nope.mcap", "no such file")),
     (("replay", "{folder}", "--config", "{config}"), ("a folder",)),
+    (("replay", "{junk}", "--config", "{config}"), ("is not an MCAP file",)),
     (("run", "--config", "{missing_config}"), ("nope.yaml",)),
     (("import", "kitti-raw", "{missing}", "--out", "{folder}/x.mcap"), ("nope.mcap",)),
 ])
@@ -60,6 +64,16 @@ def test_a_bad_path_or_input_is_one_error_line_and_exit_2(files, args, words):
     """Refused before any work: a replay before it starts any process (their lines would follow), a simulation
     before it renders the drive."""
     assert_one_line_error(roadlog(*(a.format(**files) for a in args), timeout=120), *words)
+
+
+def test_a_status_port_in_use_is_one_error_line_not_a_traceback(tmp_path):
+    """The status server alone, and so the daemon's (exit 2: the supervisor does not restart it in a loop)."""
+    _, config = private_config(tmp_path)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert_one_line_error(roadlog("status-server", "--config", config, "--port", port), f":{port}", "in use")
 
 
 def test_replay_writes_under_roadlog_output_in_the_current_folder_never_beside_the_config(tmp_path):

@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
-from pathlib import Path
 
 from daemon.bus.pubsub import open_publisher, unlink_all
 from daemon.bus.ring_space import check_rings
+from daemon.log_format.reader import not_a_log
 from daemon.processes.supervisor import Supervisor
 from daemon.spine.config import ConfigError, load_config, reports_config_errors
 from daemon.spine.process_logging import LEVELS, LOG_LEVEL_ENV, setup_logging
@@ -86,9 +86,8 @@ def replay_main(argv: list[str] | None = None) -> int:
     _add_log_level(parser)
     args = parser.parse_args(argv)
     config = load_config(args.config)
-    unusable = [f"{p}: {'a folder, not a log' if Path(p).is_dir() else 'no such file'}"
-                for p in args.logs if not Path(p).is_file()]
-    if unusable:  # before any process starts: the player would refuse them (exit 2) with the others up
+    unusable = [why for why in map(not_a_log, args.logs) if why]
+    if unusable:  # before any process starts: the player would refuse them, or play nothing, with the others up
         raise ConfigError("; ".join(unusable))
     table = process_table(config, args.config, "replay", replay_logs=tuple(args.logs), replay_rate=args.rate,
                           record=not args.no_record, output_dir=args.output_dir)

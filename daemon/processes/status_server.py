@@ -23,7 +23,7 @@ from pathlib import Path
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
-from daemon.spine.config import CarConfig, data_dir, load_config, reports_config_errors
+from daemon.spine.config import CarConfig, ConfigError, data_dir, load_config, reports_config_errors
 from daemon.spine.data_layout import PREVIEWS, preview_dir
 from daemon.spine.messages import DriverHealth
 from daemon.spine.process_logging import setup_logging
@@ -307,8 +307,13 @@ def main(argv: list[str] | None = None) -> int:
     setup_logging("status")
     config = load_config(args.config)
     board = HealthBoard(config)
+    port = config.status.port if args.port is None else args.port
+    try:
+        server = make_server(config, board, data_dir(config, args.config, args.output_dir), port)
+    except OSError as exc:  # the port is taken, the address is not this host's: not retried (exit 2)
+        raise ConfigError(f"{args.config}: status endpoint {config.status.bind_address}:{port}: "
+                          f"{exc.strerror or exc}") from None
     board.start()
-    server = make_server(config, board, data_dir(config, args.config, args.output_dir), args.port)
     signal.signal(signal.SIGTERM, lambda *_: threading.Thread(target=server.shutdown).start())
     log.info("status endpoint on http://%s:%s", *server.server_address[:2])
     try:
