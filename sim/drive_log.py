@@ -36,7 +36,7 @@ import numpy as np
 import yaml
 
 from daemon.log_format.writer import LogWriter
-from daemon.spine.config import CarConfig, load_config, resolve_path
+from daemon.spine.config import CarConfig, ConfigError, load_config, reports_config_errors, resolve_path
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.messages import CameraFrame, CanFrame, ImuSample, LidarPacket, SemanticMask, TimeAnchor
 from daemon.spine.topics import (
@@ -416,6 +416,7 @@ def _write_ground_truth(scene: Scene, frame: LocalFrame, path: Path, points: lis
     )
 
 
+@reports_config_errors
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="roadlog simulate", description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenario", required=True,
@@ -432,6 +433,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--print-scenario", action="store_true",
                         help="print the scenario (a random world's drawn parameters) as YAML and exit")
     args = parser.parse_args(argv)
+    for flag, value, ok, want in (("--seconds", args.seconds, args.seconds is None or args.seconds > 0, "> 0"),
+                                  ("--seed", args.seed, args.seed is None or args.seed >= 0, ">= 0"),
+                                  ("--workers", args.workers, args.workers >= 1, ">= 1")):
+        if not ok:
+            raise ConfigError(f"{flag} {value}: must be {want}")
     config = load_config(args.config)
     if args.print_scenario:
         sc = scenario_for(args.scenario, args.seed, [cam.name for cam in config.sensors.cameras])
@@ -441,6 +447,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.out is None:
         parser.error("--out is required (unless --print-scenario)")
+    if not args.out.parent.is_dir() or args.out.is_dir():  # before the drive is rendered, not after
+        raise ConfigError(f"--out {args.out}: " + ("a folder, not a PATH.mcap" if args.out.is_dir() else
+                                                   f"no folder {args.out.parent}"))
+    scenario_for(args.scenario, args.seed, [cam.name for cam in config.sensors.cameras])  # an unknown one: exit 2
     summary = simulate_drive(args.scenario, args.seconds, args.out, config, args.seed,
                              config_dir=args.config.resolve().parent, workers=args.workers,
                              masks=not args.no_masks)

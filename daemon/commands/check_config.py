@@ -17,6 +17,7 @@ from daemon.spine.config import (
     load_config,
     reports_config_errors,
 )
+from daemon.spine.process_logging import error_line
 from daemon.spine.process_table import DAEMON_CHECK, process_table
 
 
@@ -45,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     config = load_config(args.config)
     problems = start_up_problems(config, args.config)
     for line in problems:
-        print(f"error: {line}", file=sys.stderr)
+        print(error_line(line), file=sys.stderr)
     if problems:
         return EXIT_CONFIG_ERROR
     if not args.quiet:

@@ -6,6 +6,10 @@ import argparse
 import importlib
 import sys
 
+from daemon.log_format.metadata_records import SOFTWARE_VERSION
+from daemon.spine.config import EXIT_CONFIG_ERROR, ConfigError
+from daemon.spine.process_logging import error_line
+
 # name -> ("module[:function]" taking argv (default: main), one-line help): the only place a subcommand is declared.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("mapping.demo", "simulate a drive, run the daemon on it (replay, record, map), print what happened"),
@@ -22,12 +26,16 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one subcommand. A bad path or input it meets (a ConfigError, or a file it cannot open) is one
+    `error: ...` line on stderr and exit status 2, never a traceback."""
     argv = sys.argv[1:] if argv is None else argv
     parser = argparse.ArgumentParser(prog="roadlog", description="ROS-free sensor logging and live road mapping.")
+    parser.add_argument("--version", action="version", version=SOFTWARE_VERSION)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (_, help_text) in SUBCOMMANDS.items():
         sub.add_parser(name, help=help_text, add_help=False)
-    if not argv or argv[0] in ("-h", "--help"):
+    if not argv or argv[0] in ("-h", "--help", "--version"):
+        parser.parse_args(argv[:1])  # prints the version and exits
         parser.print_help()
         return 0
     name, rest = argv[0], argv[1:]
@@ -35,7 +43,13 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unknown command {name!r} (choose from {', '.join(SUBCOMMANDS)})")
     module_name, _, function = SUBCOMMANDS[name][0].partition(":")
     entry = getattr(importlib.import_module(module_name), function or "main")
-    return int(entry(rest) or 0)
+    try:
+        return int(entry(rest) or 0)
+    except ConfigError as exc:  # a command whose main() does not report its own
+        print(error_line(str(exc)), file=sys.stderr)
+    except (FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError) as exc:
+        print(error_line(f"{exc.filename}: {exc.strerror}" if exc.filename else str(exc)), file=sys.stderr)
+    return EXIT_CONFIG_ERROR
 
 
 if __name__ == "__main__":

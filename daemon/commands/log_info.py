@@ -1,5 +1,6 @@
 """`roadlog log-info`: per-topic message counts, time span and damage of MCAP log files, and the car the first file
-recorded (its source, software, cameras with their intrinsics and extrinsics, Lidar, GNSS)."""
+recorded (its source, software, cameras with their intrinsics and extrinsics, Lidar, GNSS). A path that is not an
+MCAP file (missing, a folder, a ROS 2 bag, any other file) is one `error:` line and exit status 2."""
 
 from __future__ import annotations
 
@@ -10,6 +11,8 @@ from collections import Counter
 
 from daemon.log_format.metadata_records import METADATA_NAME
 from daemon.log_format.reader import ReadReport, not_a_log, read_log, read_metadata
+from daemon.spine.config import EXIT_CONFIG_ERROR
+from daemon.spine.process_logging import error_line
 
 
 def recorded_car(path: str) -> dict:
@@ -50,12 +53,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     problems = [why for why in map(not_a_log, args.logs) if why]
     for why in problems:
-        print(f"error: {why}", file=sys.stderr)
+        print(error_line(why), file=sys.stderr)
     if problems:
-        return 1
+        return EXIT_CONFIG_ERROR
     summary = summarise(args.logs)
     print(json.dumps(summary, indent=2))
     if not summary["messages_per_topic"] and "error" in summary["recorded"]:
-        print(f"error: {args.logs[0]}: {summary['recorded']['error']}", file=sys.stderr)
-        return 1
+        print(error_line(f"{args.logs[0]}: {summary['recorded']['error']}"), file=sys.stderr)
+        return EXIT_CONFIG_ERROR
     return 0

@@ -5,12 +5,16 @@ seq per topic)."""
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import zlib
 
 from mcap.records import Channel, Schema
 
-SOFTWARE_VERSION = "roadlog 0.1.0"
+try:  # the installed distribution's (pyproject.toml), the one place the version is written
+    SOFTWARE_VERSION = f"roadlog {importlib.metadata.version('roadlog')}"
+except importlib.metadata.PackageNotFoundError:  # run from a checkout that was never installed
+    SOFTWARE_VERSION = "roadlog (not installed)"
 METADATA_NAME = "roadlog"
 COUNTS_METADATA_NAME = "roadlog.counts"
 CHANNEL_METADATA_NAME = "roadlog.channel"

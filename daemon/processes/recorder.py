@@ -57,6 +57,7 @@ from daemon.processes.segment_files import (
 from daemon.spine.config import CarConfig, load_config, reports_config_errors
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import TimeAnchor
+from daemon.spine.process_logging import setup_logging
 from daemon.spine.process_table import RESTARTS_ENV
 from daemon.spine.topics import TIME_ANCHOR, health_topic, topic_table
 
@@ -394,7 +395,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lossless", action="store_true",
                         help="read losslessly: publishers wait for the recorder (replay at max speed only)")
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s recorder %(levelname)s %(message)s")
+    setup_logging("recorder")
     config = load_config(args.config)
     output_dir = check_output_dir(config, args.config, args.output_dir)
     stop = threading.Event()

@@ -33,6 +33,7 @@ from daemon.log_format.reader import LogRecord, ReadReport, last_log_time, read_
 from daemon.spine.config import CarConfig, ConfigError, load_config, reports_config_errors
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import HOST_CLOCK_WITHIN_NS
+from daemon.spine.process_logging import setup_logging
 from daemon.spine.process_table import required_drivers
 from daemon.spine.topics import TIME_ANCHOR, health_topic, topic_table
 
@@ -242,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--start", type=float, default=0.0, help="seconds from the log start")
     parser.add_argument("--end", type=float, default=None, help="seconds from the log start")
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s replay %(levelname)s %(message)s")
+    setup_logging("replay")
     config = load_config(args.config)
     missing = [p for p in args.logs if not Path(p).is_file()]
     if missing:

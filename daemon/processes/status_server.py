@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import signal
 import socket
 import sys
@@ -25,9 +26,10 @@ from pathlib import Path
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
-from daemon.spine.config import CarConfig, data_dir, load_config, reports_config_errors
+from daemon.spine.config import CarConfig, ConfigError, data_dir, load_config, reports_config_errors
 from daemon.spine.data_layout import PREVIEWS, preview_dir
 from daemon.spine.messages import DriverHealth
+from daemon.spine.process_logging import setup_logging
 from daemon.spine.process_table import required_drivers
 from daemon.spine.topics import topic_table
 
@@ -45,6 +47,7 @@ def health_age_s(health: DriverHealth, now_ns: int | None = None) -> float:
     if health.host_mono_ns <= 0:
         return float("inf")
     return max(0.0, ((time.monotonic_ns() if now_ns is None else now_ns) - health.host_mono_ns) / 1e9)
+log = logging.getLogger(__name__)
 
 
 class HealthBoard:
@@ -110,6 +113,12 @@ def _numbers(value: object) -> tuple[dict[str, float], int]:
     return good, len(value) - len(good)
 
 
+def _flags(value: dict[str, object]) -> tuple[dict[str, float], int]:
+    """{label: true/false} as 1/0, and how many entries were not booleans (skipped and counted)."""
+    good = {k: float(v) for k, v in value.items() if isinstance(v, bool)}
+    return good, len(value) - len(good)
+
+
 def _restarts(detail: dict) -> tuple[dict[str, float], int]:
     """The supervisor's restart count per process, and how many entries were badly shaped."""
     processes = detail.get("processes", {})
@@ -161,10 +170,28 @@ def readiness(config: CarConfig, board: HealthBoard, max_health_age_s: float = 3
     return not problems, problems
 
 
+RECORDER_GAUGES = {  # /status recorder detail key -> (gauge name, help): its state now
+    "disk_free_bytes": ("roadlog_recorder_disk_free_bytes", "free bytes on the recorder's disk (last check)"),
+    "disk_full": ("roadlog_recorder_disk_full", "1 while the recorder is paused for lack of disk"),
+    "segment_open": ("roadlog_recorder_segment_open", "1 while a segment is open for writing"),
+}
+RECORDER_COUNTERS = {  # /status recorder detail key -> (counter name without _total, help): counts since it started
+    "segments_closed": ("roadlog_recorder_segments_closed", "segments closed"),
+    "segments_deleted": ("roadlog_recorder_segments_deleted", "closed segments the disk policy deleted"),
+    "segments_quarantined": ("roadlog_recorder_segments_quarantined", "unclosed segments that could not be read in "
+                             "full, kept as .mcap.damaged"),
+}
+
+
 class _BoardCollector:
+    """Everything /metrics shows, made from the board at each scrape. Counts are counters (`*_total`), states are
+    gauges; the recorder's per-topic counters have a series for every logged topic from the start (0 until the
+    recorder counts one), and the restarts one for every process the supervisor runs."""
+
     def __init__(self, board: HealthBoard, refused=lambda: 0):
         self.board = board
         self.refused = refused  # connections the server answered 503 (all its threads busy)
+        self.logged_topics = sorted(name for name, t in topic_table(board.config).items() if t.logged)
 
     def collect(self):
         gauges = {
@@ -175,18 +202,20 @@ class _BoardCollector:
         }
         counters = {k: CounterMetricFamily(f"roadlog_{k}", f"{k} messages or events", labels=["process"])
                     for k in ("received", "published", "dropped", "rejected", "errors", "sequence_gaps")}
-        lost = GaugeMetricFamily("roadlog_recorder_lost_messages", "messages the recorder lost", labels=["topic"])
-        written = GaugeMetricFamily("roadlog_recorder_written_messages", "messages written to the log",
-                                    labels=["topic"])
-        quarantined = GaugeMetricFamily("roadlog_recorder_quarantined_segments", "unclosed segments that could not "
-                                        "be read in full, kept as .mcap.damaged (since the recorder started)")
+        lost = CounterMetricFamily("roadlog_recorder_lost_messages", "messages the recorder lost (overwritten on "
+                                   "the bus before it read them, or dropped for lack of disk)", labels=["topic"])
+        written = CounterMetricFamily("roadlog_recorder_written_messages", "messages written to the log",
+                                      labels=["topic"])
+        recorder_gauges = {k: GaugeMetricFamily(name, text) for k, (name, text) in RECORDER_GAUGES.items()}
+        recorder_counters = {k: CounterMetricFamily(name, text) for k, (name, text) in RECORDER_COUNTERS.items()}
         policy = GaugeMetricFamily("roadlog_recorder_disk_policy", "the recorder's disk policy since it started: "
                                    "deleted_segments, deleted_drive_s (seconds of drive), deleted_bytes, "
                                    "deletions_undone (space another program took), held_off_s, at_floor",
                                    labels=["figure"])
-        restarts = GaugeMetricFamily("roadlog_process_restarts", "restarts by the supervisor", labels=["process"])
+        restarts = CounterMetricFamily("roadlog_process_restarts", "restarts by the supervisor", labels=["process"])
         malformed = CounterMetricFamily("roadlog_status_malformed_details", "health detail entries of the wrong "
                                         "shape, skipped (in the latest health of each process)", labels=["process"])
+        recorder_seen = False
         for name, (h, _) in sorted(self.board.snapshot().items()):
             gauges["rate_hz"].add_metric([name], h.rate_hz)
             gauges["age"].add_metric([name], h.last_message_age_s if h.last_message_age_s != float("inf") else -1)
@@ -196,15 +225,18 @@ class _BoardCollector:
             detail = _detail(h)
             bad = 0
             if name == "recorder":
+                recorder_seen = True
                 for family, key in ((lost, "lost"), (written, "written")):
                     figures, wrong = _numbers(detail.get(key, {}))
                     bad += wrong
-                    for topic, n in figures.items():
-                        family.add_metric([topic], n)
-                figures, wrong = _numbers({"": detail.get("segments_quarantined", 0)})
-                bad += wrong
-                for n in figures.values():
-                    quarantined.add_metric([], n)
+                    for topic in sorted(set(self.logged_topics) | set(figures)):
+                        family.add_metric([topic], figures.get(topic, 0.0))
+                figures, wrong = _numbers({k: detail.get(k, 0) for k in ("disk_free_bytes", *RECORDER_COUNTERS)})
+                flags, wrong_flags = _flags({"disk_full": detail.get("disk_full", False),
+                                             "segment_open": detail.get("segment") is not None})
+                bad += wrong + wrong_flags
+                for k, n in {**figures, **flags}.items():
+                    (recorder_gauges.get(k) or recorder_counters[k]).add_metric([], n)
                 figures, wrong = _numbers(detail.get("disk_policy", {}))
                 bad += wrong
                 for figure, n in figures.items():
@@ -214,9 +246,13 @@ class _BoardCollector:
                 for proc, n in figures.items():
                     restarts.add_metric([proc], n)
             malformed.add_metric([name], bad)
+        if not recorder_seen:  # the series exist, at 0, before the recorder's first report
+            for family in (lost, written):
+                for topic in self.logged_topics:
+                    family.add_metric([topic], 0.0)
         yield from gauges.values()
         yield from counters.values()
-        yield from (lost, written, quarantined, policy, restarts, malformed)
+        yield from (lost, written, *recorder_gauges.values(), *recorder_counters.values(), policy, restarts, malformed)
         yield CounterMetricFamily("roadlog_status_refused_connections", "connections answered 503 because every "
                                   "server thread was busy", value=self.refused())
 
@@ -359,12 +395,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--port", type=int, default=None, help="override the config's port")
     parser.add_argument("--output-dir", help="log and map folder (default: recorder.output_dir)")
     args = parser.parse_args(argv)
+    setup_logging("status")
     config = load_config(args.config)
     board = HealthBoard(config)
+    port = config.status.port if args.port is None else args.port
+    try:
+        server = make_server(config, board, data_dir(config, args.config, args.output_dir), port)
+    except OSError as exc:  # the port is taken, the address is not this host's: not retried (exit 2)
+        raise ConfigError(f"{args.config}: status endpoint {config.status.bind_address}:{port}: "
+                          f"{exc.strerror or exc}") from None
     board.start()
-    server = make_server(config, board, data_dir(config, args.config, args.output_dir), args.port)
     signal.signal(signal.SIGTERM, lambda *_: threading.Thread(target=server.shutdown).start())
-    print(f"status endpoint on http://{server.server_address[0]}:{server.server_address[1]}", file=sys.stderr)
+    log.info("status endpoint on http://%s:%s", *server.server_address[:2])
     try:
         server.serve_forever(poll_interval=0.2)
     except KeyboardInterrupt:

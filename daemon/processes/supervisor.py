@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import ctypes
 import json
+import logging
 import os
 import signal
 import socket
@@ -34,6 +35,7 @@ CRASH_LOOP_RESTARTS = 3  # this many restarts of one process ...
 CRASH_LOOP_WINDOW_S = 60.0  # ... within this window: it is crash-looping (named in STATUS= and /status)
 STARTUP_GRACE_S = 20.0
 FRESH_HEALTH_S = 3.0  # a process whose newest health is older than this is not (yet) up
+log = logging.getLogger(__name__)
 
 
 def sd_notify(state: str) -> bool:
@@ -104,6 +106,7 @@ class Supervisor:
         self.startup_grace_s = startup_grace_s
         self.max_backoff_s = max_backoff_s
         self._mapper_told = False
+        self.exit_code = 0  # run()'s: not 0 when a replay ends because its player failed
         self.stop_event = threading.Event()
         self.health = HealthCounters("supervisor")
         self.ready_sent = False
@@ -135,8 +138,8 @@ class Supervisor:
         child.state = "backoff"
         child.next_start_at = now + child.backoff_s
         child.backoff_s = min(self.max_backoff_s, child.backoff_s * 2)
-        print(f"supervisor: {child.spec.name} {reason}; restart #{child.restarts} in "
-              f"{child.next_start_at - now:.1f} s", file=sys.stderr, flush=True)
+        log.warning("%s %s; restart #%d in %.1f s", child.spec.name, reason, child.restarts,
+                    child.next_start_at - now)
 
     def _latest_health(self, child: Child):
         """The process's newest DriverHealth on the bus, None when it has published none."""
@@ -175,7 +178,7 @@ class Supervisor:
             if code == EXIT_CONFIG_ERROR:
                 child.state = "failed"
                 child.last_reason = "configuration error (exit 2): not restarted, see its log"
-                print(f"supervisor: {child.spec.name} {child.last_reason}", file=sys.stderr, flush=True)
+                log.error("%s %s", child.spec.name, child.last_reason)
                 return
             self._schedule_restart(child, f"exited with {code}")
             return
@@ -315,11 +318,16 @@ class Supervisor:
             self.stop_event.wait(0.1)
         sd_notify("STOPPING=1")
         self.stop_all()
-        return 0
+        return self.exit_code
 
     def _drive_done(self) -> bool:
         """Replay mode: once the player finished, let the mapper finish its windows, then stop."""
         replay = self.children.get("replay")
+        if replay is not None and (replay.state == "failed" or (replay.state == "backoff" and replay.last_exit)):
+            # the player cannot play its logs (exit 2) or crashed: a replay that restarts would play them twice
+            self.exit_code = EXIT_CONFIG_ERROR if replay.last_exit == EXIT_CONFIG_ERROR else 1
+            log.error("the log player failed (exit %s): stopping the replay", replay.last_exit)
+            return True
         if replay is None or replay.state != "finished":
             return False
         mapper = self.children.get("mapper")

@@ -22,6 +22,7 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 
 from daemon.spine.config_model import StrictModel
 from daemon.spine.mapper_config import MapperConfig
+from daemon.spine.process_logging import error_line
 from daemon.spine.yaml_document import UnusableYaml, load_yaml
 
 P = ParamSpec("P")
@@ -310,14 +311,15 @@ EXIT_CONFIG_ERROR = 2  # a process's exit status for "this config cannot work": 
 def reports_config_errors(main: Callable[P, int]) -> Callable[P, int]:
     """The one exit rule for configuration errors, decorating every process's main(): a ConfigError raised while
     it runs (an unusable config, a file it names that it needs, a platform the bus cannot run on) becomes one
-    `error: ...` line on stderr and exit status EXIT_CONFIG_ERROR, which the supervisor does not retry."""
+    `error: ...` line on stderr (at error priority under the journal) and exit status EXIT_CONFIG_ERROR, which the
+    supervisor does not retry."""
 
     @functools.wraps(main)
     def reporting(*args: P.args, **kwargs: P.kwargs) -> int:
         try:
             return main(*args, **kwargs)
         except ConfigError as exc:
-            print(f"error: {exc}", file=sys.stderr)
+            print(error_line(str(exc)), file=sys.stderr)
             return EXIT_CONFIG_ERROR
 
     return reporting

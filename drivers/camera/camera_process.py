@@ -16,6 +16,7 @@ from collections.abc import Callable, Generator
 from daemon.spine.config import CameraConfig, ConfigError, load_config, reports_config_errors, resolve_path
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import CameraFrame, SemanticMask
+from daemon.spine.process_logging import setup_logging
 from daemon.spine.topics import camera_process, camera_topic, health_topic, mask_topic
 
 Publish = Callable[[str, object], None]
@@ -74,6 +75,7 @@ def camera_process_main(argv: list[str] | None, open_source: OpenSource, *, stay
     parser.add_argument("--device", help="override the camera's device (V4L2 path, pipeline, serial, .mcap)")
     add_arguments(parser)
     args = parser.parse_args(argv)
+    setup_logging(camera_process(args.camera))
 
     from daemon.bus.pubsub import open_publisher
 

@@ -25,6 +25,7 @@ from cantools.database import UnsupportedDatabaseFormatError
 from daemon.spine.config import CanConfig, CarConfig, ConfigError, load_config, reports_config_errors, resolve_path
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import CanFrame
+from daemon.spine.process_logging import setup_logging
 from daemon.spine.topics import CAN_FRAMES, WHEEL_SPEEDS, health_topic
 from drivers.can.can_bus import open_can_bus
 from drivers.can.wheel_speed_codec import (
@@ -192,6 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--channel", help="override sensors.can.channel")
     parser.add_argument("--dbc", help="override sensors.can.dbc_file")
     args = parser.parse_args(argv)
+    setup_logging(PROCESS)
 
     from daemon.bus.pubsub import open_publisher
 

@@ -22,6 +22,7 @@ from daemon.spine import topics
 from daemon.spine.config import ConfigError, GnssConfig, load_config, reports_config_errors
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import GnssFix
+from daemon.spine.process_logging import setup_logging
 from drivers.gnss.gnss_messages import GnssDecoder
 from drivers.gnss.stream_framer import StreamFramer
 
@@ -168,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--config", required=True, help="car config YAML")
     parser.add_argument("--port", help="serial port, overriding sensors.gnss.port")
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s gnss %(levelname)s %(message)s")
+    setup_logging("gnss")
     config = load_config(args.config)
     gnss = config.sensors.gnss
     if gnss is None:

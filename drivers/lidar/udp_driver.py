@@ -14,10 +14,10 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import logging
 import select
 import signal
 import socket
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -29,6 +29,7 @@ import numpy as np
 from daemon.spine.config import CarConfig, ConfigError, LidarConfig, load_config, reports_config_errors
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import LidarPacket
+from daemon.spine.process_logging import setup_logging
 from daemon.spine.topics import LIDAR_IMU, LIDAR_PACKETS, health_topic
 from drivers.lidar.ouster_decoder import count_missing_packets, decode_packets, newest_packet, packet_sequence
 from drivers.lidar.ouster_imu import decode_imu_packet, imu_profile_supported
@@ -37,6 +38,7 @@ from drivers.lidar.ouster_packet_layout import OusterPacketLayout, packet_layout
 from drivers.lidar.udp_receive import ReceiveBuffer, gather_batch, open_lidar_socket, receive_queued
 
 PROCESS = "lidar"
+log = logging.getLogger(__name__)
 RESTART_AFTER_S = 60.0  # a numbering jump of more than this many seconds of packets is a sensor restart
 IMU_RECEIVE_BUFFER_BYTES = 1 << 20  # ~20,000 LEGACY IMU packets: 200 s at 100 Hz
 IMU_BATCH = 64  # IMU datagrams taken from the socket at once
@@ -286,6 +288,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--port", type=int, help="override sensors.lidar.port")
     parser.add_argument("--bind", help="override sensors.lidar.bind_address")
     args = parser.parse_args(argv)
+    setup_logging(PROCESS)
 
     from daemon.bus.pubsub import open_publisher
 
@@ -294,8 +297,8 @@ def main(argv: list[str] | None = None) -> int:
     overrides = {k: v for k, v in (("port", args.port), ("bind_address", args.bind)) if v is not None}
     config = car.sensors.lidar.model_copy(update=overrides)
     if metadata.columns_per_frame != config.columns_per_frame or metadata.fps != config.rate_hz:
-        print(f"lidar driver: warning: the sensor metadata says {metadata.lidar_mode}, the config "
-              f"{config.columns_per_frame}x{config.rate_hz}; decoding as the metadata says", file=sys.stderr)
+        log.warning("the sensor metadata says %s, the config %sx%s; decoding as the metadata says",
+                    metadata.lidar_mode, config.columns_per_frame, config.rate_hz)
     publishers = {topic: open_publisher(car, topic) for topic in (LIDAR_PACKETS, LIDAR_IMU, health_topic(PROCESS))}
     health = HealthCounters(PROCESS, expected_rate_hz=packets_per_second(metadata))
     stop = threading.Event()
@@ -304,7 +307,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         stats = run_lidar_driver(config, metadata, lambda topic, m: publishers[topic].publish(m), stop, health)
     except OSError as exc:
-        print(f"lidar driver: {exc.strerror or exc}", file=sys.stderr)
+        log.error("%s", exc.strerror or exc)
         return 1
     print(f"lidar driver stopped ({metadata.prod_line} {layout.profile}, {layout.packet_size} B packets): "
           f"{stats.summary()}", flush=True)

@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import logging
 import select
 import signal
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -27,12 +27,14 @@ import numpy as np
 from daemon.spine.config import CarConfig, ConfigError, LidarConfig, load_config, reports_config_errors
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import ImuSample, LidarPacket
+from daemon.spine.process_logging import setup_logging
 from daemon.spine.topics import LIDAR_IMU, LIDAR_PACKETS, health_topic
 from drivers.lidar.lidar_models import VENDOR_LIDARS, configured_decoder
 from drivers.lidar.packet_decoding import PacketDecoder
 from drivers.lidar.udp_receive import ReceiveBuffer, gather_batch, open_lidar_socket
 
 PROCESS = "lidar"
+log = logging.getLogger(__name__)
 ROW_BYTES = 1500  # an Ethernet frame's payload at most: every vendor's data packet fits; larger ones are rejected
 GAP_ROTATIONS = 0.5  # a stamp this many rotation periods after the last one means packets were lost
 
@@ -217,6 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--port", type=int, help="override sensors.lidar.port")
     parser.add_argument("--bind", help="override sensors.lidar.bind_address")
     args = parser.parse_args(argv)
+    setup_logging(PROCESS)
 
     from daemon.bus.pubsub import open_publisher
 
@@ -232,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         stats = run_vendor_lidar_driver(config, decoder, lambda topic, m: publishers[topic].publish(m), stop, health)
     except OSError as exc:
-        print(f"lidar driver: {exc.strerror or exc}", file=sys.stderr)
+        log.error("%s", exc.strerror or exc)
         return 1
     print(f"lidar driver stopped ({decoder.model}): {stats.summary()}", flush=True)
     return 0

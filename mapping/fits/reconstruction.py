@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -116,13 +117,14 @@ def reconstruct(
     progress: bool = True,
     lidar_standing: StandingPoints | None | Future[StandingPoints | None] = None,
     origin: LocalFrame | None = None,
+    phase: Callable[[str], None] = lambda _: None,
 ) -> ReconstructionResult:
     """Reconstruct the road surface seen by `keyframes` along `trajectory`; evaluate; export if out_dir.
     `keyframes`, `lidar_ground_points` and `lidar_standing` may be Futures (inputs still loading): the mesh is
     built first, the Lidar waited for by the elevation fit, the keyframes after it. `lidar_standing`: what the
     Lidar saw standing on the road, which the keyframes without semantics are tested against
     (mapping.fits.lidar_occlusion; None: they are used whole). `origin`: the geodetic origin of the trajectory's
-    ENU frame, which places the exported map on the earth (None: unknown)."""
+    ENU frame, which places the exported map on the earth (None: unknown). `phase` is told each phase as it ends."""
     start = time.perf_counter()
     runtime, model, windows = config.runtime, config.model, config.windows
     torch.set_num_threads(runtime.torch_threads_faithful_fit if faithful else runtime.torch_threads_fast_fit)
@@ -139,7 +141,9 @@ def reconstruct(
     )
     history = []
     timings: dict[str, float] = {"setup_wall_s": time.perf_counter() - start}
+    phase(f"mesh and model built ({mesh.num_vertices} vertices)")
     lidar_ground_points = _waited_for(lidar_ground_points, timings, "lidar_wait_s")
+    phase("Lidar ground points read" if lidar_ground_points is not None else "no Lidar ground points")
     supervision = lidar_ground_points if variant.lidar_supervision else None
     # the truth cells are placed on the mesh beside the Lidar points (numpy releases the GIL), which the
     # elevation fit, the Lidar detail and the metrics share
@@ -151,11 +155,13 @@ def reconstruct(
         lidar_at = Located.of(mesh, lidar_ground_points[:, :2]) if have_lidar else None
         if not faithful:  # the elevation needs the Lidar only: it is fitted while the images may still be decoding
             elevation_first_last = fast_fit.fit_surface(road_map, supervision, lidar_at, config, rng, timings)
+            phase("elevation fitted")
         selected = select_keyframes(_waited_for(keyframes, timings, "keyframes_wait_s"), trajectory,
                                     config.inputs.keyframe_spacing_m)
         holdout = [k for i, k in enumerate(selected) if holdout_every > 0 and i % holdout_every == holdout_every // 2]
         held = {id(k) for k in holdout}
         train = [k for k in selected if id(k) not in held]
+        phase(f"camera frames read: {len(selected)} keyframes selected, {len(train)} to train on")
         if not train:
             raise ValueError(f"no training keyframes after selection (of {len(selected)} keyframes selected)")
         semantics = semantics_status(train, road_map, config)
@@ -169,14 +175,17 @@ def reconstruct(
         if faithful:
             history, last_epoch_steps, tested = faithful_fit.fit_faithful(
                 road_map, cameras, train, trajectory, supervision, lidar_at, config, rng, progress, occlusion)
+            phase("faithful fit done")
             evaluation = start_evaluation(road_map, *evaluation_args, metric_points)
         else:
             obs = fast_fit.observe(road_map, train, cameras, trajectory, config, progress, timings, occlusion)
             tested = (obs.maskless_reads, obs.maskless_hidden, obs.maskless_unchecked)
+            phase("keyframes observed")
             # surface and semantics are final: the evaluation renders its views beside the colour fit
             evaluation = start_evaluation(road_map, *evaluation_args, metric_points)
             colour_first, colour_last = fast_fit.fit_colour(road_map, obs, config, rng, timings)
             history = [elevation_first_last[0] + colour_first, elevation_first_last[1] + colour_last]
+            phase("colour fitted")
             last_epoch_steps = 1
         train_s = time.perf_counter() - start
         drive_s = trajectory.duration_s
@@ -187,7 +196,9 @@ def reconstruct(
         side.shutdown(wait=False)
         metrics = finish_evaluation(evaluation)
         evaluate_s = time.perf_counter() - start - train_s
+        phase("evaluated on the held-out views")
         files: dict[str, Path] = exported.result() if exported is not None else {}
+        phase("map exported (rasters, mesh, checkpoint)" if exported is not None else "done")
     except BaseException:  # a failed reconstruction leaves no queued background work (the worker retries)
         side.shutdown(wait=False, cancel_futures=True)
         if evaluation is not None:

@@ -46,6 +46,7 @@ from daemon.spine.config import CarConfig, data_dir, load_config, reports_config
 from daemon.spine.data_layout import preview_dir
 from daemon.spine.health import HealthCounters, process_memory_mb
 from daemon.spine.local_frame import LocalFrame
+from daemon.spine.process_logging import setup_logging
 from daemon.spine.topics import (
     GNSS_FIX,
     IMU,
@@ -248,9 +249,9 @@ class MappingWorker:
     # ---- windows -----------------------------------------------------------------------------------------
     def _window_ready(self, k: int, end_of_drive: bool) -> bool:
         _, _, s_hi = window_span(k, self.mapper.windows.before_m, self.mapper.windows.after_m)
-        if end_of_drive:
-            return k < windows_for_drive(self.state.distance_m, self.mapper.windows.before_m,
-                                         self.mapper.windows.after_m)
+        if end_of_drive:  # a drive without odometry (an empty replay: no wheel speed at all) has no window
+            return bool(self.odometry.knots_s) and k < windows_for_drive(
+                self.state.distance_m, self.mapper.windows.before_m, self.mapper.windows.after_m)
         # the road reaches the window's end, and every input it reads has arrived: its map is then the same
         # whenever the worker gets to it
         return (bool(self.odometry.knots_s) and self.state.distance_m >= s_hi
@@ -483,7 +484,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--config", required=True, help="car config YAML")
     parser.add_argument("--output-dir", help="data folder (default: recorder.output_dir of the config)")
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s mapper %(levelname)s %(message)s")
+    setup_logging("mapper")
     config = load_config(args.config)
     worker = MappingWorker(config, args.config, args.output_dir)  # a ConfigError here: exit 2, not retried
     stop = threading.Event()

@@ -17,6 +17,7 @@ import json
 import sys
 import tempfile
 import time
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -55,12 +56,37 @@ class DriveTruth:
 
     @staticmethod
     def load(path: str | Path) -> DriveTruth:
-        gt = np.load(path)
+        """The truth file; one that is missing or not a simulated drive's truth is a ConfigError."""
+        try:
+            gt = np.load(path)
+            return DriveTruth._of(gt)
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:  # missing, not an .npz, other arrays
+            raise ConfigError(f"--gt {path}: not a simulated drive's ground truth (PATH.gt.npz): "
+                              f"{getattr(exc, 'strerror', None) or exc}") from None
+
+    @staticmethod
+    def _of(gt) -> DriveTruth:
         res = float(gt["grid_resolution_m"])
         origin_xy = tuple(float(v) + res / 2 for v in gt["grid_origin_xy"])  # the file gives cell corners
         return DriveTruth(LocalFrame(*(float(v) for v in gt["enu_origin_lat_lon_alt"])),
                           GroundTruth(gt["elevation"].astype(np.float32), origin_xy, res, gt["semantic"]),
                           gt["lidar_points_enu"])
+
+
+class PhaseLines:
+    """One stderr line as each phase of a reconstruction ends: `roadlog reconstruct: [  12.3 s] PHASE (+4.1 s)`,
+    the time since the start and the phase's own."""
+
+    def __init__(self, enabled: bool = True):
+        self.enabled = enabled
+        self.started = self.last = time.perf_counter()
+
+    def __call__(self, what: str) -> None:
+        now = time.perf_counter()
+        if self.enabled:
+            print(f"roadlog reconstruct: [{now - self.started:7.1f} s] {what} (+{now - self.last:.1f} s)",
+                  file=sys.stderr, flush=True)
+        self.last = now
 
 
 def config_from_logs(paths: list[str]) -> tuple[CarConfig, Path]:
@@ -90,15 +116,19 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
                        truth: DriveTruth | None = None, use_lidar: bool = True, ablation: str | None = None,
                        faithful: bool = False, progress: bool = True) -> tuple[ReconstructionResult, DriveInputs]:
     started = time.perf_counter()
+    phase = PhaseLines(progress)
+    phase(f"reading {len(logs)} log(s) in the background, writing to {out}")
     loading = start_loading_drive(logs, config, config_path, origin=truth.origin if truth else None,
                                   use_lidar=use_lidar)
+    phase("drive path read")
     warning = missing_masks_warning(loading.counts["frames"], loading.counts["frames_without_mask"])
     if warning is not None:
         print(f"roadlog reconstruct: warning: {warning}", file=sys.stderr, flush=True)
     result = reconstruct(loading.keyframes, loading.cameras, loading.path, loading.lidar_ground_points,
                          config.mapper, config.vehicle.reference_height_m, out_dir=out, ablation=ablation,
                          gt=truth.elevation if truth else None, faithful=faithful, progress=progress,
-                         lidar_standing=loading.lidar_standing, origin=loading.trajectory.local_frame)
+                         lidar_standing=loading.lidar_standing, origin=loading.trajectory.local_frame,
+                         phase=phase)
     drive = loading.result()
     lidar = drive.lidar_ground_points
     metrics = result.metrics
@@ -116,6 +146,7 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
     out.mkdir(parents=True, exist_ok=True)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
     (out / "config.yaml").write_text(config_to_yaml(config))
+    phase("metrics.json and config.yaml written")
     return result, drive
 
 
@@ -136,6 +167,9 @@ def main(argv: list[str] | None = None) -> int:
     problems = [why for why in map(not_a_log, args.logs) if why]
     if problems:
         raise ConfigError("; ".join(problems))
+    truth = DriveTruth.load(args.gt) if args.gt else None
+    if args.out.exists() and not args.out.is_dir():  # found now, not after the reconstruction
+        raise ConfigError(f"--out {args.out}: a file, not a folder")
     if given is not None:
         config, config_path = given, Path(args.config)
     else:
@@ -143,7 +177,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.epochs is not None:
         faithful_fit = config.mapper.faithful_fit.model_copy(update={"epochs": args.epochs})
         config = config.model_copy(update={"mapper": config.mapper.model_copy(update={"faithful_fit": faithful_fit})})
-    truth = DriveTruth.load(args.gt) if args.gt else None
     result, _ = run_reconstruction(args.logs, args.out, config, config_path, truth=truth,  # ConfigError: exit 2
                                    use_lidar=not args.no_lidar, ablation=args.ablation, faithful=args.faithful)
     keys = ("psnr_db", "psnr_train_db", "miou_pct", "iou_pct", "semantics", "elev_error_cm", "elev_mae_gt_cm",

@@ -219,4 +219,4 @@ def test_log_info_reads_a_segment_whose_first_block_was_torn(tmp_path):
     (tmp_path / "text.mcap").write_text("hello")
     done = subprocess.run([sys.executable, "-m", "daemon.commands.cli", "log-info", str(tmp_path / "text.mcap")],
                           cwd=ROOT, capture_output=True, text=True, timeout=120)
-    assert done.returncode == 1 and "is not an MCAP file" in done.stderr
+    assert done.returncode == 2 and "is not an MCAP file" in done.stderr

@@ -275,7 +275,7 @@ def test_a_torn_unclosed_segment_is_quarantined_its_intact_chunks_recovered_and_
     status = served_status(config)  # the status endpoint shows it, from the recorder's health on the bus
     assert status["recorder"]["segments_quarantined"] == 1
     assert status["recorder"]["recovered"][0]["quarantined"] == str(quarantined)
-    assert "roadlog_recorder_quarantined_segments 1.0" in status["metrics"]
+    assert "roadlog_recorder_segments_quarantined_total 1.0" in status["metrics"]
     more = publish_drive(config, 10, random.Random(4))
     rec.wait_written({t: len(m) for t, m in more.items()})
     assert rec.stop() == 0

@@ -9,6 +9,7 @@ import urllib.request
 
 import numpy as np
 import pytest
+from prometheus_client.parser import text_string_to_metric_families
 
 from daemon.bus.pubsub import open_publisher, unlink_all
 from daemon.processes.status_server import HealthBoard, make_server
@@ -96,9 +97,53 @@ def test_status_json_and_metrics(served):
     code, ctype, body = _get(base + "/metrics")
     text = body.decode()
     assert code == 200 and ctype.startswith("text/plain")
-    assert 'roadlog_recorder_lost_messages{topic="imu"} 2.0' in text
-    assert 'roadlog_process_restarts{process="lidar"} 2.0' in text
+    assert 'roadlog_recorder_lost_messages_total{topic="imu"} 2.0' in text
+    assert 'roadlog_process_restarts_total{process="lidar"} 2.0' in text
     assert 'roadlog_published_total{process="gnss"}' in text
+
+
+def _families(base: str) -> dict:
+    """/metrics over HTTP, parsed by prometheus_client's own parser: {family name: (type, {labels: value})}."""
+    code, _, body = _get(base + "/metrics")
+    assert code == 200
+    families = text_string_to_metric_families(body.decode())
+    return {f.name: (f.type, {tuple(sorted(s.labels.items())): s.value for s in f.samples
+                              if not s.name.endswith("_created")}) for f in families}
+
+
+def test_metrics_counts_are_counters_from_zero_and_the_disk_and_segments_are_exported(served):
+    """Prometheus conventions, checked with its own parser: counts are counters named *_total, every logged topic
+    has its lost and written series at 0 before anything is lost (so `rate()` and alerts on loss have a series),
+    and the recorder's disk and segment figures of /status are on /metrics too."""
+    cfg, board, base, _ = served
+    logged = sorted(name for name, t in topic_table(cfg).items() if t.logged)
+    families = _families(base)  # nothing reported yet
+    for name in ("roadlog_recorder_lost_messages", "roadlog_recorder_written_messages"):
+        kind, samples = families[name]
+        assert kind == "counter" and samples == {(("topic", t),): 0.0 for t in logged}, name
+    board.update(_healthy("recorder", detail=json.dumps(
+        {"segment": "x.mcap.open", "segments_closed": 4, "segments_deleted": 1, "segments_quarantined": 0,
+         "disk_free_bytes": 5e9, "disk_full": True, "written": {"imu": 500}, "lost": {"imu": 2}})))
+    board.update(_healthy("supervisor", detail=json.dumps(
+        {"processes": {"lidar": {"state": "running", "restarts": 2}, "gnss": {"state": "running", "restarts": 0}}})))
+    families = _families(base)
+    lost = families["roadlog_recorder_lost_messages"]
+    assert lost[0] == "counter" and lost[1][(("topic", "imu"),)] == 2.0 and lost[1][(("topic", "gnss/fix"),)] == 0.0
+    assert set(lost[1]) == {(("topic", t),) for t in logged}
+    assert families["roadlog_recorder_written_messages"][1][(("topic", "imu"),)] == 500.0
+    assert families["roadlog_process_restarts"] == ("counter", {(("process", "gnss"),): 0.0,
+                                                                (("process", "lidar"),): 2.0})
+    assert families["roadlog_recorder_disk_free_bytes"] == ("gauge", {(): 5e9})
+    assert families["roadlog_recorder_disk_full"] == ("gauge", {(): 1.0})
+    assert families["roadlog_recorder_segment_open"] == ("gauge", {(): 1.0})
+    for name, n in (("segments_closed", 4.0), ("segments_deleted", 1.0), ("segments_quarantined", 0.0)):
+        assert families[f"roadlog_recorder_{name}"] == ("counter", {(): n}), name
+    assert families["roadlog_status_malformed_details"][1] == {(("process", "recorder"),): 0.0,
+                                                              (("process", "supervisor"),): 0.0}
+    # no count is left a gauge, and every counter's sample is *_total
+    body = _get(base + "/metrics")[2].decode()
+    assert not [line for line in body.splitlines() if line.startswith("# TYPE") and line.endswith(" gauge")
+                and any(w in line for w in ("lost", "written", "restarts", "segments_"))]
 
 
 def test_previews_and_404s(served):
@@ -144,8 +189,8 @@ def test_metrics_answer_despite_badly_shaped_health_details(served):
     code, _, body = _get(base + "/metrics")
     text = body.decode()
     assert code == 200
-    assert 'roadlog_recorder_written_messages{topic="gnss"} 3.0' in text
-    assert 'roadlog_process_restarts{process="gnss"} 1.0' in text
+    assert 'roadlog_recorder_written_messages_total{topic="gnss"} 3.0' in text
+    assert 'roadlog_process_restarts_total{process="gnss"} 1.0' in text
     assert 'roadlog_status_malformed_details_total{process="recorder"} 2.0' in text
     assert 'roadlog_status_malformed_details_total{process="supervisor"} 1.0' in text
     assert 'roadlog_published_total{process="recorder"}' in text

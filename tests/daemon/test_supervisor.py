@@ -138,6 +138,26 @@ def test_replay_mode_ends_when_the_player_is_done(config):
     assert sup.children["replay"].state == "finished" and sup.children["replay"].restarts == 0
 
 
+@pytest.mark.parametrize(("behaviour", "code"), [("bad-config", 2), ("crash", 1)])
+def test_replay_mode_ends_when_the_player_fails(config, behaviour, code):
+    """A player that cannot play its logs (exit 2) or crashes ends the replay with its failure, instead of the
+    daemon waiting forever (or playing the logs again)."""
+    cfg, path = config
+    table = [ProcessSpec("replay", "fake_process", ("--config", str(path), "--name", "replay",
+                                                     "--behaviour", behaviour, "--after", "0.3"),
+                         restart_on_success=False), _spec("recorder", path)]
+    sup = Supervisor(cfg, table, env=ENV, exit_when_done=True)
+    done = threading.Event()
+    result = []
+    threading.Thread(target=lambda: (result.append(sup.run()), done.set()), daemon=True).start()
+    finished = done.wait(20)
+    if not finished:
+        sup.stop_event.set()
+        done.wait(30)
+    assert finished and result == [code]
+    assert sup.children["replay"].restarts <= 1 and sup.children["recorder"].state == "stopped"
+
+
 def test_a_process_starts_after_the_ones_it_waits_for(config):
     cfg, path = config
     player = ProcessSpec("replay", "fake_process", ("--config", str(path), "--name", "replay"),

@@ -217,7 +217,7 @@ def test_reconstruct_and_log_info_given_a_bag_say_to_import_it(sim_bag, tmp_path
     storage = next(path.glob("*.db3"))
     assert roadlog(["reconstruct", str(path), "--out", str(tmp_path / "map")]) == 2
     assert roadlog(["reconstruct", str(storage), "--out", str(tmp_path / "map")]) == 2
-    assert roadlog(["log-info", str(path)]) == 1
+    assert roadlog(["log-info", str(path)]) == 2
     err = capsys.readouterr().err
     assert err.count("is a ROS 2 bag: import it first (roadlog import ros2") == 2
     assert "sqlite3 storage" in err and "Traceback" not in err

@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 import rasterio
 import trimesh
 from rasterio.warp import transform
@@ -22,6 +23,16 @@ def test_reconstruct_a_recorded_drive_against_its_truth(city_drive, tmp_path):
                           "--gt", str(city_drive.with_name("city.gt.npz"))],
                          cwd=REPO, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
+    # every phase is reported as it ends, with the time since the start and its own: never silent for long
+    phases = re.findall(r"^roadlog reconstruct: \[ *([0-9.]+) s\] (.+) \(\+([0-9.]+) s\)$", run.stderr, re.MULTILINE)
+    names = [name for _, name, _ in phases]
+    for expected in ("reading 1 log(s)", "drive path read", "mesh and model built", "Lidar ground points read",
+                     "elevation fitted", "camera frames read", "keyframes observed", "colour fitted",
+                     "evaluated on the held-out views", "map exported", "metrics.json and config.yaml written"):
+        assert sum(name.startswith(expected) for name in names) == 1, (expected, names)
+    elapsed = [float(t) for t, _, _ in phases]
+    own = sum(float(d) for _, _, d in phases)
+    assert elapsed == sorted(elapsed) and own == pytest.approx(elapsed[-1], abs=0.1 * len(phases))
     printed = json.loads(run.stdout.strip().splitlines()[-1])
     metrics = json.loads((out / "metrics.json").read_text())
     assert printed["miou_pct"] == metrics["miou_pct"]
