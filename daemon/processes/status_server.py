@@ -320,11 +320,11 @@ class StatusHTTPServer(ThreadingHTTPServer):
     request_queue_size = LISTEN_BACKLOG  # socketserver's default of 5 left clients waiting seconds under load
 
     def __init__(self, address, handler, max_threads: int = MAX_THREADS):
-        super().__init__(address, handler)
-        self.max_threads = max_threads
+        self.max_threads = max_threads  # before binding: a failed bind closes the server (server_close)
         self.refused = 0
         self._slots = threading.BoundedSemaphore(max_threads)
         self._refused: deque[tuple[float, socket.socket]] = deque()  # answered, waiting for the client's bytes
+        super().__init__(address, handler)
 
     def process_request(self, request, client_address):
         if not self._slots.acquire(blocking=False):
