@@ -371,7 +371,8 @@ class VelodyneDecoder:
         return return_type
 
     def _two_point_distances(self, d, laser, cos_v, sin_v, cos_rot, sin_rot, v_off, h_off):
-        """HDL-64E's distance-dependent corrections along x and y (linear between 2.4/1.93 m and 25.04 m)."""
+        """HDL-64E's distance-dependent corrections along x and y (linear between 2.4/1.93 m and 25.04 m, as
+        velodyne_pointcloud has them; velodyne-decoder 3.1.0 gives other points, up to ~0.2 m apart)."""
         cal = self.calibration
         f32 = np.float32
         dc = cal.dist_correction_m.astype(f32)[laser]
@@ -390,7 +391,8 @@ class VelodyneDecoder:
         intensity = raw_intensity.astype(f32)
         slope = cal.focal_slope.astype(f32)[laser]
         if np.any(slope != 0):
-            # focal_distance in metres, as velodyne-decoder reads it; the HDL-64E formula takes centimetres.
+            # As velodyne-decoder computes it: the file's focal_distance times 100 (ROS velodyne_pointcloud
+            # takes the value as it is; the two disagree, velodyne-decoder is the oracle checked here).
             focal_offset = (f32(1) - cal.focal_distance.astype(f32)[laser] * f32(100) / f32(13100)) ** 2
             falloff = (f32(1) - raw_distance.astype(f32) / f32(65535)) ** 2
             intensity = intensity + f32(256) * slope * np.abs(focal_offset - falloff)
