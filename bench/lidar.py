@@ -16,7 +16,7 @@ import statistics  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
-from lidar_vendors import velodyne_figures  # noqa: E402
+from lidar_vendors import hdl64e_figures, robosense_figures, velodyne_figures  # noqa: E402
 
 from drivers.lidar.lidar_points import batch_xyz, scan_point_cloud  # noqa: E402
 from drivers.lidar.ouster_decoder import decode_packets, ouster_scan_assembler  # noqa: E402
@@ -134,6 +134,8 @@ def main() -> None:
     }
     results["realtime_factor"] = results["points_per_s"] / SENSOR_POINTS_PER_S
     vendors = velodyne_figures(time_medians, repeats)
+    vendors |= hdl64e_figures(time_medians, repeats)
+    vendors |= robosense_figures(args.quick)
     print(
         f"OS-128 2048x10 LEGACY, {n_frames} frames x 128 packets, median of {repeats}, core {args.core}, "
         "points/s per CPU-second of this thread unless wall_clock"
@@ -146,10 +148,13 @@ def main() -> None:
         )
     print("vendors (real captures; reference: the model's reference decoder)")
     for model, figures in vendors.items():
+        timed = "reference_points_per_s" in figures
+        reference_speed = f" {figures['reference_points_per_s'] / 1e6:6.1f} M (ratio {figures['reference_ratio']:.2f})"
         print(
             f"  {model:8s} points_per_s {figures['points_per_s'] / 1e6:6.1f} M  max_abs_err_m "
-            f"{figures['max_abs_err_m']:.1e}  {figures['reference']} {figures['reference_points_per_s'] / 1e6:6.1f} M "
-            f"(ratio {figures['reference_ratio']:.2f})"
+            f"{figures['max_abs_err_m']:.1e}  {figures['reference']}"
+            + (reference_speed if timed else "")
+            + ("  [synthetic]" if figures.get("synthetic") else "")
         )
     print(
         json.dumps(

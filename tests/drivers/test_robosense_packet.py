@@ -183,15 +183,12 @@ def encode_ruby128(n_packets: int, seed: int = 0) -> tuple[list[bytes], np.ndarr
     return packets, raw, azimuth
 
 
-def test_ruby128_equals_geometry_computed_from_the_layout(tmp_path):
-    packets, raw, azimuth = encode_ruby128(40)
-    decoder = robosense_decoder("robosense-ruby128", _write_ruby_table(tmp_path / "ruby128.csv"))
-    points = decoder.decode(packets)
-    assert points.counts["packets_decoded"] == 40
+def expected_ruby128_points(raw: np.ndarray, azimuth: np.ndarray) -> np.ndarray:
+    """The points of encode_ruby128's packets, one by one in float64: (M, 8) x y z distance channel
+    firing-azimuth packet time-ns. Group g of four channels fires 3.236 us x g after its block (55.55 us); the
+    azimuth moves on by the block's step (the next block's azimuth - this one, 20 for the last) in that
+    proportion, truncated to 0.01 degrees; the lens sits 36.15 mm from the axis (RoboSense's RX)."""
     elevation, offset = ruby_angles()
-    # The expected points, one by one in float64: group g of four channels fires 3.236 us x g after its block
-    # (55.55 us); the azimuth moves on by the block's step (the next block's azimuth - this one, 20 for the last)
-    # in that proportion, truncated to 0.01 degrees; the lens sits 36.15 mm from the axis (RoboSense's RX).
     expected = []
     for p in range(raw.shape[0]):
         for b in range(3):
@@ -207,7 +204,15 @@ def test_ruby128_equals_geometry_computed_from_the_layout(tmp_path):
                 y = -d * np.cos(e) * np.sin(a) - 0.03615 * np.sin(a0)
                 expected.append((x, y, d * np.sin(e), d, c, fire % 36000, p, 1_700_000_000_250_000_000
                                  + p * 167_000 + round((b * 55.55e-6 + t) * 1e9)))
-    expected = np.array(expected)
+    return np.array(expected)
+
+
+def test_ruby128_equals_geometry_computed_from_the_layout(tmp_path):
+    packets, raw, azimuth = encode_ruby128(40)
+    decoder = robosense_decoder("robosense-ruby128", _write_ruby_table(tmp_path / "ruby128.csv"))
+    points = decoder.decode(packets)
+    assert points.counts["packets_decoded"] == 40
+    expected = expected_ruby128_points(raw, azimuth)
     assert len(points.xyz) == len(expected) > 10_000
     np.testing.assert_allclose(points.xyz, expected[:, :3], rtol=0, atol=1e-4)
     np.testing.assert_allclose(points.distance_m, expected[:, 3], rtol=1e-6)
