@@ -148,12 +148,14 @@ def main() -> None:
         )
     print("vendors (real captures; reference: the model's reference decoder)")
     for model, figures in vendors.items():
-        timed = "reference_points_per_s" in figures
-        reference_speed = f" {figures['reference_points_per_s'] / 1e6:6.1f} M (ratio {figures['reference_ratio']:.2f})"
+        reference_speed = ""
+        if "reference_points_per_s" in figures:
+            reference_speed = (f" {figures['reference_points_per_s'] / 1e6:6.1f} M "
+                               f"(ratio {figures['reference_ratio']:.2f})")
         print(
             f"  {model:8s} points_per_s {figures['points_per_s'] / 1e6:6.1f} M  max_abs_err_m "
             f"{figures['max_abs_err_m']:.1e}  {figures['reference']}"
-            + (reference_speed if timed else "")
+            + reference_speed
             + ("  [synthetic]" if figures.get("synthetic") else "")
         )
     print(

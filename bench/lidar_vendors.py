@@ -62,6 +62,16 @@ def velodyne_figures(time_medians: Callable[[list, int], tuple[list[float], list
     return figures
 
 
+def _tests_importable() -> None:
+    """The synthetic packets come from the test-side encoders under tests/drivers: the repository root on
+    the import path, as the other benches put it."""
+    import sys
+
+    root = str(Path(__file__).resolve().parents[1])
+    if root not in sys.path:
+        sys.path.insert(0, root)
+
+
 def hdl64e_figures(time_medians: Callable[[list, int], tuple[list[float], list[float]]], repeats: int) -> dict:
     """{"HDL-64E S3": figures}: no HDL-64E capture is shared, so on 1,000 packets the test-side encoder makes
     (labelled synthetic), with the real S3 calibration in tests/data/velodyne minus its two-point corrections
@@ -72,6 +82,8 @@ def hdl64e_figures(time_medians: Callable[[list, int], tuple[list[float], list[f
     import yaml
 
     from drivers.lidar.velodyne_decoder import velodyne_decoder
+
+    _tests_importable()
     from tests.drivers.test_velodyne_hdl64e import CALIBRATION, encode_hdl64e
 
     doc = yaml.safe_load(CALIBRATION.read_text())
@@ -147,6 +159,7 @@ def robosense_figures(quick: bool) -> dict:
     }
     import tempfile
 
+    _tests_importable()
     from tests.drivers.test_robosense_packet import _write_ruby_table, encode_ruby128, expected_ruby128_points
 
     with tempfile.TemporaryDirectory() as folder:

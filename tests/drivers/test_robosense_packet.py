@@ -5,6 +5,7 @@ computed here in float64 from the MSOP layout; the angle file's and the factory'
 
 from __future__ import annotations
 
+import dataclasses
 import struct
 from pathlib import Path
 
@@ -14,7 +15,7 @@ import pytest
 from drivers.lidar.packet_decoding import RETURN_TYPE_OTHER, RETURN_TYPE_STRONGEST, rotation_starts
 from drivers.lidar.pcap_udp import read_pcap_udp
 from drivers.lidar.robosense_calibration import load_robosense_calibration
-from drivers.lidar.robosense_decoder import ROBOSENSE_MODELS, robosense_decoder
+from drivers.lidar.robosense_decoder import HELIOS16P, ROBOSENSE_MODELS, RobosenseDecoder, robosense_decoder
 
 DATA = Path("/work/shared/data/lidar_nebula")
 HELIOS_CSV = DATA / "calib" / "RobosenseHelios16P.csv"
@@ -50,8 +51,8 @@ def test_helios_first_rotation_equals_the_reference_point_by_point(helios):
     """The reference is the capture's first rotation, from its first packet, in the same order: rings
     (Nebula's channel is the rank by elevation), intensities and distances equal; xyz within 2 mm for 99 %
     of the points. The largest errors (~3 cm, 24 of 15,258 points over 1 cm, all at 49-152 m) come from
-    the azimuth interpolation: Nebula's Helios-16P firing table differs from rs_driver's, used here, by up
-    to 0.02 degrees."""
+    the azimuth interpolation (Nebula's Helios-16P firing table differs from rs_driver's, used here, by up
+    to 0.02 degrees) and from laser 3's elevation (see the next test)."""
     _, points = helios
     ref = _reference()
     n = len(ref)
@@ -67,6 +68,29 @@ def test_helios_first_rotation_equals_the_reference_point_by_point(helios):
     # Sign check: the reference and ours agree on left (y > 0) and up (z > 0) point by point.
     far = ref[:, 8] > 2
     assert np.all(np.sign(points.xyz[:n][far, 1]) == np.sign(ref[far, 1]))
+
+
+# Nebula's own Helios-16P firing times (us; it spreads the 32 channels over two 55.56 us cycles and halves
+# the azimuth step for it) and its reading of the angle file (each value times 100, truncated in float32:
+# 8.90 becomes 889), read from its source at the reference's commit.
+NEBULA_FIRING_US = [0.00, 3.15, 6.30, 9.45, 13.26, 17.08, 20.56, 23.71, 26.53, 27.77, 31.49, 32.73, 36.46, 38.94,
+                    41.42, 43.91, 55.56, 58.70, 61.85, 65.00, 68.82, 72.64, 76.12, 79.27, 82.08, 83.32, 87.05, 88.29,
+                    92.01, 94.50, 96.98, 99.46]
+
+
+@needs_data
+def test_helios_with_nebulas_constants_reproduces_its_cloud_exactly():
+    """What separates ours from the reference is only those two constants: with them, every point agrees."""
+    angles = np.loadtxt(HELIOS_CSV, delimiter=",", dtype=np.float32)
+    calibration = dataclasses.replace(
+        load_robosense_calibration(HELIOS_CSV),
+        elevation_cdeg=np.trunc(angles[:, 0] * np.float32(100)).astype(np.int32),
+    )
+    model = dataclasses.replace(HELIOS16P, firing_s=np.array(NEBULA_FIRING_US) * 1e-6 / 2)
+    points = RobosenseDecoder(model, calibration).decode(_helios_payloads())
+    ref = _reference()
+    error = np.abs(points.xyz[: len(ref)].astype(np.float64) - ref[:, :3]).max(axis=1)
+    assert error.max() < 1e-5
 
 
 @needs_data
