@@ -110,6 +110,7 @@ def test_helios_fields(helios):
     payloads, points = helios
     assert set(points.laser_id.tolist()) == set(range(16))
     assert set(points.return_type.tolist()) == {RETURN_TYPE_STRONGEST}
+    assert payloads[543][300] == 0x04  # its DIFOP's return mode (rs_driver's Helios layout): single, strongest
     assert points.distance_m.min() >= 0.2
     az = points.azimuth_cdeg.astype(np.int64)
     assert np.all(az < 36000) and len(rotation_starts(az)) == 5  # ~4.7 turns at 10 Hz
