@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.lidar.packet_decoding import (
+    RETURN_TYPE_LAST,
     RETURN_TYPE_OTHER,
     RETURN_TYPE_STRONGEST,
     DecodedPoints,
@@ -80,30 +81,32 @@ def _trig_tables() -> tuple[np.ndarray, np.ndarray]:
 class RobosenseDecoder:
     """Decodes batches of one sensor's MSOP packets with its angle calibration.
 
-    `dual_return`: the sensor's return mode as its DIFOP packet says (Helios-16P: channels 0-15 are the
-    strongest return, 16-31 the second of the same firing). `rpm` gives the azimuth step of a packet's last
-    block, which has no next block to measure it from."""
+    `dual_return`: the sensor's return mode as its DIFOP packet says. Helios-16P: channels 0-15 are the
+    strongest return, 16-31 the second of the same firing (RETURN_TYPE_OTHER, "second strongest" in Nebula's
+    decoder). Ruby-128: two blocks of one azimuth are the two returns, a packet's three blocks either AAB or
+    ABB (rs_driver); the first of a pair is the strongest, the second the last (Nebula's rule for RoboSense
+    dual returns). `rpm` gives the azimuth step of a block with no next firing in its packet to measure it."""
 
     def __init__(self, model: RobosenseModel, calibration: RobosenseCalibration, dual_return: bool = False,
                  rpm: float = 600.0):
         if calibration.num_lasers != model.num_lasers:
             raise ValueError(f"{calibration.source}: {calibration.num_lasers} lasers, but {model.name} has "
                              f"{model.num_lasers}")
-        if dual_return and model is not HELIOS16P:
-            raise ValueError(f"{model.name}: dual-return decoding is not supported")
         self._m = model
         self.model = model.name
         self.calibration = calibration
         self.dual_return = dual_return
         channel = np.arange(model.channels)
         self._laser = channel % model.num_lasers
-        firing = model.firing_s if not dual_return else np.tile(model.firing_s[:16], 2)
-        block_time = np.arange(model.blocks)[:, None] * model.block_s
-        self._time_ns = np.rint((block_time + firing[None, :]) * 1e9).astype(np.int64)  # (blocks, channels)
+        self._pairs_of_blocks = dual_return and model.channels == model.num_lasers  # Ruby-128
+        firing = model.firing_s
+        if dual_return and not self._pairs_of_blocks:  # Helios-16P: both halves of a block one firing
+            firing = np.tile(firing[: model.num_lasers], model.channels // model.num_lasers)
+        self._firing_ns = np.rint(firing * 1e9).astype(np.int64)
         self._azimuth_fraction = (firing / model.block_s).astype(np.float32)
         self._nominal_step = np.float32(round(_ONE_TURN * rpm / 60.0 * model.block_s))
         self._return_type = np.full(model.channels, RETURN_TYPE_STRONGEST, np.uint8)
-        if dual_return:
+        if dual_return and not self._pairs_of_blocks:
             self._return_type[16:] = RETURN_TYPE_OTHER
         self._cos, self._sin = _trig_tables()
         elevation = calibration.elevation_cdeg[self._laser] % _ONE_TURN
@@ -162,6 +165,29 @@ class RobosenseDecoder:
             seconds = (seconds << 8) | batch[:, offset + i]
         return seconds * 1_000_000_000 + _be32(batch, offset + 6).astype(np.int64) * 1000
 
+    def _block_timing(self, block_azimuth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Per block (n, blocks): the azimuth step over its firing (to the next firing's block; nominal for
+        the last or across a gap of over 1 degree in the field of view), its time after the packet's stamp (ns),
+        and its return type where blocks, not channels, tell the returns apart (Ruby-128 dual; else None)."""
+        f32 = np.float32
+        m = self._m
+        nominal = self._nominal_step
+        block_ns = np.broadcast_to(np.rint(np.arange(m.blocks) * m.block_s * 1e9).astype(np.int64), block_azimuth.shape)
+        step = np.full(block_azimuth.shape, nominal, f32)
+        if not self._pairs_of_blocks:
+            measured = ((block_azimuth[:, 1:] - block_azimuth[:, :-1]) % _ONE_TURN).astype(f32)
+            step[:, :-1] = np.where(measured > 100, nominal, measured)
+            return step, block_ns, None
+        aab = block_azimuth[:, 0] == block_azimuth[:, 1]  # else ABB
+        measured = ((block_azimuth[:, 2] - block_azimuth[:, 0]) % _ONE_TURN).astype(f32)
+        step[:, 0] = np.where(measured > 100, nominal, measured)
+        step[:, 1] = np.where(aab, step[:, 0], nominal)
+        second_firing = np.where(aab[:, None], [False, False, True], [False, True, True])
+        block_ns = np.where(second_firing, np.int64(round(m.block_s * 1e9)), np.int64(0))
+        return_type = np.where(aab[:, None], [RETURN_TYPE_STRONGEST, RETURN_TYPE_LAST, RETURN_TYPE_STRONGEST],
+                               [RETURN_TYPE_LAST, RETURN_TYPE_STRONGEST, RETURN_TYPE_LAST]).astype(np.uint8)
+        return step, block_ns, return_type
+
     def _decode_points(self, batch: np.ndarray, index: np.ndarray) -> DecodedPoints:
         """All channels computed densely as (n, blocks, channels), then the ones with a range kept."""
         m = self._m
@@ -169,9 +195,7 @@ class RobosenseDecoder:
         n = batch.shape[0]
         blocks = self._blocks(batch)
         block_azimuth = _be16(blocks, 2).astype(np.int32)  # (n, blocks)
-        step = np.full(block_azimuth.shape, self._nominal_step, f32)
-        measured = ((block_azimuth[:, 1:] - block_azimuth[:, :-1]) % _ONE_TURN).astype(f32)
-        step[:, :-1] = np.where(measured > 100, self._nominal_step, measured)  # > 1 degree: a gap in the FOV
+        step, block_ns, block_return_type = self._block_timing(block_azimuth)
         returns = blocks[:, :, 4:].reshape(n, m.blocks, m.channels, 3)
         raw_distance = _be16(returns, 0)
         distance = raw_distance.astype(f32) * f32(m.distance_resolution_m)
@@ -199,8 +223,9 @@ class RobosenseDecoder:
             laser_id=self._laser[kept_channel].astype(np.uint16),
             ring=self._ring[kept_channel],
             azimuth_cdeg=firing_azimuth.astype(np.uint16),
-            return_type=self._return_type[kept_channel],
-            timestamp_ns=stamps[kept_packet] + self._time_ns[kept_block, kept_channel],
+            return_type=self._return_type[kept_channel] if block_return_type is None
+            else block_return_type[kept_packet, kept_block],
+            timestamp_ns=stamps[kept_packet] + block_ns[kept_packet, kept_block] + self._firing_ns[kept_channel],
             packet_index=index[kept_packet],
         )
 

@@ -182,20 +182,22 @@ def _write_ruby_table(path: Path) -> Path:
     return path
 
 
-def encode_ruby128(n_packets: int, seed: int = 0) -> tuple[list[bytes], np.ndarray, np.ndarray]:
+def encode_ruby128(n_packets: int, seed: int = 0, dual: bool = False) -> tuple[list[bytes], np.ndarray, np.ndarray]:
     """Self-made Ruby-128 MSOP packets as rs_driver's layout has them: an 80-byte header (MSOP id, UTC
     seconds and microseconds at byte 10), 3 blocks (0xFE, return id, azimuth, 128 x (range, intensity)),
-    4 tail bytes; 20 hundredths of a degree a block (600 rpm). Returns the packets, the raw ranges
+    4 tail bytes; 20 hundredths of a degree a firing (600 rpm). Dual: each firing's two returns in two
+    blocks of one azimuth, so that packets alternate AAB and ABB. Returns the packets, the raw ranges
     (n, 3, 128) and the block azimuths (n, 3)."""
     rng = np.random.default_rng(seed)
     raw = rng.integers(100, 49000, (n_packets, 3, 128))
     raw[rng.random(raw.shape) < 0.15] = 0
-    azimuth = (35000 + 20 * np.arange(n_packets * 3)).reshape(n_packets, 3) % 36000  # wraps once
+    firing = np.arange(n_packets * 3) // (2 if dual else 1)
+    azimuth = (35000 + 20 * firing).reshape(n_packets, 3) % 36000  # wraps once
     packets = []
     for p in range(n_packets):
         header = bytearray(80)
         header[0:4] = b"\x55\xaa\x05\x5a"
-        microseconds = 250_000 + p * 167
+        microseconds = 250_000 + p * 167 if not dual else 250_000 + round((p * 3 // 2) * 55.55)
         header[10:16] = (1_700_000_000).to_bytes(6, "big")
         header[16:20] = microseconds.to_bytes(4, "big")
         out = bytearray(header)
@@ -208,16 +210,21 @@ def encode_ruby128(n_packets: int, seed: int = 0) -> tuple[list[bytes], np.ndarr
     return packets, raw, azimuth
 
 
-def expected_ruby128_points(raw: np.ndarray, azimuth: np.ndarray) -> np.ndarray:
-    """The points of encode_ruby128's packets, one by one in float64: (M, 8) x y z distance channel
-    firing-azimuth packet time-ns. Group g of four channels fires 3.236 us x g after its block (55.55 us); the
-    azimuth moves on by the block's step (the next block's azimuth - this one, 20 for the last) in that
-    proportion, truncated to 0.01 degrees; the lens sits 36.15 mm from the axis (RoboSense's RX)."""
+def expected_ruby128_points(raw: np.ndarray, azimuth: np.ndarray, dual: bool = False) -> np.ndarray:
+    """The points of encode_ruby128's packets, one by one in float64: (M, 9) x y z distance channel
+    firing-azimuth packet time-ns return-type. Group g of four channels fires 3.236 us x g after its block's
+    firing (55.55 us a firing); the azimuth moves on by the step to the packet's next firing (20 where there
+    is none) in that proportion, truncated to 0.01 degrees; the lens sits 36.15 mm from the axis (RoboSense's
+    RX). Dual: the first block of a firing is the strongest return (1), the second the last (2)."""
     elevation, offset = ruby_angles()
     expected = []
     for p in range(raw.shape[0]):
+        firings = [(3 * p + b) // 2 if dual else 3 * p + b for b in range(3)]
+        stamp_ns = 1_700_000_000_000_000_000 + 1000 * (250_000 + (round(firings[0] * 55.55) if dual else p * 167))
         for b in range(3):
-            step = (int(azimuth[p, b + 1]) - int(azimuth[p, b])) % 36000 if b < 2 else 20
+            later = [k for k in range(3) if firings[k] == firings[b] + 1]
+            step = (int(azimuth[p, later[0]]) - int(azimuth[p, b])) % 36000 if later else 20
+            return_type = (1 if (3 * p + b) % 2 == 0 else 2) if dual else 1
             for c in range(128):
                 d = raw[p, b, c] * 0.005
                 if raw[p, b, c] == 0 or not 0.4 <= d <= 250:
@@ -227,17 +234,18 @@ def expected_ruby128_points(raw: np.ndarray, azimuth: np.ndarray) -> np.ndarray:
                 a, a0, e = np.radians((fire + offset[c] * 100) / 100), np.radians(fire / 100), np.radians(elevation[c])
                 x = d * np.cos(e) * np.cos(a) + 0.03615 * np.cos(a0)
                 y = -d * np.cos(e) * np.sin(a) - 0.03615 * np.sin(a0)
-                expected.append((x, y, d * np.sin(e), d, c, fire % 36000, p, 1_700_000_000_250_000_000
-                                 + p * 167_000 + round((b * 55.55e-6 + t) * 1e9)))
+                time_ns = stamp_ns + round(((firings[b] - firings[0]) * 55.55e-6 + t) * 1e9)
+                expected.append((x, y, d * np.sin(e), d, c, fire % 36000, p, time_ns, return_type))
     return np.array(expected)
 
 
-def test_ruby128_equals_geometry_computed_from_the_layout(tmp_path):
-    packets, raw, azimuth = encode_ruby128(40)
-    decoder = robosense_decoder("robosense-ruby128", _write_ruby_table(tmp_path / "ruby128.csv"))
+@pytest.mark.parametrize("dual", [False, True])
+def test_ruby128_equals_geometry_computed_from_the_layout(tmp_path, dual):
+    packets, raw, azimuth = encode_ruby128(40, dual=dual)
+    decoder = robosense_decoder("robosense-ruby128", _write_ruby_table(tmp_path / "ruby128.csv"), dual_return=dual)
     points = decoder.decode(packets)
     assert points.counts["packets_decoded"] == 40
-    expected = expected_ruby128_points(raw, azimuth)
+    expected = expected_ruby128_points(raw, azimuth, dual)
     assert len(points.xyz) == len(expected) > 10_000
     np.testing.assert_allclose(points.xyz, expected[:, :3], rtol=0, atol=1e-4)
     np.testing.assert_allclose(points.distance_m, expected[:, 3], rtol=1e-6)
@@ -245,6 +253,7 @@ def test_ruby128_equals_geometry_computed_from_the_layout(tmp_path):
     np.testing.assert_array_equal(points.azimuth_cdeg, expected[:, 5])
     np.testing.assert_array_equal(points.packet_index, expected[:, 6])
     np.testing.assert_allclose(points.timestamp_ns, expected[:, 7], atol=1)
+    np.testing.assert_array_equal(points.return_type, expected[:, 8])
     np.testing.assert_array_equal(points.ring, (37 * points.laser_id.astype(np.int64)) % 128)
     assert len(rotation_starts(points.azimuth_cdeg)) == 1
 
@@ -280,5 +289,3 @@ def test_factory_checks_model_and_laser_count(tmp_path):
         robosense_decoder("robosense-bpearl", ruby_table)
     with pytest.raises(ValueError, match="angle calibration file is needed"):
         robosense_decoder("robosense-ruby128", None)
-    with pytest.raises(ValueError, match="dual-return decoding is not supported"):
-        robosense_decoder("robosense-ruby128", ruby_table, dual_return=True)
