@@ -74,43 +74,30 @@ def _tests_importable() -> None:
 
 def hdl64e_figures(time_medians: Callable[[list, int], tuple[list[float], list[float]]], repeats: int) -> dict:
     """{"HDL-64E S3": figures}: no HDL-64E capture is shared, so on 1,000 packets the test-side encoder makes
-    (labelled synthetic), with the real S3 calibration in tests/data/velodyne minus its two-point corrections
-    (velodyne-decoder applies those differently; see tests/drivers/test_velodyne_hdl64e.py)."""
-    import tempfile
-
+    (labelled synthetic), with the real S3 calibration in tests/data/velodyne, all its corrections."""
     import velodyne_decoder as vd
-    import yaml
-
-    from drivers.lidar.velodyne_decoder import velodyne_decoder
 
     _tests_importable()
     from tests.drivers.test_velodyne_hdl64e import CALIBRATION, encode_hdl64e
 
-    doc = yaml.safe_load(CALIBRATION.read_text())
-    for laser in doc["lasers"]:
-        laser["dist_correction_x"] = laser["dist_correction_y"] = laser["dist_correction"]
-    with tempfile.TemporaryDirectory() as folder:
-        calibration_path = Path(folder) / "hdl64e_s3.yml"
-        calibration_path.write_text(yaml.safe_dump(doc))
-        payloads = encode_hdl64e(1000, dual=False)
-        calibration = velodyne_decoder("velodyne-hdl64e", calibration_path).calibration
+    payloads = encode_hdl64e(1000, dual=False)
+    calibration = load_velodyne_calibration(CALIBRATION)
+    config = vd.Config(model=vd.Model.HDL64E_S3, calibration=vd.Calibration.read(str(CALIBRATION)))
 
-        def ours_run(calibration=calibration):  # a new decoder each run, the file read once, as velodyne_figures
-            return VelodyneDecoder(calibration, hdl64e="HDL-64E S3").decode(payloads)
+    def ours_run():  # a new decoder each run, the file read once, as in velodyne_figures
+        return VelodyneDecoder(calibration, hdl64e="HDL-64E S3").decode(payloads)
 
-        config = vd.Config(model=vd.Model.HDL64E_S3, calibration=vd.Calibration.read(str(calibration_path)))
+    def reference_run() -> np.ndarray:
+        decoder = vd.StreamDecoder(config)
+        scans = [r[1] for i, p in enumerate(payloads) if (r := decoder.decode(i * 288e-6, p)) is not None]
+        if (r := decoder.finish()) is not None:
+            scans.append(r[1])
+        return np.concatenate(scans)
 
-        def reference_run(config=config) -> np.ndarray:
-            decoder = vd.StreamDecoder(config)
-            scans = [r[1] for i, p in enumerate(payloads) if (r := decoder.decode(i * 288e-6, p)) is not None]
-            if (r := decoder.finish()) is not None:
-                scans.append(r[1])
-            return np.concatenate(scans)
-
-        ours, reference = ours_run(), reference_run()
-        if len(ours.xyz) != len(reference):
-            raise AssertionError(f"HDL-64E: {len(ours.xyz)} points, velodyne-decoder {len(reference)}")
-        (t_ours, t_reference), _ = time_medians([ours_run, reference_run], repeats)
+    ours, reference = ours_run(), reference_run()
+    if len(ours.xyz) != len(reference):
+        raise AssertionError(f"HDL-64E: {len(ours.xyz)} points, velodyne-decoder {len(reference)}")
+    (t_ours, t_reference), _ = time_medians([ours_run, reference_run], repeats)
     return {
         "HDL-64E S3": {
             "points_per_s": round(len(ours.xyz) / t_ours),

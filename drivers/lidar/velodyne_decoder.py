@@ -320,14 +320,15 @@ class VelodyneDecoder:
             h_off = cal.horiz_offset_m.astype(f32)[laser_k]
             d_x, d_y = d, d
             if cal.two_point_correction:
-                d_x, d_y = self._two_point_distances(d, laser_k, cos_v, sin_v, cos_rot, sin_rot, v_off, h_off)
-            # The HDL-64E manuals' formula, as velodyne-decoder has it: the offsets are not turned by the
-            # laser's elevation (ROS velodyne_pointcloud's variant turns them).
+                near = slot_raw_distance[keep] * f32(cal.distance_resolution_m) < f32(25.04)
+                d_x, d_y = self._two_point_distances(d, laser_k, near, cos_v, cos_rot, sin_rot, h_off)
+            # As velodyne-decoder 3.1.0 computes it (found by probing it; ROS velodyne_pointcloud differs):
+            # the offsets are not turned by the laser's elevation, z takes the mean of the x and y distances.
             xy_x = d_x * cos_v
             xy_y = d_y * cos_v
             xyz[:, 0] = xy_y * cos_rot + h_off * sin_rot
             xyz[:, 1] = -(xy_x * sin_rot - h_off * cos_rot)
-            xyz[:, 2] = d_y * sin_v + v_off
+            xyz[:, 2] = (d_x + d_y) * f32(0.5) * sin_v + v_off
 
         intensity = self._intensity(in_slot_order(raw_intensity)[keep], slot_raw_distance[keep], laser_k)
         time_ns = per_slot(tables["time_ns"])[0 if uniform else kept_packet, kept_slot]
@@ -370,9 +371,10 @@ class VelodyneDecoder:
             return_type[dual] = pair[dual]
         return return_type
 
-    def _two_point_distances(self, d, laser, cos_v, sin_v, cos_rot, sin_rot, v_off, h_off):
-        """HDL-64E's distance-dependent corrections along x and y (linear between 2.4/1.93 m and 25.04 m, as
-        velodyne_pointcloud has them; velodyne-decoder 3.1.0 gives other points, up to ~0.2 m apart)."""
+    def _two_point_distances(self, d, laser, near, cos_v, cos_rot, sin_rot, h_off):
+        """HDL-64E's distance-dependent corrections along x and y: linear in |x| and |y| (from 2.4 and 1.93 m to
+        25.04 m), for returns whose raw range (before dist_correction) is under 25.04 m (`near`), as
+        velodyne-decoder 3.1.0 applies them."""
         cal = self.calibration
         f32 = np.float32
         dc = cal.dist_correction_m.astype(f32)[laser]
@@ -383,7 +385,7 @@ class VelodyneDecoder:
         yy = np.abs(xy * cos_rot + h_off * sin_rot)
         corr_x = (dc - dcx) * (xx - f32(2.4)) / f32(25.04 - 2.4) + dcx - dc
         corr_y = (dc - dcy) * (yy - f32(1.93)) / f32(25.04 - 1.93) + dcy - dc
-        return d + corr_x, d + corr_y
+        return d + np.where(near, corr_x, f32(0)), d + np.where(near, corr_y, f32(0))
 
     def _intensity(self, raw_intensity: np.ndarray, raw_distance: np.ndarray, laser: np.ndarray) -> np.ndarray:
         cal = self.calibration
