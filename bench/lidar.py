@@ -16,7 +16,7 @@ import statistics  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
-from lidar_vendors import hesai_figures, velodyne_figures  # noqa: E402
+from lidar_vendors import hdl64e_figures, hesai_figures, robosense_figures, velodyne_figures  # noqa: E402
 
 from drivers.lidar.lidar_points import batch_xyz, scan_point_cloud  # noqa: E402
 from drivers.lidar.ouster_decoder import decode_packets, ouster_scan_assembler  # noqa: E402
@@ -133,7 +133,10 @@ def main() -> None:
         "points_per_s_to_point_clouds": points / t_clouds,
     }
     results["realtime_factor"] = results["points_per_s"] / SENSOR_POINTS_PER_S
-    vendors = velodyne_figures(time_medians, repeats) | hesai_figures(time_medians, repeats)
+    vendors = velodyne_figures(time_medians, repeats)
+    vendors |= hdl64e_figures(time_medians, repeats)
+    vendors |= hesai_figures(time_medians, repeats)
+    vendors |= robosense_figures(args.quick)
     print(
         f"OS-128 2048x10 LEGACY, {n_frames} frames x 128 packets, median of {repeats}, core {args.core}, "
         "points/s per CPU-second of this thread unless wall_clock"
@@ -152,7 +155,7 @@ def main() -> None:
             f"(ratio {figures['reference_ratio']:.2f})"
             if "reference_points_per_s" in figures
             else f"  reference: {figures['reference']}"
-        )
+        ) + ("  [synthetic]" if figures.get("synthetic") else "")
         print(f"  {model:18s} points_per_s {figures['points_per_s'] / 1e6:6.1f} M{error}{reference}")
     print(
         json.dumps(

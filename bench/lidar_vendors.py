@@ -151,4 +151,110 @@ def hesai_figures(time_medians: Callable[[list, int], tuple[list[float], list[fl
     cpu, _ = time_medians([lambda d=d, p=p: d.decode(p) for d, p, _ in runs.values()], repeats)
     for (model, (_, _, n_points)), t in zip(runs.items(), cpu, strict=True):
         figures[model] = {"points_per_s": round(n_points / t)} | figures[model]
+
+
+def _tests_importable() -> None:
+    """The synthetic packets come from the test-side encoders under tests/drivers: the repository root on
+    the import path, as the other benches put it."""
+    import sys
+
+    root = str(Path(__file__).resolve().parents[1])
+    if root not in sys.path:
+        sys.path.insert(0, root)
+
+
+def hdl64e_figures(time_medians: Callable[[list, int], tuple[list[float], list[float]]], repeats: int) -> dict:
+    """{"HDL-64E S3": figures}: no HDL-64E capture is shared, so on 1,000 packets the test-side encoder makes
+    (labelled synthetic), with the real S3 calibration in tests/data/velodyne, all its corrections."""
+    import velodyne_decoder as vd
+
+    _tests_importable()
+    from tests.drivers.test_velodyne_hdl64e import CALIBRATION, encode_hdl64e
+
+    payloads = encode_hdl64e(1000, dual=False)
+    calibration = load_velodyne_calibration(CALIBRATION)
+    config = vd.Config(model=vd.Model.HDL64E_S3, calibration=vd.Calibration.read(str(CALIBRATION)))
+
+    def ours_run():  # a new decoder each run, the file read once, as in velodyne_figures
+        return VelodyneDecoder(calibration, hdl64e="HDL-64E S3").decode(payloads)
+
+    def reference_run() -> np.ndarray:
+        decoder = vd.StreamDecoder(config)
+        scans = [r[1] for i, p in enumerate(payloads) if (r := decoder.decode(i * 288e-6, p)) is not None]
+        if (r := decoder.finish()) is not None:
+            scans.append(r[1])
+        return np.concatenate(scans)
+
+    ours, reference = ours_run(), reference_run()
+    if len(ours.xyz) != len(reference):
+        raise AssertionError(f"HDL-64E: {len(ours.xyz)} points, velodyne-decoder {len(reference)}")
+    (t_ours, t_reference), _ = time_medians([ours_run, reference_run], repeats)
+    return {
+        "HDL-64E S3": {
+            "points_per_s": round(len(ours.xyz) / t_ours),
+            "max_abs_err_m": float(np.abs(ours.xyz - reference[:, :3]).max()),
+            "reference": "velodyne-decoder 3.1.0",
+            "reference_points_per_s": round(len(reference) / t_reference),
+            "reference_ratio": round(t_reference / t_ours, 3),
+            "points": len(ours.xyz),
+            "packets": len(payloads),
+            "synthetic": True,
+        }
+    }
+
+
+def robosense_figures(quick: bool) -> dict:
+    """{model: figures} for RoboSense: our decoder's points/s on one core (CPU seconds of this thread,
+    median of repeats) and its largest xyz difference from the reference. Helios-16P: the shared real capture,
+    against Nebula's decoded cloud of its first rotation (no Python decoder exists to time beside it).
+    Ruby-128: packets from the test-side encoder (synthetic), against the float64 geometry that test computes."""
+    import statistics
+    import time
+
+    from drivers.lidar.robosense_decoder import robosense_decoder
+
+    repeats = 3 if quick else 9
+
+    def median_cpu(run: Callable[[], object]) -> float:
+        run()
+        times = []
+        for _ in range(repeats):
+            start = time.thread_time()
+            run()
+            times.append(time.thread_time() - start)
+        return statistics.median(times)
+
+    figures = {}
+    payloads = [d.payload for d in read_pcap_udp(NEBULA / "robosense" / "helios16P.pcap").datagrams]
+    decoder = robosense_decoder("robosense-helios16p", NEBULA / "calib" / "RobosenseHelios16P.csv")
+    points = decoder.decode(payloads)
+    reference = np.loadtxt(NEBULA / "robosense" / "helios16P.reference.pcd", skiprows=11)
+    error = np.abs(points.xyz[: len(reference)].astype(np.float64) - reference[:, :3]).max(axis=1)
+    figures["Helios-16P"] = {
+        "points_per_s": round(len(points.xyz) / median_cpu(lambda: decoder.decode(payloads))),
+        "max_abs_err_m": float(error.max()),
+        "p99_abs_err_m": float(np.quantile(error, 0.99)),
+        "reference": "Nebula's decoded first rotation (point by point)",
+        "points": len(points.xyz),
+        "packets": len(payloads),
+        "synthetic": False,
+    }
+    import tempfile
+
+    _tests_importable()
+    from tests.drivers.test_robosense_packet import _write_ruby_table, encode_ruby128, expected_ruby128_points
+
+    with tempfile.TemporaryDirectory() as folder:
+        ruby = robosense_decoder("robosense-ruby128", _write_ruby_table(Path(folder) / "ruby128.csv"))
+    packets, raw, azimuth = encode_ruby128(200 if quick else 1000)
+    points = ruby.decode(packets)
+    expected = expected_ruby128_points(raw, azimuth)
+    figures["Ruby-128"] = {
+        "points_per_s": round(len(points.xyz) / median_cpu(lambda: ruby.decode(packets))),
+        "max_abs_err_m": float(np.abs(points.xyz - expected[:, :3]).max()),
+        "reference": "float64 geometry from the MSOP layout, self-made packets and angle table",
+        "points": len(points.xyz),
+        "packets": len(packets),
+        "synthetic": True,
+    }
     return figures

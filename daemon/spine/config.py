@@ -110,8 +110,9 @@ class CameraConfig(StrictModel):
 POINT_CLOUD_LIDAR = "point-cloud"  # a Lidar model whose scans arrive already decoded (messages.PointCloud)
 OUSTER_LIDARS = ("ouster-os-128", "ouster-os-32")
 # the models decoded from packets by a vendor decoder (drivers/lidar/lidar_models.py; a test keeps the two equal)
-VENDOR_LIDARS = ("velodyne-vlp16", "velodyne-vlp32c", "velodyne-vls128", "hesai-pandar40p", "hesai-pandar64",
-                 "hesai-pandarqt128", "hesai-pandarxt32", "hesai-pandar128e4x", "hesai-pandarat128")
+VENDOR_LIDARS = ("velodyne-vlp16", "velodyne-vlp32c", "velodyne-vls128", "velodyne-hdl64e", "hesai-pandar40p",
+                 "hesai-pandar64", "hesai-pandarqt128", "hesai-pandarxt32", "hesai-pandar128e4x", "hesai-pandarat128",
+                 "robosense-helios16p", "robosense-ruby128")
 LIDAR_DEFAULT_PORTS = {"ouster": 7502, "velodyne": 2368, "hesai": 2368, "robosense": 6699}  # by vendor, as shipped
 LidarModel = Literal[(*OUSTER_LIDARS, *VENDOR_LIDARS, POINT_CLOUD_LIDAR)]
 
@@ -130,6 +131,8 @@ class LidarConfig(StrictModel):
     columns_per_frame: Literal[512, 1024, 2048] = 1024  # Ouster only
     rate_hz: Literal[5, 10, 15, 20] = 10  # rotations per second (Ouster: 10 or 20)
     receive_buffer_bytes: int = Field(64 * 1024 * 1024, ge=1 << 16)
+    return_mode: Literal["single", "dual"] = "single"  # RoboSense only: as set on the sensor (its data packets
+    # do not say); the other vendors' packets do
     extrinsics: Extrinsics
 
     @property

@@ -5,7 +5,6 @@ microseconds past the top of the hour; the others stamp UTC), and the IMU readin
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,8 +14,8 @@ import numpy as np
 from daemon.spine.config import ConfigError, LidarConfig, resolve_path
 from drivers.lidar.hesai_decoder import HESAI_MODELS, hesai_decoder, hesai_imu_samples
 from drivers.lidar.packet_decoding import PacketDecoder
-from drivers.lidar.velodyne_calibration import load_velodyne_calibration
-from drivers.lidar.velodyne_decoder import VelodyneDecoder
+from drivers.lidar.robosense_decoder import ROBOSENSE_MODELS, robosense_decoder
+from drivers.lidar.velodyne_decoder import VELODYNE_MODELS, velodyne_decoder
 
 HOUR_NS = 3600 * 10**9
 
@@ -24,36 +23,43 @@ HOUR_NS = 3600 * 10**9
 @dataclass(frozen=True)
 class VendorLidar:
     model: str  # the config's name for it
-    load_decoder: Callable[[Path], PacketDecoder]  # from the calibration file; ValueError when it does not fit
+    # from the calibration file and the sensor's config; ValueError when the file does not fit the model
+    load_decoder: Callable[[Path, LidarConfig], PacketDecoder]
     stamp_period_ns: int | None  # the packet stamps count modulo this (None: absolute UTC)
     # the IMU readings its data packets carry (time_ns: the packet's stamp, angular_velocity_rad_s,
     # linear_acceleration_m_s2, imu_timestamp: the IMU's own counter), None: it has none
     imu_readings: Callable[[list[bytes]], dict[str, np.ndarray]] | None = None
 
 
-def _velodyne(lasers: int, distance_resolution_m: float | None = None) -> Callable[[Path], PacketDecoder]:
-    def load(path: Path) -> PacketDecoder:
-        calibration = load_velodyne_calibration(path)
-        if calibration.num_lasers != lasers:
-            raise ValueError(f"{path}: a calibration of {calibration.num_lasers} lasers, the model has {lasers}")
-        if distance_resolution_m is not None:
-            calibration.distance_resolution_m = distance_resolution_m
-        return VelodyneDecoder(calibration)
+# VLS-128 ranges come in 4 mm units (its manual); a calibration file's other value is not used: the shared VLS128.yaml
+# says 7 mm, which puts every point 1.75x too far against the vendor project's reference cloud
+VLS128_DISTANCE_RESOLUTION_M = 0.004
 
-    return load
+
+def _velodyne(path: Path, config: LidarConfig) -> PacketDecoder:
+    decoder = velodyne_decoder(config.model, path)
+    if config.model == "velodyne-vls128":
+        decoder.calibration.distance_resolution_m = VLS128_DISTANCE_RESOLUTION_M
+    return decoder
+
+
+def _hesai(path: Path, config: LidarConfig) -> PacketDecoder:
+    return hesai_decoder(config.model, path)
+
+
+def _robosense(path: Path, config: LidarConfig) -> PacketDecoder:
+    # its data packets do not say the return mode (the device-info packets do): the config does
+    return robosense_decoder(config.model, path, dual_return=config.return_mode == "dual", rpm=60.0 * config.rate_hz)
 
 
 VENDOR_LIDARS = {
     lidar.model: lidar
     for lidar in (
-        VendorLidar("velodyne-vlp16", _velodyne(16), HOUR_NS),
-        VendorLidar("velodyne-vlp32c", _velodyne(32), HOUR_NS),
-        # VLS-128 ranges come in 4 mm units (its manual); a calibration file's other value is not used: the shared
-        # VLS128.yaml says 7 mm, which puts every point 1.75x too far against the vendor project's reference cloud
-        VendorLidar("velodyne-vls128", _velodyne(128, distance_resolution_m=0.004), HOUR_NS),
+        *(VendorLidar(model, _velodyne, HOUR_NS) for model in VELODYNE_MODELS),  # microseconds past the hour
         # Hesai: the angle-correction CSV (the AT128: its binary correction file); stamps in UTC
-        *(VendorLidar(model, functools.partial(hesai_decoder, model), None,
-                      hesai_imu_samples if model == "hesai-pandar128e4x" else None) for model in HESAI_MODELS),
+        *(VendorLidar(model, _hesai, None, hesai_imu_samples if model == "hesai-pandar128e4x" else None)
+          for model in HESAI_MODELS),
+        *(VendorLidar(model, _robosense, None) for model in ROBOSENSE_MODELS),  # the angle CSV; UTC stamps
     )
 }
 
@@ -69,6 +75,6 @@ def configured_decoder(config: LidarConfig, config_path: str | Path) -> PacketDe
                           f"calibration file)")
     path = resolve_path(config_path, config.metadata_file)
     try:
-        return lidar.load_decoder(path)
+        return lidar.load_decoder(path, config)
     except (OSError, ValueError) as exc:
         raise ConfigError(f"{config_path}: sensors.lidar.metadata_file {str(path)!r}: {exc}") from None

@@ -1,11 +1,13 @@
 """Velodyne data packets (1,206 bytes: 12 blocks of 32 returns, a timestamp, two factory bytes) decoded
-a batch at a time with numpy: model and return mode from the factory bytes, azimuth interpolated over
-each firing's time, range, intensity, laser id, ring, per-point time and xyz in the sensor frame
-(x forward, y left, z up, as velodyne-decoder gives them). Bad packets are counted and skipped."""
+a batch at a time with numpy: model and return mode from the factory bytes (HDL-64E: configured, its upper
+and lower blocks alternate, dual return seen in its azimuths), azimuth interpolated over each firing's time,
+range, intensity, laser id, ring, per-point time and xyz in the sensor frame (x forward, y left, z up, as
+velodyne-decoder gives them). Bad packets are counted and skipped."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -16,7 +18,7 @@ from drivers.lidar.packet_decoding import (
     PacketCheck,
     empty_points,
 )
-from drivers.lidar.velodyne_calibration import VelodyneCalibration
+from drivers.lidar.velodyne_calibration import VelodyneCalibration, load_velodyne_calibration
 
 PACKET_SIZE = 1206
 BLOCKS_PER_PACKET = 12
@@ -33,11 +35,21 @@ _DUAL_ORDER = np.stack(
     [np.arange(BLOCKS_PER_PACKET * RETURNS_PER_BLOCK), np.arange(384).reshape(6, 2, 32).transpose(0, 2, 1).ravel()]
 )
 
+def _hdl64e_order() -> np.ndarray:
+    # Dual return: firing k's upper bank then its lower, channel by channel the last return (block 4k + 2 + bank)
+    # then the strongest (block 4k + bank), as velodyne-decoder gives them.
+    firing, bank, channel, last = np.meshgrid(np.arange(3), np.arange(2), np.arange(32), [True, False], indexing="ij")
+    block = 4 * firing + bank + 2 * last
+    return np.stack([np.arange(384), (block * RETURNS_PER_BLOCK + channel).ravel()])
+
+
+_HDL64E_ORDER = _hdl64e_order()
+
 
 @dataclass(frozen=True)
 class VelodyneModel:
     name: str
-    product_id: int  # factory byte 1205
+    product_id: int | None  # factory byte 1205; None: the model does not set it (HDL-64E)
     num_lasers: int
     firing_time_s: np.ndarray  # (12, 32) float32, time of each return after the packet's timestamp
 
@@ -64,12 +76,28 @@ def _vls128_timing() -> np.ndarray:
     return t.astype(np.float32)
 
 
+def _hdl64e_timing(cycle_us: float, step_us: float, pattern_us: tuple[float, ...]) -> np.ndarray:
+    # HDL-64E S2/S3 manuals' laser firing table, as velodyne-decoder builds it: an upper and a lower block
+    # fire together; in a block, four lasers `pattern_us` apart every `step_us`; a firing every `cycle_us`.
+    block, channel = np.meshgrid(np.arange(12), np.arange(32), indexing="ij")
+    pattern = np.array(pattern_us)[channel % 4]
+    return ((cycle_us * (block // 2) + step_us * (channel // 4) + pattern) * 1e-6).astype(np.float32)
+
+
 MODELS = {
     m.product_id: m
     for m in (
         VelodyneModel("VLP-16", 0x22, 16, _vlp16_timing()),
         VelodyneModel("VLP-32C", 0x28, 32, _vlp32c_timing()),
         VelodyneModel("VLS-128", 0xA1, 128, _vls128_timing()),
+    )
+}
+# The HDL-64E puts a rotating status byte where the others have their factory bytes: its model is configured.
+HDL64E_MODELS = {
+    m.name: m
+    for m in (
+        VelodyneModel("HDL-64E S2", None, 64, _hdl64e_timing(48.0, 6.0, (0.0, 1.26, 2.46, 3.66))),
+        VelodyneModel("HDL-64E S3", None, 64, _hdl64e_timing(57.6, 7.2, (0.0, 1.3, 2.5, 3.7))),
     )
 }
 
@@ -93,7 +121,10 @@ class VelodyneDecoder:
     VLS-128 packets take their rotation rate from the previous packet's azimuth, so the decoder keeps
     the last packet's azimuth between calls: feed it the packets of one stream in order."""
 
-    def __init__(self, calibration: VelodyneCalibration, min_range_m: float = 0.1, max_range_m: float = 200.0):
+    def __init__(self, calibration: VelodyneCalibration, min_range_m: float = 0.1, max_range_m: float = 200.0,
+                 hdl64e: str | None = None):
+        """`hdl64e`: a name of HDL64E_MODELS for an HDL-64E (its packets do not say which it is); otherwise the
+        model is the one of the calibration's laser count and the packets' factory bytes."""
         self.calibration = calibration
         self.min_range_m = np.float32(min_range_m)
         self.max_range_m = np.float32(max_range_m)
@@ -103,7 +134,13 @@ class VelodyneDecoder:
         self._sin_rot = np.sin(calibration.rot_correction_rad.astype(f32))
         self._cos_vert = np.cos(calibration.vert_correction_rad.astype(f32))
         self._sin_vert = np.sin(calibration.vert_correction_rad.astype(f32))
-        self._model = next((m for m in MODELS.values() if m.num_lasers == calibration.num_lasers), None)
+        if hdl64e is not None:
+            if hdl64e not in HDL64E_MODELS or calibration.num_lasers != 64:
+                raise ValueError(f"{calibration.source}: {calibration.num_lasers} lasers, not an {hdl64e!r} of "
+                                 f"{', '.join(HDL64E_MODELS)}")
+            self._model = HDL64E_MODELS[hdl64e]
+        else:
+            self._model = next((m for m in MODELS.values() if m.num_lasers == calibration.num_lasers), None)
         self._slot_tables = _slot_tables(self._model, calibration) if self._model is not None else {}
         # With no offsets the offset terms vanish: the formula velodyne-decoder uses for such files.
         self._has_offsets = bool(np.any(calibration.vert_offset_m) or np.any(calibration.horiz_offset_m))
@@ -164,12 +201,17 @@ class VelodyneDecoder:
         """Mask of the packets to decode; counts the others by reason."""
         product = batch[:, _PRODUCT_ID_OFFSET]
         mode = batch[:, _RETURN_MODE_OFFSET]
+        model = self._model
+        flags = _u16(batch[:, :_TIMESTAMP_OFFSET].reshape(-1, BLOCKS_PER_PACKET, _BLOCK_BYTES), 0)
+        if model is not None and model.product_id is None:  # HDL-64E: upper and lower blocks alternate
+            counts[UNKNOWN_FACTORY] = counts[FOREIGN_MODEL] = 0
+            flags_ok = (flags == _BANK_FLAGS[np.arange(BLOCKS_PER_PACKET) % 2]).all(axis=1)
+            counts[BAD_BLOCK_FLAG] = int((~flags_ok).sum())
+            return flags_ok, model
         known = np.isin(product, list(MODELS)) & np.isin(mode, [RETURN_STRONGEST, RETURN_LAST, RETURN_DUAL])
         counts[UNKNOWN_FACTORY] = int((~known).sum())
-        model = self._model
         mine = known & (product == (model.product_id if model else -1))
         counts[FOREIGN_MODEL] = int((known & ~mine).sum())
-        flags = _u16(batch[:, :_TIMESTAMP_OFFSET].reshape(-1, BLOCKS_PER_PACKET, _BLOCK_BYTES), 0)
         if model is not None and model.num_lasers == 128:
             blocks_used = np.where(mode == RETURN_DUAL, 8, 12)
             bank = np.arange(BLOCKS_PER_PACKET) // np.where(mode == RETURN_DUAL, 2, 1)[:, None] % 4
@@ -211,8 +253,11 @@ class VelodyneDecoder:
         raw_intensity = returns[:, :, :, 2]
         timestamp_us = batch[:, _TIMESTAMP_OFFSET : _TIMESTAMP_OFFSET + 4].copy().view("<u4")[:, 0]
         mode = batch[:, _RETURN_MODE_OFFSET]
-        dual = mode == RETURN_DUAL
-        return_type = self._return_types(raw_distance, raw_intensity, dual, mode == RETURN_LAST)
+        hdl64e = model.product_id is None
+        # The HDL-64E has no return mode byte: a dual-return packet repeats its first firing's azimuth in block 2.
+        dual = block_azimuth[:, 0] == block_azimuth[:, 2] if hdl64e else mode == RETURN_DUAL
+        last_mode = np.zeros(n, bool) if hdl64e else mode == RETURN_LAST
+        return_type = self._return_types(raw_distance, raw_intensity, dual, last_mode, hdl64e)
         tables = self._slot_tables
         uniform = bool(dual.all() or not dual.any())
 
@@ -224,9 +269,9 @@ class VelodyneDecoder:
             flat = a.reshape(n, -1)
             if not dual.any():
                 return flat
-            if dual.all():  # the same permutation for every packet, as a transpose
+            if dual.all() and not hdl64e:  # the same permutation for every packet, as a transpose
                 return a.reshape(n, 6, 2, RETURNS_PER_BLOCK).transpose(0, 1, 3, 2).reshape(n, -1)
-            return np.take_along_axis(flat, np.broadcast_to(per_slot(_DUAL_ORDER), flat.shape), axis=1)
+            return np.take_along_axis(flat, np.broadcast_to(per_slot(tables["order"]), flat.shape), axis=1)
 
         if model.num_lasers == 128:
             seq = model.firing_time_s[4, 0] - model.firing_time_s[0, 0]
@@ -275,12 +320,15 @@ class VelodyneDecoder:
             h_off = cal.horiz_offset_m.astype(f32)[laser_k]
             d_x, d_y = d, d
             if cal.two_point_correction:
-                d_x, d_y = self._two_point_distances(d, laser_k, cos_v, sin_v, cos_rot, sin_rot, v_off, h_off)
-            xy_x = d_x * cos_v - v_off * sin_v
-            xy_y = d_y * cos_v - v_off * sin_v
+                near = slot_raw_distance[keep] * f32(cal.distance_resolution_m) < f32(25.04)
+                d_x, d_y = self._two_point_distances(d, laser_k, near, cos_v, cos_rot, sin_rot, h_off)
+            # As velodyne-decoder 3.1.0 computes it (found by probing it; ROS velodyne_pointcloud differs):
+            # the offsets are not turned by the laser's elevation, z takes the mean of the x and y distances.
+            xy_x = d_x * cos_v
+            xy_y = d_y * cos_v
             xyz[:, 0] = xy_y * cos_rot + h_off * sin_rot
             xyz[:, 1] = -(xy_x * sin_rot - h_off * cos_rot)
-            xyz[:, 2] = d_y * sin_v + v_off * cos_v
+            xyz[:, 2] = (d_x + d_y) * f32(0.5) * sin_v + v_off
 
         intensity = self._intensity(in_slot_order(raw_intensity)[keep], slot_raw_distance[keep], laser_k)
         time_ns = per_slot(tables["time_ns"])[0 if uniform else kept_packet, kept_slot]
@@ -298,13 +346,24 @@ class VelodyneDecoder:
         )
 
     @staticmethod
-    def _return_types(raw_distance: np.ndarray, raw_intensity: np.ndarray, dual: np.ndarray, last_mode: np.ndarray):
+    def _return_types(raw_distance: np.ndarray, raw_intensity: np.ndarray, dual: np.ndarray, last_mode: np.ndarray,
+                      hdl64e: bool):
         """(n, 12, 32) uint8 return type of each return, 0 for the strongest return of a dual pair that
         repeats the last one (block 2k holds the last returns, 2k + 1 the strongest of the same firing;
-        one point of both types stands for the two, as velodyne-decoder gives it)."""
+        one point of both types stands for the two, as velodyne-decoder gives it). HDL-64E dual return:
+        blocks 4k, 4k + 1 (upper, lower) the strongest returns, 4k + 2, 4k + 3 the last of the same firing."""
         single = np.where(last_mode, RETURN_TYPE_LAST, RETURN_TYPE_STRONGEST).astype(np.uint8)
         return_type = np.broadcast_to(single[:, None, None], raw_distance.shape).copy()
-        if dual.any():
+        if dual.any() and hdl64e:
+            strongest = np.array([0, 1, 4, 5, 8, 9])
+            last = strongest + 2
+            same = (raw_distance[:, strongest] == raw_distance[:, last]) & (
+                raw_intensity[:, strongest] == raw_intensity[:, last])
+            pair = np.empty_like(return_type)
+            pair[:, strongest] = np.where(same, RETURN_TYPE_LAST | RETURN_TYPE_STRONGEST, RETURN_TYPE_STRONGEST)
+            pair[:, last] = np.where(same, 0, RETURN_TYPE_LAST)
+            return_type[dual] = pair[dual]
+        elif dual.any():
             same = (raw_distance[:, 0::2] == raw_distance[:, 1::2]) & (raw_intensity[:, 0::2] == raw_intensity[:, 1::2])
             pair = np.empty_like(return_type)
             pair[:, 0::2] = np.where(same, RETURN_TYPE_LAST | RETURN_TYPE_STRONGEST, RETURN_TYPE_LAST)
@@ -312,19 +371,21 @@ class VelodyneDecoder:
             return_type[dual] = pair[dual]
         return return_type
 
-    def _two_point_distances(self, d, laser, cos_v, sin_v, cos_rot, sin_rot, v_off, h_off):
-        """HDL-64E's distance-dependent corrections along x and y (linear between 2.4/1.93 m and 25.04 m)."""
+    def _two_point_distances(self, d, laser, near, cos_v, cos_rot, sin_rot, h_off):
+        """HDL-64E's distance-dependent corrections along x and y: linear in |x| and |y| (from 2.4 and 1.93 m to
+        25.04 m), for returns whose raw range (before dist_correction) is under 25.04 m (`near`), as
+        velodyne-decoder 3.1.0 applies them."""
         cal = self.calibration
         f32 = np.float32
         dc = cal.dist_correction_m.astype(f32)[laser]
         dcx = cal.dist_correction_x_m.astype(f32)[laser]
         dcy = cal.dist_correction_y_m.astype(f32)[laser]
-        xy = d * cos_v - v_off * sin_v
+        xy = d * cos_v
         xx = np.abs(xy * sin_rot - h_off * cos_rot)
         yy = np.abs(xy * cos_rot + h_off * sin_rot)
         corr_x = (dc - dcx) * (xx - f32(2.4)) / f32(25.04 - 2.4) + dcx - dc
         corr_y = (dc - dcy) * (yy - f32(1.93)) / f32(25.04 - 1.93) + dcy - dc
-        return d + corr_x, d + corr_y
+        return d + np.where(near, corr_x, f32(0)), d + np.where(near, corr_y, f32(0))
 
     def _intensity(self, raw_intensity: np.ndarray, raw_distance: np.ndarray, laser: np.ndarray) -> np.ndarray:
         cal = self.calibration
@@ -332,7 +393,9 @@ class VelodyneDecoder:
         intensity = raw_intensity.astype(f32)
         slope = cal.focal_slope.astype(f32)[laser]
         if np.any(slope != 0):
-            focal_offset = (f32(1) - cal.focal_distance.astype(f32)[laser] / f32(13100)) ** 2
+            # As velodyne-decoder computes it: the file's focal_distance times 100 (ROS velodyne_pointcloud
+            # takes the value as it is; the two disagree, velodyne-decoder is the oracle checked here).
+            focal_offset = (f32(1) - cal.focal_distance.astype(f32)[laser] * f32(100) / f32(13100)) ** 2
             falloff = (f32(1) - raw_distance.astype(f32) / f32(65535)) ** 2
             intensity = intensity + f32(256) * slope * np.abs(focal_offset - falloff)
         elif np.all(cal.min_intensity <= 0) and np.all(cal.max_intensity >= 255):
@@ -345,12 +408,17 @@ def _slot_tables(model: VelodyneModel, calibration: VelodyneCalibration) -> dict
     """Per return slot (velodyne-decoder's order; see VelodyneDecoder._decode_points), for single
     (row 0) and dual return (row 1) packets: its block, laser, firing time, the time since its block's
     reference firing (azimuth interpolation) and the laser's distance correction."""
-    order = _DUAL_ORDER  # (2, 384) flat block * 32 + channel of each slot
+    order = _DUAL_ORDER if model.product_id is not None else _HDL64E_ORDER  # (2, 384) block * 32 + channel
     block, channel = order // RETURNS_PER_BLOCK, order % RETURNS_PER_BLOCK
     dual = np.array([[False], [True]])
     timing = model.firing_time_s
     row = np.where(dual, block // 2, block)  # dual: two blocks (last, strongest) share one firing
-    if model.num_lasers == 128:
+    if model.product_id is None:  # HDL-64E: upper (even) and lower (odd) blocks of one firing
+        laser = 32 * (block % 2) + channel
+        row = np.where(dual, block // 4 * 2 + block % 2, block)
+        t0 = timing[np.where(dual, block // 4 * 2, block // 2 * 2), 0]
+        in_use = np.ones_like(block, dtype=bool)
+    elif model.num_lasers == 128:
         bank = np.where(dual, block // 2, block) % 4
         laser = 32 * bank + channel
         t0 = timing[np.where(dual, 0, block // 4 * 4), 0]
@@ -361,6 +429,7 @@ def _slot_tables(model: VelodyneModel, calibration: VelodyneCalibration) -> dict
         in_use = np.ones_like(block, dtype=bool)
     time = timing[row, channel]
     return {
+        "order": order,
         "block": block,
         "in_use": np.broadcast_to(in_use, block.shape),
         "laser": laser,
@@ -373,3 +442,21 @@ def _slot_tables(model: VelodyneModel, calibration: VelodyneCalibration) -> dict
 def _u16(a: np.ndarray, offset: int) -> np.ndarray:
     """Little-endian uint16 at byte `offset` of the last axis."""
     return a[..., offset].astype(np.uint16) | (a[..., offset + 1].astype(np.uint16) << 8)
+
+
+VELODYNE_MODELS = ("velodyne-vlp16", "velodyne-vlp32c", "velodyne-vls128", "velodyne-hdl64e")
+_MODEL_LASERS = dict(zip(VELODYNE_MODELS, (16, 32, 128, 64), strict=True))
+
+
+def velodyne_decoder(model: str, calibration_path: str | Path, hdl64e: str = "HDL-64E S3") -> VelodyneDecoder:
+    """The decoder of a model named in VELODYNE_MODELS with its calibration YAML; ValueError when the file's
+    laser count does not fit the model. `hdl64e`: which HDL-64E of HDL64E_MODELS (its packets do not say;
+    velodyne-decoder's hdl64e.py tells S2 from S3 only from the whole calibration block that the status bytes
+    spell out over some thousand packets)."""
+    if model not in _MODEL_LASERS:
+        raise ValueError(f"unknown Velodyne model {model!r}; known: {', '.join(VELODYNE_MODELS)}")
+    calibration = load_velodyne_calibration(calibration_path)
+    if calibration.num_lasers != _MODEL_LASERS[model]:
+        raise ValueError(f"{calibration.source}: {calibration.num_lasers} lasers, but {model} has "
+                         f"{_MODEL_LASERS[model]}")
+    return VelodyneDecoder(calibration, hdl64e=hdl64e if model == "velodyne-hdl64e" else None)

@@ -14,17 +14,19 @@ import numpy as np
 
 from daemon.spine.config import LidarConfig
 from drivers.lidar.lidar_models import VENDOR_LIDARS
-from drivers.lidar.velodyne_decoder import BLOCKS_PER_PACKET, RETURNS_PER_BLOCK, VelodyneDecoder
+from drivers.lidar.velodyne_decoder import BLOCKS_PER_PACKET, RETURNS_PER_BLOCK
 from drivers.lidar.velodyne_encoder import encode_velodyne_packets, velodyne_model
 from sim.sensors.lidar_sim import LidarRig, LidarScanSim
 
 SLOTS = BLOCKS_PER_PACKET * RETURNS_PER_BLOCK  # returns per packet
+SIMULATED_VELODYNES = ("velodyne-vlp16", "velodyne-vlp32c", "velodyne-vls128")  # not the HDL-64E (upper/lower banks)
 
 
 def velodyne_rig(config: LidarConfig, calibration_path: str | Path) -> LidarRig:
-    decoder = VENDOR_LIDARS[config.model].load_decoder(Path(calibration_path))
-    if not isinstance(decoder, VelodyneDecoder):
-        raise ValueError(f"the simulator has no {config.model}: it simulates Ouster and Velodyne sensors")
+    if config.model not in SIMULATED_VELODYNES:
+        raise ValueError(f"the simulator has no {config.model}: it simulates the Ouster OS-128 and the Velodyne "
+                         f"{', '.join(SIMULATED_VELODYNES)}")
+    decoder = VENDOR_LIDARS[config.model].load_decoder(Path(calibration_path), config)
     cal = decoder.calibration
     model = velodyne_model(cal.num_lasers)
     lasers = cal.num_lasers

@@ -166,6 +166,23 @@ def test_a_pandar128e4x_s_imu_readings_come_out_on_lidar_imu_once_each(tmp_path)
     assert [s.sensor_time_ns for s in samples] == expected_ns  # the first packet carrying each reading
 
 
+def test_a_robosense_capture_through_the_driver_process_comes_out_packet_for_packet(tmp_path):
+    """A Helios-16P's MSOP packets, its one device-info packet on the data port counted and skipped."""
+    datagrams = capture("helios16P", "robosense")
+    config = vendor_config(tmp_path, "robosense-helios16p", "RobosenseHelios16P.csv")
+    decoder = configured_decoding(load_config(config).sensors.lidar, config).new_decoder()
+    check = decoder.check(datagrams)
+    payloads = [d for d, ok in zip(datagrams, check.accepted, strict=True) if ok]
+    assert check.counts == {"difop": 1} and len(payloads) == len(datagrams) - 1
+    got, err, health = run_driver(config, datagrams, len(payloads))
+    assert [bytes(p.data) for p in got] == payloads, err
+    assert health.rejected == 1 and "difop=1" in health.detail, health.detail
+    np.testing.assert_array_equal([p.sensor_time_ns for p in got], check.sensor_time_ns[check.accepted])
+    scans = lidar_scans(got, [], lambda: configured_decoding(load_config(config).sensors.lidar, config), 1)
+    whole = decoder.decode(payloads)
+    np.testing.assert_array_equal(np.concatenate([scans.decode(s).xyz for s in scans.scans]), whole.xyz)
+
+
 def test_stamps_past_the_hour_are_unwrapped_into_one_time():
     clock = StampClock(HOUR_NS)
     host = 5 * HOUR_NS + HOUR_NS - 1_000_000_000  # 1 s before the top of host hour 6

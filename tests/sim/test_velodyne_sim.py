@@ -47,7 +47,7 @@ def test_simulated_packets_decode_to_the_simulated_rays(model):
     scan = simulate_scan(scene, rig, 3, 1.0, np.random.default_rng(5))
     stamps = (scan.column_time_s * 1e9).astype(np.int64) + 1_700_000_000_000_000_000
     packets, packet_stamps = rig.encode(scan, stamps)
-    decoder = VENDOR_LIDARS[model].load_decoder(CALIB / MODELS[model])
+    decoder = VENDOR_LIDARS[model].load_decoder(CALIB / MODELS[model], lidar)
     points = decoder.decode([bytes(p) for p in packets])
     assert points.model == decoder.model and points.counts["packets_decoded"] == len(packets)
     assert (packet_stamps % 1000 == 0).all()  # microseconds, as the sensor stamps them
