@@ -151,6 +151,7 @@ def hesai_figures(time_medians: Callable[[list, int], tuple[list[float], list[fl
     cpu, _ = time_medians([lambda d=d, p=p: d.decode(p) for d, p, _ in runs.values()], repeats)
     for (model, (_, _, n_points)), t in zip(runs.items(), cpu, strict=True):
         figures[model] = {"points_per_s": round(n_points / t)} | figures[model]
+    return figures
 
 
 def _tests_importable() -> None:
