@@ -232,6 +232,8 @@ class RecorderConfig(StrictModel):
     min_free_gib: float = Field(5.0, ge=0)
     min_free_pct: float = Field(5.0, ge=0, le=100)
     compression: Literal["zstd", "lz4", "none"] = "lz4"
+    # longest a message is held to be written in log-time order (a ring the recorder is behind on); 0: as read
+    reorder_window_s: float = Field(5.0, ge=0, le=60)
 
 
 class StatusConfig(StrictModel):
