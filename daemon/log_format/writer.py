@@ -3,8 +3,9 @@ and every other message to its `roadlog.<Name>` schema derived from `daemon.spin
 carries sequence = the message's per-topic seq, log_time = UTC ns (host_mono_ns + the file's one log_time_offset_ns,
 named in the `roadlog` record and in every channel's metadata) and publish_time = sensor_time_ns, so every field
 round-trips. Each chunk holds its messages in log-time order (a message older than the chunk's last starts a new
-chunk). Each file starts with a `roadlog` metadata record and holds a CameraCalibration channel per camera (written
-with the first message, at its log time); each channel is also described by a `roadlog.channel` metadata record
+chunk). Each file starts with a `roadlog` metadata record and holds a CameraCalibration channel per camera and the
+car's static transforms (`tf_static`), both written with the first message at its log time, and each mask again in
+colour (`mask_colour/<camera>`, mask_palette); each channel is also described by a `roadlog.channel` metadata record
 outside the chunks (metadata_records)."""
 
 from __future__ import annotations
@@ -17,10 +18,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from mcap.records import Channel, Schema
 from mcap.writer import CompressionType, Writer
 
 from daemon.log_format.foxglove_schemas import file_descriptor_set, to_well_known
+from daemon.log_format.mask_palette import coloured_mask_png
 from daemon.log_format.metadata_records import (
     CHANNEL_METADATA_NAME,
     CHANNEL_OFFSET_KEY,
@@ -32,9 +36,11 @@ from daemon.log_format.metadata_records import (
     SOFTWARE_VERSION,
     channel_record,
 )
+from daemon.log_format.static_transforms import static_transforms
 from daemon.spine import message_codec
 from daemon.spine.config import CarConfig, config_to_yaml, resolve_path
-from daemon.spine.topics import LOG_ONLY_CHANNELS, calibration_topic, topic_table
+from daemon.spine.messages import SemanticMask
+from daemon.spine.topics import LOG_ONLY_CHANNELS, TF_STATIC, calibration_topic, mask_colour_topic, topic_table
 
 
 def calibration_json(config: CarConfig) -> str:
@@ -91,6 +97,7 @@ class LogWriter:
         self._file_position = 0
         self._chunk_end: int | None = None  # the last log time in the chunk being built
         self.chunks_started_out_of_order = 0  # chunks begun early so that each stays in log-time order
+        self.masks_without_colour = 0
         self._calibrations_written = False
         meta = {
             "software_version": SOFTWARE_VERSION,
@@ -155,8 +162,13 @@ class LogWriter:
         self._file_position = self._file.tell()
 
     def _write_calibrations(self, log_time: int) -> None:
-        """A CameraCalibration per camera at `log_time` (the first message's, so a viewer has them from the start)."""
+        """A CameraCalibration per camera and the static transforms at `log_time` (the first message's, so a viewer
+        has them from the start)."""
         self._calibrations_written = True
+        cid = self._channel_id(TF_STATIC, "foxglove.FrameTransforms",
+                               lambda: file_descriptor_set(FrameTransforms.DESCRIPTOR.file), "FrameTransforms")
+        self._add_message(cid, log_time=log_time, data=static_transforms(self.config, log_time).SerializeToString(),
+                          publish_time=log_time)
         for cam in self.config.sensors.cameras:
             proto = CameraCalibration(frame_id=cam.name, width=cam.width, height=cam.height,
                                       distortion_model="plumb_bob", D=list(cam.distortion),
@@ -197,6 +209,24 @@ class LogWriter:
         self.counts[topic] = self.counts.get(topic, 0) + 1
         self.last_seq[topic] = max(self.last_seq.get(topic, -1), int(message.seq))
         self.bytes_written_estimate += len(data) + 32
+        if isinstance(message, SemanticMask):
+            self._write_mask_colour(message, log_time)
+
+    def _write_mask_colour(self, mask: SemanticMask, log_time: int) -> None:
+        """The mask again as a paletted PNG (its class colours) on `mask_colour/<camera>`; a mask that is not an 8-bit
+        greyscale PNG has none (counted in `masks_without_colour`)."""
+        png = coloured_mask_png(bytes(mask.data)) if mask.format == "png" else None
+        if png is None:
+            self.masks_without_colour += 1
+            return
+        proto = CompressedImage(frame_id=mask.camera, format="png", data=png)
+        proto.timestamp.seconds, proto.timestamp.nanos = divmod(int(mask.sensor_time_ns), 1_000_000_000)
+        cid = self._channel_id(mask_colour_topic(mask.camera), "foxglove.CompressedImage",
+                               lambda: file_descriptor_set(CompressedImage.DESCRIPTOR.file), "SemanticMaskColour")
+        data = proto.SerializeToString()
+        self._add_message(cid, log_time=log_time, data=data, publish_time=int(mask.sensor_time_ns),
+                          sequence=int(mask.seq) & 0xFFFFFFFF)
+        self.bytes_written_estimate += len(data) + 32
 
     def close(self, extra_metadata: dict[str, str] | None = None) -> None:
         """Finish the file (summary, index, footer); `extra_metadata` goes in a `roadlog.counts` record."""
@@ -206,7 +236,8 @@ class LogWriter:
         if not self._calibrations_written:
             self._write_calibrations(self._start_log_time)
         final = {"messages_per_topic": json.dumps(self.counts), "last_seq_per_topic": json.dumps(self.last_seq),
-                 "chunks_started_out_of_order": str(self.chunks_started_out_of_order)}
+                 "chunks_started_out_of_order": str(self.chunks_started_out_of_order),
+                 "masks_without_colour": str(self.masks_without_colour)}
         final.update(extra_metadata or {})
         self._writer.add_metadata(COUNTS_METADATA_NAME, final)
         self._writer.finish()

@@ -67,7 +67,7 @@ def chunk_spans(closed: Path) -> list[tuple[int, int, set]]:
 def messages_in(spans: list[tuple[int, int, set]], length: int) -> set:
     """The (topic, log time) of the messages in the chunks that lie within the first `length` bytes."""
     keys = set().union(*(keys for _, end, keys in spans if end <= length))
-    return {k for k in keys if not k[0].startswith("calibration/")}
+    return {k for k in keys if not k[0].startswith(("calibration/", "tf_static", "mask_colour/"))}  # views only
 
 
 def read_back(path: Path) -> tuple[dict, ReadReport]:

@@ -188,4 +188,4 @@ def test_the_typescript_mcap_reader_sees_every_chunk_in_log_time_order(recorded_
         assert times == sorted(times), chunk["topics"][:5]
         assert (int(chunk["start"]), int(chunk["end"])) == (times[0], times[-1])
         total += len(times)
-    assert total == len(list(read_log([segment]))) + 3  # and the three camera calibrations
+    assert total == len(list(read_log([segment]))) + 4  # and the three camera calibrations, the static transforms

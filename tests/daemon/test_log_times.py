@@ -49,11 +49,12 @@ def test_a_new_file_has_utc_log_times_and_gives_host_times_back(tmp_path):
     raw = raw_messages(path)
     assert all(int(channel[CHANNEL_OFFSET_KEY]) == offset for _, _, channel in raw)
     host_times = {(t, m.host_mono_ns) for t, m in msgs}
-    data = [(t, log_time) for t, log_time, _ in raw if not t.startswith("calibration/")]
+    views = ("calibration/", "tf_static")  # written with the first message
+    data = [(t, log_time) for t, log_time, _ in raw if not t.startswith(views)]
     assert {(t, log_time - offset) for t, log_time in data} == host_times
     assert all(abs(log_time - time.time_ns()) < 3600 * 10**9 for _, log_time, _ in raw)  # a date of today, not 1970
-    calibrations = [log_time for t, log_time, _ in raw if t.startswith("calibration/")]
-    assert calibrations == [min(m.host_mono_ns for _, m in msgs) + offset] * 3  # with the first message
+    calibrations = [log_time for t, log_time, _ in raw if t.startswith(views)]
+    assert calibrations == [min(m.host_mono_ns for _, m in msgs) + offset] * 4
     back = list(read_log([path]))
     assert [(r.topic, r.log_time_ns, r.message) for r in back] == [(t, m.host_mono_ns, m) for t, m in msgs]
     assert last_log_time(path) == max(m.host_mono_ns for _, m in msgs)
