@@ -10,6 +10,7 @@ from pathlib import Path
 from mcap.reader import make_reader
 
 from daemon.bus import pubsub
+from daemon.commands.log_info import summarise
 from daemon.log_format.metadata_records import CHANNEL_OFFSET_KEY, LOG_TIME_CLOCK_KEY, LOG_TIME_OFFSET_KEY
 from daemon.log_format.reader import ReadReport, last_log_time, read_log, read_metadata
 from daemon.log_format.recovery import recover_log
@@ -130,3 +131,13 @@ def test_read_report_of_an_old_log_is_complete():
     report = ReadReport()
     assert len(list(read_log([OLD_LOG], report=report))) == 24
     assert report.files[0].complete and report.files[0].undecodable == 0
+
+
+def test_log_info_names_the_clock_and_gives_the_same_span_for_both(tmp_path):
+    new = tmp_path / "new.mcap"
+    write_new(new, _messages(2))
+    old_info, new_info = summarise([str(OLD_LOG)]), summarise([str(new)])
+    assert old_info["recorded"]["log_time_clock"] == "host_monotonic"
+    assert new_info["recorded"]["log_time_clock"] == "utc"
+    assert old_info["duration_s"] == new_info["duration_s"] > 0
+    assert old_info["messages_per_topic"] == new_info["messages_per_topic"]
