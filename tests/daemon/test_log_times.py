@@ -20,6 +20,7 @@ from daemon.spine.config import load_config
 from tests.daemon.test_log_format import CONFIG, _messages
 from tests.daemon.test_recorder import write_config
 
+S = 1_000_000_000
 OLD_LOG = Path(__file__).resolve().parents[1] / "data" / "monotonic_clock_log.mcap"
 
 
@@ -141,3 +142,15 @@ def test_log_info_names_the_clock_and_gives_the_same_span_for_both(tmp_path):
     assert new_info["recorded"]["log_time_clock"] == "utc"
     assert old_info["duration_s"] == new_info["duration_s"] > 0
     assert old_info["messages_per_topic"] == new_info["messages_per_topic"]
+
+
+def test_a_simulated_drive_opens_on_its_utc_date_and_spans_only_the_drive(city_drive):
+    """What Foxglove's timeline shows: the summary's first and last log time (calibrations and transforms included)
+    span the drive from its UTC start, not 1970 to an hour later."""
+    with open(city_drive, "rb") as f:
+        stats = make_reader(f).get_summary().statistics
+    meta = read_metadata(city_drive)["roadlog"]
+    assert stats.message_start_time == int(meta["start_time_utc_ns"])
+    assert (stats.message_end_time - stats.message_start_time) / S < 5.0 + 2.0  # the 5 s drive, its last anchor
+    first = next(read_log([city_drive]))
+    assert first.log_time_ns == int(meta["start_mono_ns"])  # host times as before
