@@ -154,3 +154,19 @@ def test_a_simulated_drive_opens_on_its_utc_date_and_spans_only_the_drive(city_d
     assert (stats.message_end_time - stats.message_start_time) / S < 5.0 + 2.0  # the 5 s drive, its last anchor
     first = next(read_log([city_drive]))
     assert first.log_time_ns == int(meta["start_mono_ns"])  # host times as before
+
+
+def test_an_unclosed_new_log_recovers_with_its_own_offset(tmp_path):
+    closed = tmp_path / "new.mcap"
+    write_new(closed, _messages(3))
+    src = tmp_path / "new.mcap.open"
+    data = closed.read_bytes()
+    src.write_bytes(data[: len(data) * 2 // 3])
+    fixed = tmp_path / "fixed.mcap"
+    report = recover_log(src, fixed, CONFIG)
+    assert report.messages > 0
+    assert read_metadata(fixed)["roadlog"][LOG_TIME_OFFSET_KEY] == read_metadata(closed)["roadlog"][LOG_TIME_OFFSET_KEY]
+    kept = {(t, log_time) for t, log_time, _ in raw_messages(fixed) if t.startswith("camera/")}
+    assert kept and kept <= {(t, log_time) for t, log_time, _ in raw_messages(closed)}  # the same UTC log times
+    assert [(r.topic, r.log_time_ns, r.message) for r in read_log([fixed])] == [
+        (r.topic, r.log_time_ns, r.message) for r in read_log([src])]  # the images' host times too
