@@ -1,5 +1,6 @@
 """Where an importer writes: a log that appears whole or not at all (OUT.partial renamed over OUT when the import
-finishes, removed when it fails), the summary every importer prints, and a pose matrix as a pose message."""
+finishes, removed when it fails; its host times are the dataset's UTC stamps, so they are its log times), the summary
+every importer prints, and a pose matrix as a pose message."""
 
 from __future__ import annotations
 
@@ -33,7 +34,7 @@ class ImportSummary:
 def imported_log(out: Path, config: CarConfig, metadata: dict[str, str]) -> Iterator[LogWriter]:
     out.parent.mkdir(parents=True, exist_ok=True)
     partial = out.with_name(out.name + ".partial")
-    writer = LogWriter(partial, config, metadata=metadata)
+    writer = LogWriter(partial, config, metadata=metadata, log_time_offset_ns=0)  # a dataset's host times are UTC
     try:
         yield writer
     except BaseException:

@@ -9,7 +9,7 @@ import json
 import sys
 from collections import Counter
 
-from daemon.log_format.metadata_records import METADATA_NAME
+from daemon.log_format.metadata_records import LOG_TIME_CLOCK_KEY, METADATA_NAME
 from daemon.log_format.reader import ReadReport, not_a_log, read_log, read_metadata
 from daemon.spine.config import EXIT_CONFIG_ERROR
 from daemon.spine.process_logging import error_line
@@ -21,6 +21,7 @@ def recorded_car(path: str) -> dict:
     if meta is None:
         return {"error": f"no {METADATA_NAME!r} metadata record: not a roadlog log (import it first)"}
     car = {k: meta[k] for k in ("software_version", "source", "host") if k in meta}
+    car["log_time_clock"] = meta.get(LOG_TIME_CLOCK_KEY, "host_monotonic")  # utc, or a log from before UTC log times
     try:
         car.update(json.loads(meta.get("calibration", "{}")))
     except json.JSONDecodeError as exc:

@@ -1,7 +1,8 @@
 """Reading: `read_log` iterates chosen topics of several files in log-time order. Every chunk is checked against its
 CRC; a closed file is read through its summary (when that matches the footer's CRC), any other file (a writer killed
 mid-write, a power cut, damage) record by record past its damaged stretches (record_scan). What was skipped, and why,
-is reported per file in a `ReadReport`; a damaged file never raises."""
+is reported per file in a `ReadReport`; a damaged file never raises. Times given and returned are host monotonic:
+a UTC log time is moved back by its channel's offset (metadata_records.log_time_offset), an older log's is as it is."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from mcap.records import Channel, Message, Metadata, Schema
 from mcap.summary import Summary
 
 from daemon.log_format.foxglove_schemas import FROM_WELL_KNOWN, TYPE_OF_FOREIGN_SCHEMA
-from daemon.log_format.metadata_records import CHANNEL_METADATA_NAME, channel_from_record
+from daemon.log_format.metadata_records import CHANNEL_METADATA_NAME, channel_from_record, log_time_offset
 from daemon.log_format.record_scan import (
     Damage,
     DamagedRecord,
@@ -38,7 +39,7 @@ log = logging.getLogger(__name__)
 class LogRecord:
     topic: str
     message: object
-    log_time_ns: int
+    log_time_ns: int  # host monotonic: the message's host_mono_ns (the MCAP log time less its file's UTC offset)
     path: Path
 
 
@@ -103,9 +104,11 @@ def not_a_log(path: str | Path) -> str | None:
     return f"{path} is not an MCAP file"
 
 
-def decode_record(schema: Schema | None, channel: Channel, message: Message) -> object | None:
-    """The message dataclass of one MCAP message, or None for channels that are not roadlog topics (a channel of
-    another tool's log is one when its schema can only be one roadlog message: TYPE_OF_FOREIGN_SCHEMA)."""
+def decode_record(schema: Schema | None, channel: Channel, message: Message, host_ns: int | None = None
+                  ) -> object | None:
+    """The message dataclass of one MCAP message (host_mono_ns = `host_ns`, default its log time), or None for
+    channels that are not roadlog topics (a channel of another tool's log is one when its schema can only be one
+    roadlog message: TYPE_OF_FOREIGN_SCHEMA)."""
     type_name = channel.metadata.get("roadlog.type") or TYPE_OF_FOREIGN_SCHEMA.get(schema.name if schema else "", "")
     msg_type = MESSAGE_TYPE_BY_NAME.get(type_name)
     if msg_type is None or schema is None:
@@ -115,7 +118,7 @@ def decode_record(schema: Schema | None, channel: Channel, message: Message) -> 
         cls, from_proto = adapter
         proto = cls()
         proto.ParseFromString(message.data)
-        return from_proto(proto, message.sequence, message.log_time)
+        return from_proto(proto, message.sequence, message.log_time if host_ns is None else host_ns)
     if schema.name == message_codec.schema_name(msg_type):
         return message_codec.decode(msg_type, message.data)
     return None
@@ -126,11 +129,15 @@ def _iter_complete_file(f: BinaryIO, summary: Summary, report: FileReport, topic
     """Messages of a closed file in log-time order: chunks taken by start time, each chunk's messages
     released once no later chunk can hold an earlier one (a plain tuple heap: cheaper than mcap's own). A chunk
     that fails its CRC or does not decompress is skipped and counted."""
+    wanted = {cid: log_time_offset(ch.metadata) for cid, ch in summary.channels.items()
+              if topics is None or ch.topic in topics}
+    offset = max(wanted.values(), default=0)  # the file's (every channel of a roadlog file has the same)
+    start_ns = None if start_ns is None else start_ns + offset
+    end_ns = None if end_ns is None else end_ns + offset
     chunks = sorted((c for c in summary.chunk_indexes
                      if (start_ns is None or c.message_end_time >= start_ns)
                      and (end_ns is None or c.message_start_time < end_ns)),
                     key=lambda c: (c.message_start_time, c.chunk_start_offset))
-    wanted = {cid for cid, ch in summary.channels.items() if topics is None or ch.topic in topics}
     heap: list = []
     counter = 0
     for k, index in enumerate(chunks):
@@ -156,10 +163,11 @@ def _iter_complete_file(f: BinaryIO, summary: Summary, report: FileReport, topic
 
 def _iter_scanned_file(f: BinaryIO, report: FileReport, topics: set[str] | None, start_ns, end_ns,
                        reorder_window: int = 20000):
-    """Every intact message of a file without a trusted summary (never closed, or damaged), re-ordered by log time
+    """Every intact message of a file without a trusted summary (never closed, or damaged), re-ordered by host time
     within a window; damaged stretches are skipped (record_scan) and counted, as are messages whose channel
     was lost with them."""
     schemas: dict[int, Schema] = {}
+    offsets: dict[int, int] = {}
     channels: dict[int, Channel] = {}
     heap: list = []
     counter = 0
@@ -180,10 +188,13 @@ def _iter_scanned_file(f: BinaryIO, report: FileReport, topics: set[str] | None,
                 continue
             if topics is not None and channel.topic not in topics:
                 continue
-            if (start_ns is not None and record.log_time < start_ns) or (
-                    end_ns is not None and record.log_time >= end_ns):
+            offset = offsets.get(record.channel_id)
+            if offset is None:
+                offset = offsets[record.channel_id] = log_time_offset(channel.metadata)
+            host_ns = record.log_time - offset
+            if (start_ns is not None and host_ns < start_ns) or (end_ns is not None and host_ns >= end_ns):
                 continue
-            heapq.heappush(heap, (record.log_time, counter, schemas.get(channel.schema_id), channel, record))
+            heapq.heappush(heap, (host_ns, counter, schemas.get(channel.schema_id), channel, record))
             counter += 1
             if len(heap) > reorder_window:
                 yield heapq.heappop(heap)[2:]
@@ -207,16 +218,20 @@ def _iter_file(path: Path, report: FileReport, topics, start_ns, end_ns) -> Iter
         else:
             report.complete, report.error = False, why
             source = _iter_scanned_file(f, report, topics, start_ns, end_ns)
+        offsets: dict[int, int] = {}
         for schema, channel, message in source:
+            offset = offsets.get(message.channel_id)
+            if offset is None:
+                offset = offsets[message.channel_id] = log_time_offset(channel.metadata)
             try:
-                decoded = decode_record(schema, channel, message)
+                decoded = decode_record(schema, channel, message, message.log_time - offset)
             except Exception:  # noqa: BLE001 - a corrupt message is counted, not fatal
                 report.undecodable += 1
                 continue
             if decoded is None:
                 continue
             report.messages += 1
-            yield LogRecord(channel.topic, decoded, message.log_time, path)
+            yield LogRecord(channel.topic, decoded, message.log_time - offset, path)
     except OSError as exc:  # a disk read error: what came before stands, the rest of the file is lost
         report.damage.skip(0, 0, f"read error: {exc.strerror}")
     finally:
@@ -280,11 +295,14 @@ def read_metadata(path: str | Path, until: str | None = None) -> dict[str, dict[
 
 
 def last_log_time(path: str | Path) -> int | None:
-    """The file's last log time from its (trusted) summary; None for a file without one."""
+    """The file's last log time from its (trusted) summary, on the host's monotonic clock like every time read_log
+    gives; None for a file without one."""
     try:
         with open(path, "rb") as f:
             summary, _ = trusted_summary(f, os.fstat(f.fileno()).st_size)
     except OSError:
         return None
     stats = summary.statistics if summary is not None else None
-    return stats.message_end_time if stats is not None else None
+    if stats is None:
+        return None
+    return stats.message_end_time - max((log_time_offset(ch.metadata) for ch in summary.channels.values()), default=0)

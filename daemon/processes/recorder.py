@@ -16,7 +16,9 @@ the health detail and the log. When that is not enough the recorder closes its s
 cannot write per topic, and resumes once space returns. Messages written, lost to bus overtaking and dropped
 for lack of disk go per topic into each segment's closing metadata and, as JSON, into the `detail` of the
 recorder's health. Once a second it publishes a TimeAnchor (host monotonic + UTC), which it logs like any
-topic.
+topic. What it reads goes through a reorder buffer (reorder_buffer.py): held until no ring can still give an older
+message, at most `recorder.reorder_window_s`, then written oldest first, so each segment's chunks are in log-time
+order; a message older than one already written is written at once and counted as late (`late_per_topic`).
 
 The recorder is a normal (non-lossless) bus reader: one thread polls every subscriber in turn, so it
 can never slow a driver down; if it falls behind a ring, it loses (and counts) the oldest messages.
@@ -44,6 +46,7 @@ from daemon.log_format.metadata_records import COUNTS_METADATA_NAME, METADATA_NA
 from daemon.log_format.reader import read_metadata
 from daemon.log_format.writer import LogWriter
 from daemon.processes import disk_policy
+from daemon.processes.reorder_buffer import ReorderBuffer
 from daemon.processes.segment_files import (
     OPEN_SUFFIX,
     check_output_dir,
@@ -70,6 +73,8 @@ SUBSCRIBE_RETRY_S = 0.5
 IDLE_SLEEP_S = 0.005
 DRAIN_LIMIT_S = 10.0  # at stop: longest time spent writing what is still waiting in the rings
 READ_BURST = 256  # most messages taken from one topic before the next topic gets its turn
+REORDER_MAX_BYTES = 1024**3  # the reorder buffer never holds more (it releases its oldest early)
+REORDER_SLACK_NS = 500_000_000  # how far a driver's host stamp may precede its publish (a ring read to its end)
 log = logging.getLogger(__name__)
 
 
@@ -134,6 +139,9 @@ class Recorder:
         self._closed_bytes = 0  # bytes written to the segments this recorder closed or abandoned
         self.tally = TopicTally()
         self._at_last_close = TopicTally()
+        self.reorder = ReorderBuffer(int(self.rc.reorder_window_s * 1e9), REORDER_MAX_BYTES)
+        self.read_positions: dict[str, int] = {}  # per topic, the host time of the last message read
+        self._late_at_last_close: dict[str, int] = {}
         self.disk_full = False
         self.disk_free_bytes = 0
         self._bytes_at_disk_check = 0
@@ -178,12 +186,15 @@ class Recorder:
         lost_bus = _delta(self.tally.lost_bus, self._at_last_close.lost_bus)
         dropped = _delta(self.tally.dropped_disk_full, self._at_last_close.dropped_disk_full)
         lost = {t: lost_bus.get(t, 0) + dropped.get(t, 0) for t in sorted(set(lost_bus) | set(dropped))}
+        late = _delta(self.reorder.late, self._late_at_last_close)
+        self._late_at_last_close = dict(self.reorder.late)
         self._at_last_close = TopicTally(dict(self.tally.written), dict(self.tally.lost_bus),
                                          dict(self.tally.dropped_disk_full))
         try:
             writer.close(extra_metadata={"lost_per_topic": json.dumps(lost),
                                          "lost_bus_per_topic": json.dumps(lost_bus),
-                                         "dropped_disk_full_per_topic": json.dumps(dropped)})
+                                         "dropped_disk_full_per_topic": json.dumps(dropped),
+                                         "late_per_topic": json.dumps(late)})
             final = path.with_name(path.name[: -len(OPEN_SUFFIX)])
             os.replace(path, final)
         except OSError as exc:  # the `.open` file stays; recover_unclosed turns it into a readable file
@@ -255,6 +266,16 @@ class Recorder:
 
     # --- messages ------------------------------------------------------------------------------
 
+    def accept(self, topic: str, message: object) -> None:
+        """Take one message read from the bus: into the reorder buffer, or written at once when it is late."""
+        if self.reorder.window_ns <= 0 or not self.reorder.push(topic, message):
+            self.write(topic, message)
+
+    def release(self, safe_ns: int | None = None, everything: bool = False) -> None:
+        """Write what the reorder buffer may give (all of it at stop)."""
+        for topic, message in (self.reorder.drain() if everything else self.reorder.pop_ready(safe_ns)):
+            self.write(topic, message)
+
     def write(self, topic: str, message: object) -> None:
         """Write one message to the open segment (opening one if needed), or count it as dropped."""
         if self.disk_full:
@@ -305,6 +326,8 @@ class Recorder:
             "lost": lost,
             "lost_bus": dict(sorted(self.tally.lost_bus.items())),
             "dropped_disk_full": dict(sorted(self.tally.dropped_disk_full.items())),
+            "late": dict(sorted(self.reorder.late.items())),
+            "reorder_held": len(self.reorder),
             "recovered": self.recovered,
             "segments_quarantined": sum(1 for r in self.recovered if r["quarantined"]),
             "last_error": self.health.last_error,
@@ -317,16 +340,28 @@ def logged_topics(config: CarConfig) -> list[str]:
 
 
 def _read_round(rec: Recorder, subscribers: dict[str, pubsub.Subscriber]) -> int:
-    """Write what each subscriber has waiting (at most READ_BURST per topic); the number written."""
+    """Take what each subscriber has waiting (at most READ_BURST per topic), write what the reorder buffer then
+    releases; the number read. No ring can still give a message older than `safe`: a ring read to its end gives
+    nothing stamped before the time it was read (less REORDER_SLACK_NS) or its last message (a replay's host times
+    may lie ahead), one the recorder is behind on nothing before its last message."""
     got = 0
+    safe: int | None = None
     for topic, sub in subscribers.items():
+        read_at = time.monotonic_ns()
+        drained = False
         for _ in range(READ_BURST):
             msg = sub.read(timeout_s=0, copy=True)
             if msg is None:
+                drained = True
                 break
-            rec.write(topic, msg)
+            rec.accept(topic, msg)
+            rec.read_positions[topic] = int(msg.host_mono_ns)
             got += 1
         rec.set_lost(topic, sub.lost)
+        position = rec.read_positions.get(topic)
+        bound = max(read_at - REORDER_SLACK_NS, position or 0) if drained else position
+        safe = bound if safe is None else min(safe, bound)
+    rec.release(safe)
     return got
 
 
@@ -375,6 +410,7 @@ def run(config: CarConfig, output_dir: Path, stop: threading.Event, config_path:
         while _read_round(rec, subscribers) and time.monotonic() < drain_until:
             rec.rotate_if_due()
     finally:
+        rec.release(everything=True)
         rec.close_segment()
         health_pub.publish(rec.health_message())
         for sub in subscribers.values():

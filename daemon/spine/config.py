@@ -239,6 +239,8 @@ class RecorderConfig(StrictModel):
     # the newest segments holding at least this many seconds of drive are never deleted to make room
     keep_newest_s: float = Field(300.0, ge=0, allow_inf_nan=False)
     compression: Literal["zstd", "lz4", "none"] = "lz4"
+    # longest a message is held to be written in log-time order (a ring the recorder is behind on); 0: as read
+    reorder_window_s: float = Field(5.0, ge=0, le=60)
 
 
 class StatusConfig(StrictModel):

@@ -53,6 +53,16 @@ def calibration_topic(camera: str) -> str:
     return f"calibration/{camera}"
 
 
+def mask_colour_topic(camera: str) -> str:
+    """Log-only channel (foxglove.CompressedImage): each mask of `mask/<camera>` as a paletted PNG, for viewing."""
+    return f"mask_colour/{camera}"
+
+
+# Log-only channel (foxglove.FrameTransforms) written once at the start of every log file: the vehicle frame to each
+# sensor's frame (the images', the point clouds', the GNSS fixes' frame_id), from the config's extrinsics.
+TF_STATIC = "tf_static"
+VEHICLE_FRAME = "vehicle"
+
 # Log-only channel (foxglove.PoseInFrame): vehicle poses that came with a log from elsewhere (an importer's ground
 # truth, another system's localisation). No roadlog process publishes it, so it is not a bus topic; `roadlog
 # reconstruct` uses a log's poses instead of fusing its GNSS, IMU and wheel speeds.

@@ -17,6 +17,7 @@ from mcap.reader import make_reader
 from mcap.records import Chunk, Message
 from mcap.stream_reader import breakup_chunk
 
+from daemon.log_format.metadata_records import log_time_offset
 from daemon.log_format.reader import ReadReport, read_log, read_metadata
 from daemon.log_format.recovery import recover_log
 from daemon.log_format.writer import LogWriter
@@ -48,14 +49,17 @@ def write_open_and_closed(tmp_path: Path, n_rounds: int = 40, compression: str =
 
 
 def chunk_spans(closed: Path) -> list[tuple[int, int, set]]:
-    """(start, end, {(topic, log time)}) of every chunk of a closed file, from the mcap library's own index."""
+    """(start, end, {(topic, host time)}) of every chunk of a closed file, from the mcap library's own index (its UTC
+    log times moved back by each channel's offset, as read_log gives them)."""
     with open(closed, "rb") as f:
         summary = make_reader(f).get_summary()
         spans = []
         for index in summary.chunk_indexes:
             f.seek(index.chunk_start_offset + 9)
             records = breakup_chunk(Chunk.read(ReadDataStream(f)), validate_crc=True)
-            keys = {(summary.channels[r.channel_id].topic, r.log_time) for r in records if isinstance(r, Message)}
+            keys = {(summary.channels[r.channel_id].topic,
+                     r.log_time - log_time_offset(summary.channels[r.channel_id].metadata))
+                    for r in records if isinstance(r, Message)}
             spans.append((index.chunk_start_offset, index.chunk_start_offset + index.chunk_length, keys))
     return spans
 
@@ -63,7 +67,7 @@ def chunk_spans(closed: Path) -> list[tuple[int, int, set]]:
 def messages_in(spans: list[tuple[int, int, set]], length: int) -> set:
     """The (topic, log time) of the messages in the chunks that lie within the first `length` bytes."""
     keys = set().union(*(keys for _, end, keys in spans if end <= length))
-    return {k for k in keys if not k[0].startswith("calibration/")}
+    return {k for k in keys if not k[0].startswith(("calibration/", "tf_static", "mask_colour/"))}  # views only
 
 
 def read_back(path: Path) -> tuple[dict, ReadReport]:

@@ -11,6 +11,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from daemon.log_format.foxglove_schemas import file_descriptor_set
+from daemon.log_format.metadata_records import log_time_offset
 from daemon.log_format.reader import ReadReport, read_log, read_metadata
 from daemon.log_format.writer import LogWriter
 from daemon.spine.messages import PointCloud
@@ -77,7 +78,9 @@ def test_point_clouds_round_trip_through_an_mcap_file_as_foxglove_point_clouds(t
         ("x", 0, F.FLOAT32), ("y", 4, F.FLOAT32), ("z", 8, F.FLOAT32), ("intensity", 12, F.FLOAT32),
         ("time", 16, F.FLOAT32)]
     assert proto.timestamp.seconds * 10**9 + proto.timestamp.nanos == sent[0].sensor_time_ns
-    assert message.log_time == sent[0].host_mono_ns and message.publish_time == sent[0].sensor_time_ns
+    # the log time is UTC: the host time moved by the file's one offset, which the channel names
+    assert message.log_time == sent[0].host_mono_ns + log_time_offset(channel.metadata) > 1.6e18
+    assert message.publish_time == sent[0].sensor_time_ns
 
 
 def _foreign_log(path, clouds: list[FoxglovePointCloud | bytes]) -> None:

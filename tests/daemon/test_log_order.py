@@ -1,0 +1,191 @@
+"""Messages in log-time order within each chunk: the reorder buffer on its own, and a segment the real recorder wrote
+from rings it read out of order (a backlog at start, stale stamps), checked by the mcap Python library's stream reader
+and by an independent reader, the TypeScript @mcap/core (node, from npm into tests/.node/; skipped with the reason
+when it cannot be installed)."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import shutil
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+from mcap.records import Chunk, Message
+from mcap.stream_reader import StreamReader, breakup_chunk
+
+from daemon.bus import pubsub
+from daemon.log_format.metadata_records import LOG_TIME_OFFSET_KEY
+from daemon.log_format.reader import read_log, read_metadata
+from daemon.processes.reorder_buffer import ReorderBuffer
+from daemon.spine.config import load_config
+from daemon.spine.messages import CameraFrame, ImuSample, LidarPacket
+from daemon.spine.topics import IMU, LIDAR_PACKETS, camera_topic
+from tests.daemon.test_recorder import RecorderProcess, write_config
+
+ROOT = Path(__file__).resolve().parents[2]
+NODE_DIR = ROOT / "tests" / ".node"
+CHUNK_ORDER_JS = Path(__file__).with_name("mcap_chunk_order.js")
+CAMERA = camera_topic("front_wide")
+S = 1_000_000_000
+
+
+def at(t_s: float, topic: str = "imu") -> tuple[str, ImuSample]:
+    return topic, ImuSample(host_mono_ns=int(t_s * S))
+
+
+def test_the_buffer_releases_oldest_first_what_no_ring_can_precede():
+    buf = ReorderBuffer(window_ns=5 * S, max_bytes=10**9)
+    for topic, msg in (at(10.0), at(9.0, "lidar"), at(12.0), at(9.5, "lidar")):
+        assert buf.push(topic, msg)
+    assert [m.host_mono_ns for _, m in buf.pop_ready(safe_ns=9.6 * S)] == [9 * S, 9.5 * S]
+    assert list(buf.pop_ready(safe_ns=None)) == []  # 12 s is the newest: 10 s is within the window
+    assert buf.push(*at(15.5))  # now 10 s is more than the window older than the newest
+    assert [m.host_mono_ns for _, m in buf.pop_ready()] == [10 * S]
+    assert not buf.push(*at(9.9, "lidar"))  # older than what was released: late, written at once
+    assert buf.late == {"lidar": 1} and len(buf) == 2
+    assert [m.host_mono_ns for _, m in buf.drain()] == [12 * S, 15.5 * S] and buf.bytes_held == 0
+
+
+def test_the_buffer_never_holds_more_than_its_bytes():
+    buf = ReorderBuffer(window_ns=60 * S, max_bytes=3000)
+    for k in range(5):
+        buf.push(LIDAR_PACKETS, LidarPacket(host_mono_ns=k, data=bytes(1000)))
+    released = list(buf.pop_ready())
+    assert [m.host_mono_ns for _, m in released] == [0, 1, 2] and buf.bytes_held == 2 * (1000 + 64)
+
+
+def chunks_in_file_order(path: Path) -> list[tuple[Chunk, list[int]]]:
+    """Each chunk record as the file holds it, with its messages' log times in the order they are stored (the mcap
+    library's stream reader, not ours)."""
+    out = []
+    with open(path, "rb") as f:
+        for record in StreamReader(f, emit_chunks=True, validate_crcs=True).records:
+            if isinstance(record, Chunk):
+                out.append((record, [m.log_time for m in breakup_chunk(record, validate_crc=True)
+                                     if isinstance(m, Message)]))
+    return out
+
+
+def publish_out_of_order_drive(config, recorder_start):
+    """A backlog of 2.5 s in three rings before the recorder starts (it reads them in turns, READ_BURST at a time,
+    so their messages reach it seconds apart), 1.5 s more once it runs, and in its last half second three IMU
+    samples stamped 8 s before they are published (older than what it wrote by then: late). Returns what was
+    published per topic and the recorder."""
+    rng = random.Random(5)
+    pubs = {t: pubsub.open_publisher(config, t) for t in (CAMERA, LIDAR_PACKETS, IMU)}
+    sent = {t: [] for t in pubs}
+
+    def publish(topic, msg):
+        pubs[topic].publish(msg)
+        sent[topic].append(msg)
+
+    rec = None
+    t0 = time.monotonic()
+    k = stale = 0
+    end = t0 + 60
+    while time.monotonic() < end:
+        if rec is None and time.monotonic() - t0 >= 2.5:
+            rec = recorder_start()
+            end = time.monotonic() + 1.5
+        for _ in range(4):
+            publish(LIDAR_PACKETS, LidarPacket(sensor_time_ns=k, data=rng.randbytes(3000)))
+        publish(IMU, ImuSample(sensor_time_ns=k, accel_mps2=(rng.random(), 0.0, 9.81)))
+        if k % 4 == 0:
+            publish(CAMERA, CameraFrame(sensor_time_ns=k, camera="front_wide", format="jpeg",
+                                        data=rng.randbytes(5000)))
+        if rec is not None and end - time.monotonic() < 0.5 and k % 20 == 0 and stale < 3:
+            publish(IMU, ImuSample(sensor_time_ns=k, host_mono_ns=time.monotonic_ns() - 8 * S))
+            stale += 1
+        k += 1
+        time.sleep(0.005)
+    for p in pubs.values():
+        p.close()
+    return sent, rec
+
+
+@pytest.fixture(scope="module")
+def node_mcap() -> Path:
+    """tests/.node/node_modules with @mcap/core and lz4js, installed from npm when missing."""
+    modules = NODE_DIR / "node_modules"
+    if not (modules / "@mcap" / "core").is_dir() or not (modules / "lz4js").is_dir():
+        if shutil.which("node") is None or shutil.which("npm") is None:
+            pytest.skip("node and npm are not installed: the TypeScript MCAP reader cannot run")
+        NODE_DIR.mkdir(parents=True, exist_ok=True)
+        try:
+            done = subprocess.run(["npm", "install", "--no-audit", "--no-fund", "--loglevel=error", "--prefix",
+                                   str(NODE_DIR), "@mcap/core@2", "lz4js@0.2"], capture_output=True, text=True,
+                                  timeout=180)
+        except subprocess.TimeoutExpired:
+            pytest.skip("npm install of @mcap/core took over 180 s (no registry?)")
+        if done.returncode != 0:
+            pytest.skip(f"npm install of @mcap/core failed: {done.stderr.strip()[-300:]}")
+    return modules
+
+
+def typescript_chunks(node_modules: Path, path: Path) -> dict:
+    done = subprocess.run(["node", str(CHUNK_ORDER_JS), str(path)], capture_output=True, text=True, timeout=120,
+                          env=dict(os.environ, NODE_PATH=str(node_modules)), check=True)
+    return json.loads(done.stdout)
+
+
+@pytest.fixture(scope="module")
+def recorded_segment(tmp_path_factory):
+    """One segment the real recorder wrote from an out-of-order drive, with what was sent and its health."""
+    tmp_path = tmp_path_factory.mktemp("order")
+    config_path = write_config(tmp_path)
+    config = load_config(config_path)
+    out = tmp_path / "logs"
+    wall_before = time.time_ns()
+    try:
+        sent, rec = publish_out_of_order_drive(config, lambda: RecorderProcess(config_path, out))
+        detail = rec.wait_written({t: len(m) for t, m in sent.items()})
+        assert rec.stop() == 0, rec.stderr
+    finally:
+        while RecorderProcess.started:
+            proc = RecorderProcess.started.pop()
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        pubsub.unlink_all(config)
+    [segment] = sorted(out.glob("*.mcap"))
+    return segment, sent, detail, (wall_before, time.time_ns())
+
+
+def test_a_recorded_segment_has_every_chunk_in_log_time_order(recorded_segment):
+    segment, sent, detail, (wall_before, wall_after) = recorded_segment
+    back = {}
+    for rec in read_log([segment]):
+        back.setdefault(rec.topic, []).append(rec.message)
+    for topic, msgs in sent.items():  # nothing dropped, late ones included
+        assert sorted(back[topic], key=lambda m: m.seq) == msgs, topic
+    assert detail["late"] == {IMU: 3}
+    counts = read_metadata(segment)["roadlog.counts"]
+    assert json.loads(counts["late_per_topic"]) == {IMU: 3}
+    chunks = chunks_in_file_order(segment)
+    assert len(chunks) >= 3
+    for chunk, times in chunks:
+        assert times == sorted(times) and (chunk.message_start_time, chunk.message_end_time) == (times[0], times[-1])
+    # in file order, only the late messages are older than one written before them
+    stored = [t for _, times in chunks for t in times]
+    older = sum(1 for i, t in enumerate(stored) if i and t < max(stored[:i]))
+    assert older == 3, older
+    offset = int(read_metadata(segment)["roadlog"][LOG_TIME_OFFSET_KEY])
+    assert wall_before - 20 * S < min(stored) and max(stored) < wall_after  # UTC, from the backlog's start on
+    assert min(stored) - offset == min(m.host_mono_ns for msgs in sent.values() for m in msgs)
+
+
+def test_the_typescript_mcap_reader_sees_every_chunk_in_log_time_order(recorded_segment, node_mcap):
+    segment, _, _, _ = recorded_segment
+    seen = typescript_chunks(node_mcap, segment)
+    assert seen["done"] and seen["messages_outside_chunks"] == 0
+    total = 0
+    for chunk in seen["chunks"]:
+        times = [int(t) for t in chunk["log_times"]]
+        assert times == sorted(times), chunk["topics"][:5]
+        assert (int(chunk["start"]), int(chunk["end"])) == (times[0], times[-1])
+        total += len(times)
+    assert total == len(list(read_log([segment]))) + 4  # and the three camera calibrations, the static transforms
