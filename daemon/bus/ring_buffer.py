@@ -49,6 +49,7 @@ from daemon.bus.ring_layout import (
     W_TAIL,
     W_WRITER_PID,
     W_WRITER_START,
+    RingCorrupted,
     RingMapping,
     align_up,
     create_ring_file,
@@ -56,6 +57,7 @@ from daemon.bus.ring_layout import (
     process_alive,
     process_start_ticks,
 )
+from daemon.spine.config import ConfigError
 
 _READ_SPIN_S = 50e-6  # a waiting reader re-checks this long before sleeping: saves a futex round trip
 _READ_POLL_SLICE_S = 0.05  # longest single futex wait: bounds how late a reader notices a retired ring
@@ -66,11 +68,8 @@ def retire(path: str) -> None:
     """Mark a ring as replaced and remove its file; readers waiting on it reopen the path."""
     try:
         m = RingMapping(path, writable_data=False)
-    except (FileNotFoundError, ValueError):
-        try:
-            os.unlink(path)
-        except FileNotFoundError:
-            pass
+    except (FileNotFoundError, ValueError, PermissionError):  # gone, or not a ring: removed if it can be
+        _remove_foreign(path, path)
         return
     m.q[W_RETIRED] = 1
     futex_wake(m.wake_args)
@@ -79,6 +78,22 @@ def retire(path: str) -> None:
     except FileNotFoundError:
         pass
     m.close()
+
+
+def _remove_foreign(path: str, label: str) -> None:
+    """Remove a file at a ring's path that is not a usable ring; one that cannot be removed (another user's, in the
+    sticky /dev/shm) is a ConfigError naming it and its owner."""
+    try:
+        os.unlink(path)
+    except FileNotFoundError:
+        pass
+    except PermissionError:
+        try:
+            owner = os.stat(path).st_uid
+        except OSError:
+            owner = "?"
+        raise ConfigError(f"{label}: {path} is not a ring this daemon can use and cannot be removed (it belongs to "
+                          f"user id {owner}): remove it, or set another bus.shm_prefix") from None
 
 
 class RingWriter:
@@ -108,6 +123,12 @@ class RingWriter:
                     create_ring_file(path, capacity, carried_seq)
                 except FileExistsError:
                     pass
+                continue
+            except RingCorrupted:  # not a ring (another program's file, a damaged header): a new ring replaces it
+                _remove_foreign(path, self.label)
+                continue
+            except PermissionError:
+                _remove_foreign(path, self.label)
                 continue
             fcntl.flock(m.fd, fcntl.LOCK_EX)
             try:
@@ -306,17 +327,26 @@ class RingReader:
             self._claim_slot()
 
     def _oldest(self) -> tuple[int, int]:
-        """(position, seq) of the oldest intact message record."""
+        """(position, seq) of the oldest intact message record (RingCorrupted for records that do not hold
+        together or positions no writer could have left)."""
         m = self._m
         cap = m.capacity
         while True:
             _, head, next_seq, _ = m.snapshot()
             pos = m.q[W_TAIL]
+            if pos > head or head - pos > cap or pos % ALIGN:
+                if m.q[W_RESERVE] > pos + cap and not pos % ALIGN:  # overtaken while reading the header words
+                    m.check_overtaken()
+                    continue
+                raise RingCorrupted(f"{self.path}: its oldest record ({pos}) and its head ({head}) are more than "
+                                    f"the ring apart: the ring is damaged")
             while pos < head:
                 i = (pos % cap) >> 3
-                seq, total = m.dq[i], m.dq[i + 1]
+                seq, total, meta_len, bulk_len = m.dq[i], m.dq[i + 1], m.dq[i + 2], m.dq[i + 3]
                 if m.q[W_RESERVE] > pos + cap:
+                    m.check_overtaken()
                     break
+                m.check_record(pos, seq, total, meta_len, bulk_len)
                 if seq != PAD_SEQ:
                     return pos, seq
                 pos += total
@@ -388,6 +418,7 @@ class RingReader:
                 continue
             loaded = self._load(m, pos, copy)
             if loaded is None:  # overtaken: the writer has overwritten this record
+                m.check_overtaken()
                 self.pos = q[W_TAIL]
                 continue
             seq, total, meta, bulk = loaded
@@ -405,12 +436,15 @@ class RingReader:
     def _load(m: RingMapping, pos: int, copy: bool) -> tuple[int, int, bytes, memoryview | bytes] | None:
         """(seq, total, meta, bulk) of the record at `pos`; None if it was overwritten while being read."""
         cap = m.capacity
+        if pos % ALIGN:
+            raise RingCorrupted(f"{m.path}: a record position ({pos}) off the 64-byte grid: the ring is damaged")
         off = pos % cap
         i = off >> 3
         dq, q = m.dq, m.q
         seq, total, meta_len, bulk_len = dq[i], dq[i + 1], dq[i + 2], dq[i + 3]
         if q[W_RESERVE] > pos + cap:
             return None
+        m.check_record(pos, seq, total, meta_len, bulk_len)
         if seq == PAD_SEQ:
             return seq, total, b"", b""
         meta_off = off + RECORD_HEADER_BYTES
@@ -433,7 +467,7 @@ class RingReader:
             m = self._m
             if m.q[W_RETIRED] and self._reopen(time.monotonic()):
                 continue
-            _, _, next_seq, last_pos = m.snapshot()
+            commit, _, next_seq, last_pos = m.snapshot()
             if last_pos == NO_RECORD:
                 return None
             if last_pos >= self.pos:
@@ -441,9 +475,12 @@ class RingReader:
                 self.pos, self.expected = last_pos, next_seq - 1
                 return self.read(0, copy=copy)
             loaded = self._load(m, last_pos, copy)
-            if loaded is not None:
-                seq, _, meta, bulk = loaded
-                return Record(seq, meta, bulk, last_pos, m)
+            if loaded is None:  # the newest record overwritten: only by newer ones, committed since
+                if m.snapshot()[0] == commit:
+                    raise RingCorrupted(f"{self.path}: its newest record ({last_pos}) is no longer in the ring")
+                continue
+            seq, _, meta, bulk = loaded
+            return Record(seq, meta, bulk, last_pos, m)
 
     def backlog_bytes(self) -> int:
         """Bytes written but not yet read by this reader."""

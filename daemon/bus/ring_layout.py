@@ -48,6 +48,11 @@ W_SLOTS = PAGE // 8  # slot i at W_SLOTS + 8 * i: pid, start time, read position
 SLOT_LOSSLESS = 1
 
 
+class RingCorrupted(ValueError):
+    """A file at a ring's path whose header or records do not hold together (not a roadlog ring, a torn or
+    overwritten header, another program's file): readers raise it instead of looping over nonsense."""
+
+
 class UnsupportedPlatformError(ConfigError):
     """The bus cannot run on this machine (not x86-64): processes report it like an unusable config."""
 
@@ -100,11 +105,17 @@ class RingMapping:
         self.path = path
         self.fd = os.open(path, os.O_RDWR)
         try:
+            size = os.fstat(self.fd).st_size
+            if size < HEADER_BYTES:
+                raise RingCorrupted(f"{path} is not a roadlog ring: {size} B, shorter than a ring's header")
             self.header = mmap.mmap(self.fd, HEADER_BYTES, mmap.MAP_SHARED)
             self.q = memoryview(self.header).cast("Q")
             if self.q[W_MAGIC] != MAGIC or self.q[W_LAYOUT] != LAYOUT:
-                raise ValueError(f"{path} is not a roadlog ring (layout {LAYOUT})")
+                raise RingCorrupted(f"{path} is not a roadlog ring (layout {LAYOUT})")
             self.capacity = self.q[W_CAPACITY]
+            if self.capacity < PAGE or self.capacity % ALIGN or DATA_OFFSET + self.capacity != size:
+                raise RingCorrupted(f"{path}: its header says a data area of {self.capacity} B, the file holds "
+                                    f"{size - DATA_OFFSET} B: not a ring this software wrote whole")
             prot = mmap.PROT_READ | (mmap.PROT_WRITE if writable_data else 0)
             self.data = mmap.mmap(self.fd, self.capacity, mmap.MAP_SHARED | mmap.MAP_POPULATE, prot,
                                   offset=DATA_OFFSET)
@@ -115,6 +126,25 @@ class RingMapping:
         self.db = memoryview(self.data)
         self.commit_address = ctypes.addressof(ctypes.c_char.from_buffer(self.header)) + 8 * W_COMMIT
         self.wake_args = futex_wake_args(self.commit_address)
+
+    def check_record(self, pos: int, seq: int, total: int, meta_len: int, bulk_len: int) -> None:
+        """Raise RingCorrupted unless the record header read at `pos` (not being overwritten) holds together."""
+        bad = total < RECORD_HEADER_BYTES or total % ALIGN or total > self.capacity
+        if not bad and seq != PAD_SEQ:
+            bad = meta_len > total or bulk_len > total or record_bytes(meta_len, bulk_len) > total
+        if bad:
+            raise RingCorrupted(f"{self.path}: the record at position {pos} does not hold together (seq {seq}, "
+                                f"{total} B, meta {meta_len} B, bulk {bulk_len} B): the ring is damaged")
+
+    def check_overtaken(self) -> None:
+        """A reader found its record overwritten: the oldest record (tail) is still in the ring, as the writer moves
+        the tail before the reserve (read in the other order here); RingCorrupted if not, or readers would jump to
+        the tail and be overtaken there again, forever."""
+        reserve = self.q[W_RESERVE]
+        tail = self.q[W_TAIL]
+        if reserve > tail + self.capacity:
+            raise RingCorrupted(f"{self.path}: its reserve ({reserve}) is more than the ring past its oldest record "
+                                f"({tail}): the ring is damaged")
 
     def snapshot(self) -> tuple[int, int, int, int]:
         """(commit, head, next_seq, last_pos) of one consistent commit."""
