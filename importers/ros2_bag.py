@@ -87,7 +87,7 @@ def import_bag(bag: Path, out: Path, *, base_frame: str | None = None, reference
         for conn in reader.connections:
             if conn.msgtype not in IMPORTED_TYPES:
                 skipped[conn.topic][f"{conn.msgtype}: not an imported type"] += conn.msgcount
-        first_odometry = next(reader.messages(connections=odometry[:1]), None)
+        first_odometry = next(reader.messages(connections=odometry[:1]), None) if odometry else None  # none: all
         child = reader.deserialize(first_odometry[2], ODOMETRY).child_frame_id if first_odometry else ""
         base = (base_frame or child or "base_link").strip("/")
         image_conns = [c for c in reader.connections if c.msgtype in (IMAGE, COMPRESSED)]
@@ -175,7 +175,7 @@ def _gnss_config(reader, navsat, imus, tree: ros.FrameTree, base: str) -> dict:
         if conns:
             gnss[key] = round(_rate([t for _, t, _ in reader.messages(connections=conns)][:200]), 3)
     for conns, msgtype in ((navsat, NAVSAT), (imus, IMU_MSG)):
-        first = next(reader.messages(connections=conns), None)
+        first = next(reader.messages(connections=conns), None) if conns else None  # no connections: all of them
         frame = reader.deserialize(first[2], msgtype).header.frame_id if first else ""
         t = tree.lookup(base, frame) if frame else None
         if t is not None and msgtype == NAVSAT:
