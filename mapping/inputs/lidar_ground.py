@@ -102,6 +102,7 @@ class ScanPoints:
     xyz: np.ndarray  # (N, 3) float32 metres, Lidar frame (x forward, y left, z up); no return: (0, 0, 0)
     time_index: np.ndarray  # (N,) int64 into times_ns
     times_ns: np.ndarray  # (T,) int64, sensor clock
+    intensity: np.ndarray | None = None  # (N,) as the sensor reports it (Ouster: signal, else reflectivity)
 
 
 def packet_scan_points(packets: list[bytes], decoding: LidarDecoding) -> ScanPoints:
@@ -114,7 +115,9 @@ def packet_scan_points(packets: list[bytes], decoding: LidarDecoding) -> ScanPoi
     if not valid.all():
         xyz = xyz[valid]
     times = batch.timestamp_ns.ravel()[valid].astype(np.int64)
-    return ScanPoints(xyz.reshape(-1, 3), np.repeat(np.arange(len(times)), xyz.shape[1]), times)
+    strength = (batch.signal if batch.signal is not None else batch.reflectivity).reshape(len(valid), -1)[valid]
+    return ScanPoints(xyz.reshape(-1, 3), np.repeat(np.arange(len(times)), xyz.shape[1]), times,
+                      strength.ravel().astype(np.float32))
 
 
 @dataclass(frozen=True)
@@ -151,7 +154,7 @@ def vendor_scan_points(lead: LidarPacket | None, packets: list[LidarPacket], dec
     packet = points.packet_index[keep]
     times_ns = stamps[packet] + (points.timestamp_ns[keep] - check.sensor_time_ns[packet])
     times, time_index = np.unique(times_ns, return_inverse=True)
-    return ScanPoints(points.xyz[keep], time_index.ravel(), times)
+    return ScanPoints(points.xyz[keep], time_index.ravel(), times, points.intensity[keep])
 
 
 def vendor_packet_scans(packets: list[LidarPacket], decoding: VendorDecoding, every_n_scans: int) -> LidarScans:
@@ -171,7 +174,7 @@ def cloud_scan_points(cloud: PointCloud) -> ScanPoints:
     points = point_array(cloud)
     offsets_ns = np.rint(points[:, 4].astype(np.float64) * 1e9).astype(np.int64)
     offsets, time_index = np.unique(offsets_ns, return_inverse=True)
-    return ScanPoints(points[:, :3], time_index.ravel(), int(cloud.sensor_time_ns) + offsets)
+    return ScanPoints(points[:, :3], time_index.ravel(), int(cloud.sensor_time_ns) + offsets, points[:, 3])
 
 
 def lidar_world_points(scan: ScanPoints, clock: ClockMap, T_vehicle_lidar: np.ndarray, trajectory: Trajectory,
