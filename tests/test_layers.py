@@ -1,5 +1,6 @@
 """The layers import only downwards (docs/architecture.md), read from the source with `ast`: every import
-statement of every module under daemon/, drivers/, sim/ and mapping/, at top level or inside a function."""
+statement of every module under daemon/, drivers/, importers/, sim/, mapping/ and exporters/, at top level or inside
+a function."""
 
 from __future__ import annotations
 
@@ -9,11 +10,11 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("daemon", "drivers", "importers", "sim", "mapping")
+PACKAGES = ("daemon", "drivers", "importers", "sim", "mapping", "exporters")
 ABOVE_THE_SPINE = ("daemon.bus", "daemon.log_format", "daemon.processes", "daemon.commands", "drivers", "importers",
-                   "sim")
+                   "sim", "exporters")
 MAX_LINES = 500
-SIZE_CHECKED = ("daemon", "drivers", "importers", "sim", "mapping")
+SIZE_CHECKED = ("daemon", "drivers", "importers", "sim", "mapping", "exporters")
 
 
 def module_name(path: Path) -> str:
@@ -64,8 +65,11 @@ def layer_violations(modules: dict[str, tuple[Path, str]]) -> list[str]:
             if under(imported, "daemon.processes") and not under(importer, "daemon.processes"):
                 found.append(f"(c) {importer} imports {imported}: only the processes import process modules "
                              f"(the CLI names them as strings)")
-            if under(importer, "mapping", "sim") and is_driver_process(imported):
+            if under(importer, "mapping", "sim", "exporters") and is_driver_process(imported):
                 found.append(f"(d) {importer} imports {imported}: a driver process; use its codec modules")
+            if under(imported, "exporters") and not under(importer, "exporters"):
+                found.append(f"(f) {importer} imports {imported}: exporters/ sits on top (the CLI names it as a "
+                             f"string)")
     return sorted(set(found))
 
 
@@ -94,6 +98,9 @@ def test_no_module_is_over_500_lines():
     ("daemon.bus.pubsub", "from daemon.processes import supervisor\n", "(c)"),
     ("sim.camera_playback", "from drivers.camera.camera_driver import main\n", "(d)"),
     ("mapping.inputs.drive_inputs", "from drivers.lidar import udp_driver\n", "(d)"),
+    ("exporters.ros2_bag", "from drivers.lidar.udp_driver import main\n", "(d)"),
+    ("mapping.offline.reconstruct_command", "from exporters import ros2_bag\n", "(f)"),
+    ("importers.ros2_bag", "import exporters.ros2_messages\n", "(f)"),
 ])
 def test_each_rule_catches_a_planted_import(importer, code, rule):
     found = layer_violations({importer: (Path(), code)})
@@ -106,6 +113,7 @@ def test_allowed_imports_pass():
         "daemon.spine.topics": (Path(), "from daemon.spine.config import CarConfig\n"),
         "mapping.inputs.lidar_ground": (Path(), "from drivers.lidar.ouster_decoder import decode_packets\n"),
         "sim.camera_playback": (Path(), "from drivers.camera.camera_process import camera_process_main\n"),
+        "exporters.ros2_bag": (Path(), "from mapping.inputs.lidar_ground import packet_scan_points\n"),
     }
     assert layer_violations(allowed) == []
 

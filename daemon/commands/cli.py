@@ -20,6 +20,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("sim.drive_log", "simulate a drive (city, ramp, night) into a log with ground truth"),
     "reconstruct": ("mapping.offline.reconstruct_command", "EMIE-MAP road map of drive logs, with the paper's metrics"),
     "import": ("importers.import_command", "a dataset (KITTI raw, KITTI odometry) as a roadlog log"),
+    "export": ("exporters.export_command", "roadlog logs as another system's recording (a ROS 2 bag)"),
     "status-server": ("daemon.processes.status_server",
                       "serve the status endpoint alone (the daemon starts it itself)"),
 }
