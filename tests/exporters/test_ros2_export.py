@@ -1,0 +1,176 @@
+"""`roadlog export ros2`: the simulated city drive (and a log of vehicle poses beside it) exported to a ROS 2 bag and
+imported back with `roadlog import ros2`, both as real processes, compared message for message with the original:
+frames byte for byte, fixes and IMU samples value for value, the cameras' calibration and every sensor's extrinsics
+as recorded, the Lidar's points as decoding its packets gives them, the stamps on UTC."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+from scipy.spatial.transform import Rotation
+
+from daemon.commands.cli import main as roadlog
+from daemon.log_format.reader import read_log
+from daemon.log_format.static_transforms import sensor_frames
+from daemon.log_format.writer import LogWriter
+from daemon.spine.messages import VehiclePose
+from daemon.spine.point_cloud_codec import point_array
+from daemon.spine.topics import GNSS_FIX, IMU, LIDAR_PACKETS, LIDAR_POINTS, POSE, TIME_ANCHOR, camera_topic
+from exporters.ros2_messages import TYPESTORE
+from importers.ros2_messages import matrix
+from mapping.inputs.lidar_ground import configured_decoding, packet_scans
+from mapping.offline.reconstruct_command import config_from_logs
+from tests.conftest import REPO
+
+ROADLOG = REPO / ".venv" / "bin" / "roadlog"  # the installed console script
+
+
+def by_topic(path) -> dict[str, list]:
+    out: dict[str, list] = {}
+    for r in read_log([path]):
+        out.setdefault(r.topic, []).append(r.message)
+    return out
+
+
+@pytest.fixture(scope="module")
+def round_trip(city_drive, tmp_path_factory):
+    """(original messages, its config, the poses log's poses, the bag, the imported log's messages, its config)."""
+    folder = tmp_path_factory.mktemp("ros2_export")
+    config, config_path = config_from_logs([str(city_drive)])
+    original = by_topic(city_drive)
+    frames = original[camera_topic(config.sensors.cameras[0].name)]
+    poses = [VehiclePose(seq=k, sensor_time_ns=f.host_mono_ns, host_mono_ns=f.host_mono_ns, frame_id="enu",
+                         position_m=(1.5 * k, 0.25 * k, 0.01 * k),
+                         orientation_xyzw=tuple(Rotation.from_euler("z", 0.02 * k).as_quat()))
+             for k, f in enumerate(frames[:20])]
+    pose_log = folder / "poses.mcap"  # another system's localisation, logged beside the drive
+    writer = LogWriter(pose_log, config, log_time_offset_ns=0)
+    for pose in poses:
+        writer.write(POSE, pose)
+    writer.close()
+    bag, back = folder / "drive_bag", folder / "back.mcap"
+    exported = subprocess.run([sys.executable, "-m", "daemon.commands.cli", "export", "ros2", str(city_drive),
+                               str(pose_log), "--out", str(bag)], cwd=REPO, capture_output=True, text=True,
+                              timeout=120)
+    assert exported.returncode == 0, exported.stderr
+    imported = subprocess.run([str(ROADLOG), "import", "ros2", str(bag), "--out", str(back), "--reference-height-m",
+                               str(config.vehicle.reference_height_m)], cwd=REPO, capture_output=True, text=True,
+                              timeout=120)
+    assert imported.returncode == 0, imported.stderr
+    back_config, _ = config_from_logs([str(back)])
+    return dict(original=original, config=config, config_path=config_path, poses=poses, bag=bag,
+                export=exported, back=by_topic(back), back_config=back_config, summary=json.loads(
+                    imported.stdout.strip().splitlines()[-1]))
+
+
+def utc_minus_mono(original) -> int:
+    diffs = {a.utc_ns - a.host_mono_ns for a in original[TIME_ANCHOR]}
+    assert len(diffs) == 1  # the simulator's UTC runs with its monotonic clock
+    return diffs.pop()
+
+
+def test_what_is_not_exported_is_listed_with_its_count(round_trip):
+    err = round_trip["export"].stderr
+    for topic, n in (("can/frames", 500), ("wheel_speeds", 250), ("mask/front_wide", 50)):
+        assert f"not exported {topic}: not exported ({n})" in err
+    printed = json.loads(round_trip["export"].stdout.strip().splitlines()[-1])
+    assert printed["messages"]["/lidar/points"] == len(round_trip["back"][LIDAR_POINTS])
+    # the importer takes everything the bag holds but the Lidar's IMU (it imports one Imu topic: the car's)
+    assert round_trip["summary"]["skipped"] == {
+        "/lidar/imu": "sensor_msgs/msg/Imu: a second Imu topic (the first is imported) (500)"}
+    assert set(round_trip["summary"]["messages"]) >= {GNSS_FIX, IMU, LIDAR_POINTS, POSE}
+
+
+def test_frames_come_back_byte_for_byte_stamped_in_utc(round_trip):
+    original, back, offset = round_trip["original"], round_trip["back"], utc_minus_mono(round_trip["original"])
+    for cam in round_trip["config"].sensors.cameras:
+        sent, got = original[camera_topic(cam.name)], back[camera_topic(cam.name)]
+        assert [(f.data, f.format) for f in got] == [(f.data, f.format) for f in sent]
+        # camera stamps are on the host clock: moved onto UTC, as the receive times
+        assert [f.sensor_time_ns for f in got] == [f.sensor_time_ns + offset for f in sent]
+        assert [f.host_mono_ns for f in got] == [f.host_mono_ns + offset for f in sent]
+
+
+def test_fixes_and_imu_samples_come_back_value_for_value(round_trip):
+    original, back, offset = round_trip["original"], round_trip["back"], utc_minus_mono(round_trip["original"])
+    assert [(f.latitude_deg, f.longitude_deg, f.altitude_m, f.position_covariance, f.covariance_type,
+             f.sensor_time_ns) for f in back[GNSS_FIX]] == [
+        (f.latitude_deg, f.longitude_deg, f.altitude_m, f.position_covariance, f.covariance_type, f.sensor_time_ns)
+        for f in original[GNSS_FIX]]  # GNSS stamps are UTC already: as they are
+    sent, got = original[IMU], back[IMU]  # the car's IMU (the Lidar's is the bag's second Imu topic)
+    assert [(s.accel_mps2, s.gyro_rps) for s in got] == [(s.accel_mps2, s.gyro_rps) for s in sent]
+    # a free-running IMU clock: put on the host clock by the mapper's fit (shortest latency), then on UTC
+    lag = np.array([g.sensor_time_ns - (s.host_mono_ns + offset) for g, s in zip(got, sent, strict=True)])
+    assert np.all(lag <= 0) and np.all(lag > -20_000_000)
+
+
+def test_calibration_and_static_transforms_are_the_recorded_config(round_trip):
+    config, back_config = round_trip["config"], round_trip["back_config"]
+    assert sorted(c.name for c in back_config.sensors.cameras) == sorted(c.name for c in config.sensors.cameras)
+    for cam in back_config.sensors.cameras:
+        original = next(c for c in config.sensors.cameras if c.name == cam.name)
+        np.testing.assert_allclose(cam.intrinsics.matrix(), original.intrinsics.matrix())
+        assert (cam.width, cam.height, cam.distortion) == (original.width, original.height, original.distortion)
+        np.testing.assert_allclose(cam.extrinsics.matrix(), original.extrinsics.matrix(), atol=1e-9)
+    np.testing.assert_allclose(back_config.sensors.lidar.extrinsics.matrix(), config.sensors.lidar.extrinsics.matrix(),
+                               atol=1e-9)
+    assert back_config.sensors.gnss.antenna_lever_arm_m == pytest.approx(config.sensors.gnss.antenna_lever_arm_m)
+    np.testing.assert_allclose(back_config.sensors.gnss.imu_extrinsics.matrix(),
+                               config.sensors.gnss.imu_extrinsics.matrix(), atol=1e-9)
+    with AnyReader([round_trip["bag"]], default_typestore=TYPESTORE) as reader:
+        conn = [c for c in reader.connections if c.topic == "/tf_static"]
+        (_, _, raw), = list(reader.messages(connections=conn))
+        transforms = reader.deserialize(raw, conn[0].msgtype).transforms
+    expected = sensor_frames(config)
+    assert sorted(t.child_frame_id for t in transforms) == sorted(expected)
+    for t in transforms:
+        assert t.header.frame_id == "base_link"
+        np.testing.assert_allclose(matrix(t.transform.translation, t.transform.rotation),
+                                   expected[t.child_frame_id].matrix(), atol=1e-12)
+
+
+def test_lidar_points_are_the_decoded_packets(round_trip):
+    original, back, config = round_trip["original"], round_trip["back"], round_trip["config"]
+    metadata = configured_decoding(config.sensors.lidar, round_trip["config_path"])
+    scans = packet_scans(original[LIDAR_PACKETS], metadata, 1)
+    clouds = back[LIDAR_POINTS]
+    assert len(clouds) == len(scans.scans) == len(original[LIDAR_PACKETS]) // metadata.packets_per_frame
+    for cloud, chunk in zip(clouds, scans.scans, strict=True):
+        scan = scans.decode(chunk)
+        got = point_array(cloud)
+        np.testing.assert_array_equal(got[:, :3], scan.xyz.astype(np.float32))
+        np.testing.assert_array_equal(got[:, 3], scan.intensity.astype(np.float32))
+        start = int(scan.times_ns.min())
+        assert cloud.sensor_time_ns == start  # the Lidar's clock is UTC (PTP) in the simulator
+        np.testing.assert_allclose(got[:, 4], ((scan.times_ns - start) * 1e-9)[scan.time_index].astype(np.float32),
+                                   rtol=1e-6, atol=1e-9)
+
+
+def test_poses_come_back_as_odometry(round_trip):
+    got, sent = round_trip["back"][POSE], round_trip["poses"]
+    offset = utc_minus_mono(round_trip["original"])
+    assert [p.sensor_time_ns for p in got] == [p.sensor_time_ns + offset for p in sent]
+    np.testing.assert_allclose([p.position_m for p in got], [p.position_m for p in sent], atol=1e-12)
+    for p, q in zip(got, sent, strict=True):
+        np.testing.assert_allclose(Rotation.from_quat(p.orientation_xyzw).as_matrix(),
+                                   Rotation.from_quat(q.orientation_xyzw).as_matrix(), atol=1e-12)
+        assert p.frame_id == "enu"
+
+
+def test_a_bad_input_is_one_error_line_and_no_bag(city_drive, tmp_path, capsys):
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"not a log at all")
+    exists = tmp_path / "exists"
+    exists.mkdir()
+    for logs, out in (([tmp_path / "absent.mcap"], tmp_path / "a"), ([junk], tmp_path / "b"),
+                      ([city_drive], exists)):
+        assert roadlog(["export", "ros2", *map(str, logs), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("error: ") == 3 and "Traceback" not in err, err
+    assert "no such log" in err and "is not an MCAP file" in err and "exists" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exists", "junk.mcap"]
