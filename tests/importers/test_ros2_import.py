@@ -10,7 +10,6 @@ import cv2
 import numpy as np
 import pytest
 from rosbags.rosbag2 import Writer
-from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
 
 from daemon.commands.cli import main as roadlog
@@ -18,37 +17,9 @@ from daemon.log_format.reader import read_log
 from daemon.spine.messages import CameraFrame, GnssFix, ImuSample
 from daemon.spine.point_cloud_codec import point_array
 from daemon.spine.topics import GNSS_FIX, IMU, LIDAR_POINTS, POSE, camera_topic
+from exporters import ros2_messages as ros
+from exporters.ros2_messages import BagWriter, T, header, transform
 from mapping.offline.reconstruct_command import config_from_logs
-
-TS = get_typestore(Stores.ROS2_HUMBLE)
-T = TS.types
-
-
-def header(ns: int, frame: str):
-    return T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
-                                    frame_id=frame)
-
-
-def transform(parent: str, child: str, m: np.ndarray):
-    q = Rotation.from_matrix(m[:3, :3]).as_quat()
-    return T["geometry_msgs/msg/TransformStamped"](
-        header=header(0, parent), child_frame_id=child,
-        transform=T["geometry_msgs/msg/Transform"](translation=T["geometry_msgs/msg/Vector3"](*m[:3, 3]),
-                                                   rotation=T["geometry_msgs/msg/Quaternion"](*q)))
-
-
-def vector(v) -> object:
-    return T["geometry_msgs/msg/Vector3"](*(float(x) for x in v))
-
-
-class Bag:
-    def __init__(self, writer: Writer):
-        self.writer, self.connections = writer, {}
-
-    def write(self, topic: str, msgtype: str, host_ns: int, msg) -> None:
-        if topic not in self.connections:
-            self.connections[topic] = self.writer.add_connection(topic, msgtype, typestore=TS)
-        self.writer.write(self.connections[topic], host_ns, TS.serialize_cdr(msg, msgtype))
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +31,7 @@ def sim_bag(city_drive, tmp_path_factory):
     path = tmp_path_factory.mktemp("bag") / "sim_bag"
     sent = {"wide": [], "left": [], "gnss": [], "imu": [], "odom": [], "clouds": []}
     with Writer(path) as writer:
-        bag = Bag(writer)
+        bag = BagWriter(writer)
         statics = [transform("base_link", f"{c.name}_optical", c.extrinsics.matrix()) for c in (wide, left, right)]
         antenna = np.eye(4)
         antenna[:3, 3] = config.sensors.gnss.antenna_lever_arm_m
@@ -69,19 +40,12 @@ def sim_bag(city_drive, tmp_path_factory):
         statics += [transform("base_link", "gnss_antenna", antenna), transform("base_link", "imu_link", imu_mount)]
         bag.write("/tf_static", "tf2_msgs/msg/TFMessage", 1, T["tf2_msgs/msg/TFMessage"](transforms=statics))
         for cam in (wide, left):
-            k = cam.intrinsics.matrix()
-            bag.write(f"/{cam.name}/camera_info", "sensor_msgs/msg/CameraInfo", 2, T["sensor_msgs/msg/CameraInfo"](
-                header=header(0, f"{cam.name}_optical"), height=cam.height, width=cam.width,
-                distortion_model="plumb_bob", d=np.array(cam.distortion, float), k=k.ravel(), r=np.eye(3).ravel(),
-                p=np.column_stack([k, np.zeros(3)]).ravel(), binning_x=0, binning_y=0,
-                roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
-                                                          do_rectify=False)))
+            bag.write(f"/{cam.name}/camera_info", ros.INFO, 2, ros.camera_info(cam, 0, f"{cam.name}_optical"))
         for r in records:
             m, host = r.message, r.message.host_mono_ns
             if isinstance(m, CameraFrame) and m.camera == wide.name:
-                bag.write("/front_wide/image_raw/compressed", "sensor_msgs/msg/CompressedImage", host,
-                          T["sensor_msgs/msg/CompressedImage"](header=header(m.sensor_time_ns, "front_wide_optical"),
-                                                               format="jpeg", data=np.frombuffer(m.data, np.uint8)))
+                bag.write("/front_wide/image_raw/compressed", ros.COMPRESSED, host,
+                          ros.compressed_image(m, m.sensor_time_ns, "front_wide_optical"))
                 sent["wide"].append(m)
             elif isinstance(m, CameraFrame) and m.camera == left.name:
                 rgb = cv2.cvtColor(cv2.imdecode(np.frombuffer(m.data, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
@@ -92,36 +56,20 @@ def sim_bag(city_drive, tmp_path_factory):
                     encoding="rgb8", is_bigendian=0, step=padded.shape[1], data=padded.ravel()))
                 sent["left"].append((m, rgb))
             elif isinstance(m, CameraFrame):  # no camera info for this one: listed as skipped
-                bag.write("/front_right/image_raw/compressed", "sensor_msgs/msg/CompressedImage", host,
-                          T["sensor_msgs/msg/CompressedImage"](header=header(m.sensor_time_ns, "front_right_optical"),
-                                                               format="jpeg", data=np.frombuffer(m.data, np.uint8)))
+                bag.write("/front_right/image_raw/compressed", ros.COMPRESSED, host,
+                          ros.compressed_image(m, m.sensor_time_ns, "front_right_optical"))
             elif isinstance(m, GnssFix):
-                bag.write("/gnss/fix", "sensor_msgs/msg/NavSatFix", host, T["sensor_msgs/msg/NavSatFix"](
-                    header=header(m.sensor_time_ns, "gnss_antenna"),
-                    status=T["sensor_msgs/msg/NavSatStatus"](status=0, service=1), latitude=m.latitude_deg,
-                    longitude=m.longitude_deg, altitude=m.altitude_m,
-                    position_covariance=np.array(m.position_covariance, float), position_covariance_type=2))
+                bag.write("/gnss/fix", ros.NAVSAT, host, ros.nav_sat_fix(m, m.sensor_time_ns, "gnss_antenna"))
                 sent["gnss"].append(m)
                 odom_pose = np.eye(4)
                 odom_pose[:3, :3] = Rotation.from_euler("z", 0.01 * len(sent["odom"])).as_matrix()
                 odom_pose[:3, 3] = (2.0 * len(sent["odom"]), 0.1, 0.0)
-                q = Rotation.from_matrix(odom_pose[:3, :3]).as_quat()
-                pose = T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](*odom_pose[:3, 3]),
-                                                   orientation=T["geometry_msgs/msg/Quaternion"](*q))
-                bag.write("/odom", "nav_msgs/msg/Odometry", host, T["nav_msgs/msg/Odometry"](
-                    header=header(m.sensor_time_ns, "odom"), child_frame_id="base_link",
-                    pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
-                    twist=T["geometry_msgs/msg/TwistWithCovariance"](
-                        twist=T["geometry_msgs/msg/Twist"](linear=vector((0, 0, 0)), angular=vector((0, 0, 0))),
-                        covariance=np.zeros(36))))
+                bag.write("/odom", ros.ODOMETRY, host, ros.odometry(
+                    odom_pose[:3, 3], Rotation.from_matrix(odom_pose[:3, :3]).as_quat(), m.sensor_time_ns, "odom",
+                    "base_link"))
                 sent["odom"].append(odom_pose)
             elif isinstance(m, ImuSample):
-                bag.write("/imu/data", "sensor_msgs/msg/Imu", host, T["sensor_msgs/msg/Imu"](
-                    header=header(m.sensor_time_ns, "imu_link"),
-                    orientation=T["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.0, 1.0),
-                    orientation_covariance=np.zeros(9), angular_velocity=vector(m.gyro_rps),
-                    angular_velocity_covariance=np.zeros(9), linear_acceleration=vector(m.accel_mps2),
-                    linear_acceleration_covariance=np.zeros(9)))
+                bag.write("/imu/data", ros.IMU_MSG, host, ros.imu(m, m.sensor_time_ns, "imu_link"))
                 sent["imu"].append(m)
         for i in range(3):
             bag.write("/chatter", "std_msgs/msg/String", 10 + i, T["std_msgs/msg/String"](data=f"hello {i}"))
@@ -238,3 +186,24 @@ def test_a_point_cloud2_without_xyz_or_with_torn_data_is_refused_with_a_reason()
     assert message is None and "100 bytes for 10 points" in why
     message, why = point_cloud(cloud(("x", "y", "z"), 120), 7)
     assert why == "" and message.sensor_time_ns == 5 and len(point_array(message)) == 10
+
+
+def test_a_bag_of_images_alone_imports(tmp_path):
+    """No Odometry, NavSatFix or Imu topic: nothing is read as one of them (rosbags reads every connection when
+    given none)."""
+    from daemon.spine.config import CameraConfig
+
+    cam = CameraConfig(name="front", backend="recorded", width=32, height=24, rate_hz=10.0,
+                       intrinsics={"fx": 30.0, "fy": 30.0, "cx": 16.0, "cy": 12.0}, extrinsics={})
+    jpeg = cv2.imencode(".jpg", np.full((24, 32, 3), 128, np.uint8))[1].tobytes()
+    with Writer(tmp_path / "bag") as writer:
+        bag = BagWriter(writer)
+        bag.write("/tf_static", ros.TF, 1, ros.tf_message([transform("base_link", "front", np.eye(4))]))
+        for k in range(3):
+            stamp = 10**18 + k * 10**8
+            bag.write("/front/camera_info", ros.INFO, stamp, ros.camera_info(cam, stamp, "front"))
+            bag.write("/front/image_raw/compressed", ros.COMPRESSED, stamp,
+                      ros.compressed_image(CameraFrame(format="jpeg", data=jpeg), stamp, "front"))
+    assert roadlog(["import", "ros2", str(tmp_path / "bag"), "--out", str(tmp_path / "x.mcap")]) == 0
+    frames = [r.message for r in read_log([tmp_path / "x.mcap"]) if r.topic == camera_topic("front")]
+    assert [f.data for f in frames] == [jpeg] * 3
