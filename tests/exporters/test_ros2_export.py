@@ -174,3 +174,18 @@ def test_a_bad_input_is_one_error_line_and_no_bag(city_drive, tmp_path, capsys):
     assert err.count("error: ") == 3 and "Traceback" not in err, err
     assert "no such log" in err and "is not an MCAP file" in err and "exists" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exists", "junk.mcap"]
+
+
+def test_a_point_cloud_lidars_scans_come_back_as_they_were(city_drive, tmp_path):
+    """A point-cloud Lidar's log (its scans on lidar/points, no packets): each PointCloud is one PointCloud2."""
+    from tests.point_cloud_logs import point_cloud_log
+
+    clouds_log = point_cloud_log(city_drive, tmp_path / "clouds.mcap")
+    assert roadlog(["export", "ros2", str(clouds_log), "--out", str(tmp_path / "bag")]) == 0
+    assert roadlog(["import", "ros2", str(tmp_path / "bag"), "--out", str(tmp_path / "back.mcap")]) == 0
+    sent, got = by_topic(clouds_log)[LIDAR_POINTS], by_topic(tmp_path / "back.mcap")[LIDAR_POINTS]
+    assert len(got) == len(sent) > 40
+    for a, b in zip(got, sent, strict=True):
+        assert a.sensor_time_ns == b.sensor_time_ns
+        np.testing.assert_array_equal(point_array(a)[:, :4], point_array(b)[:, :4])
+        np.testing.assert_allclose(point_array(a)[:, 4], point_array(b)[:, 4], rtol=1e-6, atol=1e-9)
