@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -189,3 +190,46 @@ def test_a_point_cloud_lidars_scans_come_back_as_they_were(city_drive, tmp_path)
         assert a.sensor_time_ns == b.sensor_time_ns
         np.testing.assert_array_equal(point_array(a)[:, :4], point_array(b)[:, :4])
         np.testing.assert_allclose(point_array(a)[:, 4], point_array(b)[:, 4], rtol=1e-6, atol=1e-9)
+
+
+VENDOR_DATA = Path("/work/shared/data/lidar_nebula")
+
+
+@pytest.mark.skipif(not VENDOR_DATA.is_dir(), reason="shared lidar_nebula captures not present")
+def test_a_vendor_lidars_packets_are_exported_as_the_mapper_decodes_them(tmp_path):
+    """A VLP-16 capture logged as packets: one PointCloud2 per rotation, the points lidar_ground decodes (read back
+    with the importer's PointCloud2 reader; a log of Lidar packets alone has no camera to import a car from)."""
+    import yaml
+
+    from daemon.spine.config import load_config
+    from daemon.spine.messages import LidarPacket
+    from drivers.lidar.pcap_udp import read_pcap_udp
+    from importers.ros2_messages import point_cloud
+    from mapping.inputs.lidar_ground import lidar_scans
+
+    (tmp_path / "VLP16.yaml").write_bytes((VENDOR_DATA / "calib" / "VLP16.yaml").read_bytes())
+    data = yaml.safe_load((REPO / "configs" / "sim.yaml").read_text())
+    data["sensors"]["lidar"] = {"model": "velodyne-vlp16", "metadata_file": "VLP16.yaml",
+                                "extrinsics": data["sensors"]["lidar"]["extrinsics"]}
+    (tmp_path / "car.yaml").write_text(yaml.safe_dump(data))
+    car = load_config(tmp_path / "car.yaml")
+    payloads = [d.payload for d in read_pcap_udp(VENDOR_DATA / "velodyne" / "vlp16.pcap").datagrams]
+    base = 3600 * 10**9
+    packets = [LidarPacket(seq=i, sensor_time_ns=base + int.from_bytes(p[1200:1204], "little") * 1000,
+                           host_mono_ns=base + i * 1_000_000, data=p) for i, p in enumerate(payloads)]
+    with LogWriter(tmp_path / "vlp16.mcap", car, config_path=tmp_path / "car.yaml", log_time_offset_ns=0) as writer:
+        for p in packets:
+            writer.write(LIDAR_PACKETS, p)
+    assert roadlog(["export", "ros2", str(tmp_path / "vlp16.mcap"), "--out", str(tmp_path / "bag")]) == 0
+    with AnyReader([tmp_path / "bag"], default_typestore=TYPESTORE) as reader:
+        conns = [c for c in reader.connections if c.topic == "/lidar/points"]
+        clouds = [point_cloud(reader.deserialize(raw, c.msgtype), t)[0] for c, t, raw in reader.messages(conns)]
+    scans = lidar_scans(packets, [], lambda: configured_decoding(car.sensors.lidar, tmp_path / "car.yaml"), 1)
+    assert len(clouds) == len(scans.scans) >= 3
+    for cloud, scan in zip(clouds, scans.scans, strict=True):
+        points, got = scans.decode(scan), point_array(cloud)
+        np.testing.assert_array_equal(got[:, :3], points.xyz)
+        np.testing.assert_array_equal(got[:, 3], points.intensity)
+        start = int(points.times_ns.min())
+        np.testing.assert_allclose(got[:, 4], ((points.times_ns - start) * 1e-9)[points.time_index], rtol=1e-6,
+                                   atol=1e-9)
