@@ -71,7 +71,7 @@ def fit_surface_from_images(road_map: RoadMap, train: list[Keyframe], cameras: d
                              fast.photometric_patch_samples, fast.photometric_min_views, fast.photometric_min_std,
                              fast.photometric_distinct_m, fast.photometric_behind_m, fast.photometric_ahead_m,
                              config.runtime.photometric_threads)
-    lattice = lattice_nodes(road_map, fast.elevation_lattice_m)
+    lattice = lattice_nodes(road_map, fast.elevation_lattice_m, trajectory)
     keyframe_s = np.array([float(trajectory.horizontal_distance_at(kf.timestamp)) for kf in train])
     sweep = sweep_heights(road_map, lattice, train, keyframe_s, cameras, settings)
     timings["photometric_sweep_wall_s"] = time.perf_counter() - started

@@ -27,12 +27,14 @@ import numpy as np
 
 from daemon.spine.semantic_classes import NUM_MAP_CLASSES
 from mapping.fits.vertex_observations import bilinear, project_camera_points
+from mapping.localization.trajectory import HorizontalTrack
 from mapping.method.mesh_renderer import to_camera
 from mapping.method.road_map import RoadMap
 from mapping.method.road_mesh import locate
 from mapping.method.scene_data import CameraModel, Keyframe
 
 BLOCK_M = 20.0  # along-track length of the nodes swept at once
+GRADE_M = 5.0  # the trajectory's grade at its ends is taken over this length
 _GREY = np.array([0.299, 0.587, 0.114], np.float32)
 
 
@@ -53,6 +55,34 @@ class SweepSettings:
 
 
 @dataclass(frozen=True)
+class TrackEnds:
+    """The grade of the trajectory's first and last `GRADE_M`: the mesh's z0 is held flat beyond its ends, where
+    the road goes on climbing; the sweep is centred on the grade carried on there."""
+
+    xy: np.ndarray  # (2, 2) first and last position
+    tangent: np.ndarray  # (2, 2) unit direction of travel there
+    grade: np.ndarray  # (2,) dz / ds there
+
+    @staticmethod
+    def of(trajectory: HorizontalTrack) -> TrackEnds:
+        s = trajectory.horizontal_distance()
+        p = trajectory.positions
+        a, b = np.searchsorted(s, [min(GRADE_M, s[-1]), max(s[-1] - GRADE_M, 0.0)])
+        a, b = max(int(a), 1), min(int(b), len(s) - 2)
+        ends = [(0, a), (b, len(s) - 1)]
+        tangent = np.array([p[j, :2] - p[i, :2] for i, j in ends])
+        tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-9)
+        grade = np.array([(p[j, 2] - p[i, 2]) / max(s[j] - s[i], 1e-9) for i, j in ends])
+        return TrackEnds(p[[0, -1], :2].copy(), tangent, grade)
+
+    def offset(self, xy: np.ndarray) -> np.ndarray:
+        """(...) height (m) the grade adds at points `xy` (..., 2) before the start or past the end, 0 between."""
+        before = np.maximum(-((xy - self.xy[0]) @ self.tangent[0]), 0.0)
+        after = np.maximum((xy - self.xy[1]) @ self.tangent[1], 0.0)
+        return (after * self.grade[1] - before * self.grade[0]).astype(np.float32)
+
+
+@dataclass(frozen=True)
 class LatticeNodes:
     """The elevation lattice's nodes inside the mesh: integer indices, world x, y, z0 and along-track s."""
 
@@ -60,6 +90,7 @@ class LatticeNodes:
     xy: np.ndarray  # (K, 2) float64
     z0: np.ndarray  # (K,) float32
     s: np.ndarray  # (K,) float32
+    ends: TrackEnds | None = None  # where the sweep is centred beyond the track's ends (None: on z0)
 
 
 @dataclass(frozen=True)
@@ -73,7 +104,7 @@ class SweepResult:
     views: np.ndarray  # (K,) int32
 
 
-def lattice_nodes(road_map: RoadMap, lattice_m: float) -> LatticeNodes:
+def lattice_nodes(road_map: RoadMap, lattice_m: float, trajectory: HorizontalTrack | None = None) -> LatticeNodes:
     """The lattice nodes (of the elevation MLP's lattice, relative to its origin) that lie inside the mesh."""
     mesh = road_map.mesh
     origin = np.asarray(road_map.elevation.origin_xy)
@@ -82,17 +113,21 @@ def lattice_nodes(road_map: RoadMap, lattice_m: float) -> LatticeNodes:
     ids, w, ok = locate(mesh, xy)
     nodes, xy, ids, w = nodes[ok], xy[ok], ids[ok], w[ok]
     z0 = (mesh.z0[ids] * w).sum(1).astype(np.float32)
-    return LatticeNodes(nodes, xy, z0, mesh.s[ids[:, 0]])
+    return LatticeNodes(nodes, xy, z0, mesh.s[ids[:, 0]], TrackEnds.of(trajectory) if trajectory else None)
 
 
-def _patch_points(road_map: RoadMap, xy: np.ndarray, settings: SweepSettings) -> tuple[np.ndarray, np.ndarray]:
-    """(K, P, 3) ground patch points at z0 around the nodes `xy` and (K, P) whether each lies inside the mesh."""
+def _patch_points(road_map: RoadMap, xy: np.ndarray, settings: SweepSettings,
+                  ends: TrackEnds | None) -> tuple[np.ndarray, np.ndarray]:
+    """(K, P, 3) ground patch points at z0 (plus the grade beyond the track's ends) around the nodes `xy` and
+    (K, P) whether each lies inside the mesh."""
     n = settings.patch_samples
     offsets = (np.arange(n) - (n - 1) / 2) * (settings.patch_m / max(n - 1, 1))
     ox, oy = np.meshgrid(offsets, offsets, indexing="ij")
     p = xy[:, None, :] + np.stack([ox.ravel(), oy.ravel()], 1)[None]
     ids, w, ok = locate(road_map.mesh, p.reshape(-1, 2))
     z0 = np.where(ok, (road_map.mesh.z0[np.where(ok[:, None], ids, 0)] * w).sum(1), np.nan)
+    if ends is not None:
+        z0 = z0 + ends.offset(p.reshape(-1, 2))
     return np.concatenate([p, z0.reshape(len(xy), -1, 1)], 2), ok.reshape(len(xy), -1)
 
 
@@ -187,7 +222,7 @@ def sweep_heights(road_map: RoadMap, lattice: LatticeNodes, keyframes: list[Keyf
         block = order[(lattice.s[order] >= lo) & (lattice.s[order] < lo + BLOCK_M)]
         if not len(block):
             continue
-        points, inside = _patch_points(road_map, lattice.xy[block], settings)
+        points, inside = _patch_points(road_map, lattice.xy[block], settings, lattice.ends)
         points[~inside.all(1)] = np.nan
         s_lo, s_hi = lattice.s[block].min(), lattice.s[block].max()
         reach = np.flatnonzero((keyframe_s + settings.ahead_m >= s_lo) & (keyframe_s - settings.behind_m <= s_hi))
@@ -206,7 +241,8 @@ def sweep_heights(road_map: RoadMap, lattice: LatticeNodes, keyframes: list[Keyf
         has = valid.any(1)
         best, peak, second = _peaks(ncc, valid, heights, max(1, int(round(settings.distinct_m / settings.step_m))))
         second = np.where(np.isfinite(second), second, 0.0)
-        residual[block] = np.where(has, best, 0.0)
+        prior = lattice.ends.offset(lattice.xy[block]) if lattice.ends is not None else 0.0
+        residual[block] = np.where(has, best + prior, prior)
         confidence[block] = np.where(has, np.clip(peak - np.maximum(second, 0.0), 0.0, None), 0.0)
         peak_ncc[block] = np.where(has, peak, 0.0)
         views[block] = np.where(has, counts[np.arange(len(block)), np.argmax(np.where(valid, ncc, -np.inf), 1)], 0)
