@@ -7,9 +7,10 @@ every training keyframe that sees it; the grey values each view reads there are 
 mean, unit variance: robust to the cameras' different gains, offsets and white balance) and the views'
 agreement is their mean pairwise normalised cross-correlation (NCC), got from the sum of the normalised
 patches (|sum|^2 = V n + n sum_{v != w} NCC_vw) so each view is read once per candidate. The best height is
-the NCC's maximum (parabolic sub-step), and its confidence how much it stands out: the peak less the best
-NCC at least `distinct_m` away (a repeated or blank texture has a second peak as high; a textured patch seen
-consistently has one sharp one). The heights, weighted by that confidence, are what the residual MLP is
+the NCC's maximum (parabolic sub-step; one on the edge of the range is no maximum and gives no height), and
+its confidence how much it stands out: the peak less the best NCC at least `distinct_m` away (a repeated or
+blank texture has a second peak as high; a textured patch seen consistently has one sharp one). The heights,
+weighted by that confidence, are what the residual MLP is
 fitted to (mapping.fits.observation_fit.fit_lattice), with the smoothness term over every node.
 
 Views whose mask marks the patch centre as an obstacle or unlabelled are left out; so are views where the
@@ -144,9 +145,9 @@ def sweep_keyframe(sums: np.ndarray, counts: np.ndarray, points: np.ndarray, hei
     T = keyframe.T_world_camera
     R = T[:3, :3]
     p = points.shape[1]
-    centre = np.nanmean(points, 1)
-    near = project_camera_points(to_camera(T, centre), camera)[1]  # cull by the patch centre at z0 first
-    near &= np.isfinite(points[..., 2]).all(1)
+    near = np.isfinite(points[..., 2]).all(1)  # patches wholly on the mesh ...
+    centre = np.where(near[:, None], points[:, p // 2], 0.0)
+    near &= project_camera_points(to_camera(T, centre), camera)[1]  # ... whose centre is in view
     if not near.any():
         return
     rows = np.flatnonzero(near)
@@ -171,20 +172,21 @@ def sweep_keyframe(sums: np.ndarray, counts: np.ndarray, points: np.ndarray, hei
 
 
 def _peaks(ncc: np.ndarray, valid: np.ndarray, heights: np.ndarray, distinct: int) -> tuple[np.ndarray, ...]:
-    """Best height (parabolic sub-step), its NCC and the best NCC `distinct` or more steps away, per row."""
-    masked = np.where(valid, ncc, -np.inf)
+    """Best height (parabolic sub-step), its NCC, the best NCC `distinct` or more steps away and whether the best
+    is a maximum inside the swept range (valid candidates either side), per row."""
+    masked = np.where(valid, ncc, -1e9)  # finite: a parabola through an invalid neighbour is never fitted
     best = masked.argmax(1)
     rows = np.arange(len(ncc))
     peak = masked[rows, best]
     lo, hi = np.maximum(best - 1, 0), np.minimum(best + 1, len(heights) - 1)
     a, b, c = masked[rows, lo], peak, masked[rows, hi]
-    inner = (lo < best) & (hi > best) & np.isfinite(a) & np.isfinite(c)
+    inner = (lo < best) & (hi > best) & valid[rows, lo] & valid[rows, hi]
     denom = np.where(inner, a - 2 * b + c, -1.0)
     shift = np.where(inner & (denom < 0), 0.5 * (a - c) / denom, 0.0).clip(-0.5, 0.5)
     step = heights[1] - heights[0] if len(heights) > 1 else 0.0
     far = np.abs(np.arange(len(heights))[None] - best[:, None]) >= distinct
-    second = np.where(far, masked, -np.inf).max(1)
-    return heights[best] + shift * step, peak, second
+    second = np.where(far & valid, ncc, -np.inf).max(1)
+    return heights[best] + shift * step, peak, second, inner
 
 
 def _sweep_views(ids: np.ndarray, block_s: np.ndarray, points: np.ndarray, heights: np.ndarray,
@@ -238,8 +240,9 @@ def sweep_heights(road_map: RoadMap, lattice: LatticeNodes, keyframes: list[Keyf
         v = counts.astype(np.float64)
         ncc = ((sums.astype(np.float64) ** 2).sum(2) - v * n) / np.maximum(n * v * (v - 1), 1.0)
         valid = counts >= settings.min_views
-        has = valid.any(1)
-        best, peak, second = _peaks(ncc, valid, heights, max(1, int(round(settings.distinct_m / settings.step_m))))
+        distinct = max(1, int(round(settings.distinct_m / settings.step_m)))
+        best, peak, second, inner = _peaks(ncc, valid, heights, distinct)
+        has = valid.any(1) & inner  # a best height on the range's edge is no maximum: the truth may lie beyond
         second = np.where(np.isfinite(second), second, 0.0)
         prior = lattice.ends.offset(lattice.xy[block]) if lattice.ends is not None else 0.0
         residual[block] = np.where(has, best + prior, prior)
