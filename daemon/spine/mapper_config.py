@@ -129,7 +129,7 @@ class FastFitConfig(StrictModel):
     photometric_patch_samples: int = Field(7, ge=2)  # points along each side of the patch
     photometric_min_views: int = Field(3, ge=2)  # views a node's candidate height needs
     photometric_min_std: float = Field(2.0, ge=0)  # grey levels (0-255): a view's patch below this is blank
-    photometric_distinct_m: float = Field(0.1, gt=0)  # a node's confidence: its peak NCC less the best one at
+    photometric_distinct_m: float = Field(0.3, gt=0)  # a node's confidence: its peak NCC less the best one at
     # least this far (m) from its best height
     photometric_behind_m: float = Field(3.0, ge=0)  # a keyframe reads the nodes from this far (m) behind it ...
     photometric_ahead_m: float = Field(12.0, gt=0)  # ... to this far ahead

@@ -49,7 +49,7 @@ class SweepSettings:
     patch_samples: int = 7  # points along each side of it
     min_views: int = 3  # a node's candidate needs this many views
     min_std: float = 2.0  # grey levels (0-255): a view's patch below this is blank and left out
-    distinct_m: float = 0.1  # the second peak is looked for at least this far from the best height
+    distinct_m: float = 0.3  # the second peak is looked for at least this far from the best height
     behind_m: float = 3.0  # a keyframe reads the nodes from this far behind its trajectory point ...
     ahead_m: float = 12.0  # ... to this far ahead
     threads: int = 2
