@@ -121,6 +121,18 @@ class FastFitConfig(StrictModel):
     # the per-vertex height the smooth MLP cannot hold; 0: no detail
     lidar_detail_prior: float = Field(0.03, ge=0)  # points' worth of zero detail at each vertex (few points:
     # the vertex keeps the smooth surface)
+    photometric_elevation: bool = True  # with no Lidar ground (none, --no-lidar): the residual MLP fitted to the
+    # heights of a plane sweep at the lattice nodes (mapping.fits.photometric_elevation); False: z = z0 there
+    photometric_span_m: float = Field(0.4, gt=0)  # the sweep's candidate heights: z0 - span .. z0 + span (m) ...
+    photometric_step_m: float = Field(0.02, gt=0)  # ... this far apart (m; the best one refined by a parabola)
+    photometric_patch_m: float = Field(0.6, gt=0)  # side (m) of the square ground patch compared across views
+    photometric_patch_samples: int = Field(7, ge=2)  # points along each side of the patch
+    photometric_min_views: int = Field(3, ge=2)  # views a node's candidate height needs
+    photometric_min_std: float = Field(2.0, ge=0)  # grey levels (0-255): a view's patch below this is blank
+    photometric_distinct_m: float = Field(0.3, gt=0)  # a node's confidence: its peak NCC less the best one at
+    # least this far (m) from its best height
+    photometric_behind_m: float = Field(3.0, ge=0)  # a keyframe reads the nodes from this far (m) behind it ...
+    photometric_ahead_m: float = Field(12.0, gt=0)  # ... to this far ahead
     behind_m: float = Field(3.0, ge=0)  # a keyframe observes the vertices from this far (m) behind its
     # trajectory point ...
     ahead_m: float = Field(12.0, gt=0)  # ... to this far (m) ahead: farther views blur
@@ -174,6 +186,7 @@ class RuntimeConfig(StrictModel):
     observe_threads: int = Field(2, ge=1)  # threads projecting the keyframes onto the vertices (fast fit)
     lidar_ground_threads: int = Field(2, ge=1)  # threads extracting the Lidar ground, scan by scan
     lidar_detail_threads: int = Field(2, ge=1)  # threads (and parts of the point sums) of the Lidar detail
+    photometric_threads: int = Field(2, ge=1)  # threads of the camera-only plane sweep (parts of its keyframes)
     evaluation_threads: int = Field(2, ge=1)  # threads rendering and scoring the evaluation's views
     raster_threads: int = Field(2, ge=1)  # threads filling the bird's-eye rasters (blocks of rows)
 

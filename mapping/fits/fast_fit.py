@@ -17,7 +17,8 @@ from tqdm import tqdm
 from daemon.spine.mapper_config import FastFitConfig, MapperConfig
 from mapping.fits.lidar_detail import fit_lidar_detail
 from mapping.fits.lidar_occlusion import OcclusionTest
-from mapping.fits.observation_fit import fit_colours, fit_elevation, semantic_logits_from_counts
+from mapping.fits.observation_fit import fit_colours, fit_elevation, fit_lattice, semantic_logits_from_counts
+from mapping.fits.photometric_elevation import SweepSettings, lattice_nodes, sweep_heights
 from mapping.fits.vertex_observations import MeshFootprint, VertexObservations, observe_keyframe
 from mapping.localization.trajectory import HorizontalTrack
 from mapping.method.mesh_location import Located
@@ -53,6 +54,35 @@ def _fit_elevation(road_map: RoadMap, lidar: np.ndarray | None, located: Located
                                fast.elevation_min_steps, fast.elevation_batch, fast.elevation_smooth_pairs,
                                fast.elevation_lr, fast.elevation_loss_weight, fast.smoothness_loss_weight, rng)
     road_map.refresh_elevation()
+    return first_last
+
+
+def fit_surface_from_images(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraModel],
+                            trajectory: HorizontalTrack, config: MapperConfig, rng: np.random.Generator,
+                            timings: dict[str, float]) -> tuple[float, float]:
+    """Camera-only elevation (no Lidar ground): the plane sweep's heights at the lattice nodes
+    (mapping.fits.photometric_elevation), the residual MLP fitted to them weighted by their confidence with the
+    same loss as the Lidar's; the weighted loss of the fit's first and last step."""
+    fast = config.fast_fit
+    if road_map.elevation is None or not fast.photometric_elevation or not fast.elevation_lattice_m or not train:
+        return 0.0, 0.0
+    started = time.perf_counter()
+    settings = SweepSettings(fast.photometric_span_m, fast.photometric_step_m, fast.photometric_patch_m,
+                             fast.photometric_patch_samples, fast.photometric_min_views, fast.photometric_min_std,
+                             fast.photometric_distinct_m, fast.photometric_behind_m, fast.photometric_ahead_m,
+                             config.runtime.photometric_threads)
+    lattice = lattice_nodes(road_map, fast.elevation_lattice_m, trajectory)
+    keyframe_s = np.array([float(trajectory.horizontal_distance_at(kf.timestamp)) for kf in train])
+    sweep = sweep_heights(road_map, lattice, train, keyframe_s, cameras, settings)
+    timings["photometric_sweep_wall_s"] = time.perf_counter() - started
+    timings["photometric_nodes_pct"] = 100.0 * float((sweep.confidence > 0).mean()) if len(lattice.xy) else 0.0
+    started = time.perf_counter()
+    first_last = fit_lattice(road_map, lattice.nodes, sweep.residual, lattice.z0, sweep.confidence,
+                             fast.elevation_lattice_m, fast.elevation_epochs, fast.elevation_min_steps,
+                             fast.elevation_batch, fast.elevation_smooth_pairs, fast.elevation_lr,
+                             fast.elevation_loss_weight, fast.smoothness_loss_weight, rng)
+    road_map.refresh_elevation()
+    timings["elevation_fit_wall_s"] = time.perf_counter() - started
     return first_last
 
 

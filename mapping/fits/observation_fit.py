@@ -69,14 +69,26 @@ def fit_elevation(road_map: RoadMap, points: np.ndarray, located: Located, latti
                   min_steps: int, batch: int, smooth_pairs: int, lr: float, w_elevation: float, w_smooth: float,
                   rng: np.random.Generator) -> tuple[float, float]:
     """Fit the residual MLP to the Lidar ground points (L1; `located`: the points placed on the mesh) with
-    lattice smoothness, `epochs` passes over the lattice nodes in minibatches of `batch` nodes and
-    `smooth_pairs` neighbour pairs (at least `min_steps` steps), the learning rate decaying from `lr` to 5 %
-    of it along a cosine; returns the weighted loss of the first and the last step."""
+    lattice smoothness (fit_lattice); returns the weighted loss of the first and the last step."""
     nodes, target, z0, _ = lidar_lattice_targets(road_map, points, located, lattice_m)
+    return fit_lattice(road_map, nodes, target, z0, None, lattice_m, epochs, min_steps, batch, smooth_pairs, lr,
+                       w_elevation, w_smooth, rng)
+
+
+def fit_lattice(road_map: RoadMap, nodes: np.ndarray, target: np.ndarray, z0: np.ndarray,
+                weight: np.ndarray | None, lattice_m: float, epochs: float, min_steps: int, batch: int,
+                smooth_pairs: int, lr: float, w_elevation: float, w_smooth: float,
+                rng: np.random.Generator) -> tuple[float, float]:
+    """Fit the residual MLP to residual targets `target` at lattice nodes `nodes` (K, 2) (their z0 `z0`) by L1,
+    weighted per node by `weight` (None: all alike; a node of weight 0 takes part in the smoothness only), with
+    lattice smoothness, `epochs` passes over the nodes in minibatches of `batch` nodes and `smooth_pairs`
+    neighbour pairs (at least `min_steps` steps), the learning rate decaying from `lr` to 5 % of it along a
+    cosine; returns the weighted loss of the first and the last step."""
     steps = max(min_steps, int(np.ceil(epochs * len(nodes) / batch)))
     edges = _lattice_edges(nodes)
     xy = torch.from_numpy((nodes * lattice_m).astype(np.float32))
     target_t, z0_t = torch.from_numpy(target), torch.from_numpy(z0)
+    weight_t = torch.from_numpy(weight.astype(np.float32)) if weight is not None else None
     opt = torch.optim.Adam(road_map.elevation.parameters(), lr=lr)
     decay = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=FINAL_LR_FRACTION * lr)
     history = []
@@ -86,7 +98,11 @@ def fit_elevation(road_map: RoadMap, points: np.ndarray, located: Located, latti
         pair = torch.from_numpy(edges[e])
         r = road_map.elevation(torch.cat([xy[pick], xy[pair[:, 0]], xy[pair[:, 1]]]))  # one MLP pass
         r_nodes, r_a, r_b = torch.split(r, [len(pick), len(pair), len(pair)])
-        loss_z = (r_nodes - target_t[pick]).abs().mean()
+        if weight_t is None:
+            loss_z = (r_nodes - target_t[pick]).abs().mean()
+        else:
+            w = weight_t[pick]
+            loss_z = (w * (r_nodes - target_t[pick]).abs()).sum() / w.sum().clamp(min=1e-6)
         loss_s = ((z0_t[pair[:, 0]] + r_a - z0_t[pair[:, 1]] - r_b) ** 2).mean()
         loss = w_elevation * loss_z + w_smooth * loss_s
         opt.zero_grad(set_to_none=True)

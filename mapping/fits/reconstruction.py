@@ -164,6 +164,9 @@ def reconstruct(
         phase(f"camera frames read: {len(selected)} keyframes selected, {len(train)} to train on")
         if not train:
             raise ValueError(f"no training keyframes after selection (of {len(selected)} keyframes selected)")
+        if not faithful and supervision is None and not variant.flat_init:  # camera-only: from the images
+            elevation_first_last = fast_fit.fit_surface_from_images(road_map, train, cameras, trajectory, config,
+                                                                    rng, timings)
         semantics = semantics_status(train, road_map, config)
         if semantics.startswith("unavailable"):  # nothing to train them on: no semantics, not untrained logits
             road_map.semantic_logits = None

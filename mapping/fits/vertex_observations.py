@@ -76,7 +76,12 @@ class VertexObservations:
 
 def project_points(points_world: np.ndarray, camera: CameraModel, T_world_camera: np.ndarray):
     """Pixel coordinates (M, 2) of world points and which of them are in front and inside the image."""
-    p = to_camera(T_world_camera, points_world)
+    return project_camera_points(to_camera(T_world_camera, points_world), camera)
+
+
+def project_camera_points(p: np.ndarray, camera: CameraModel):
+    """Pixel coordinates (M, 2) of camera-frame points (M, 3) and which of them are in front and inside the
+    image."""
     z = p[:, 2]
     ok = z > NEAR_M
     zs = np.where(ok, z, 1.0)
