@@ -315,7 +315,8 @@ def fit_faithful(road_map: RoadMap, cameras: dict[str, CameraModel], train: list
                     steps.append(opt.step(*batches[b]))
                     bar.update()
             history += _step_totals(steps)
-            bar.set_postfix(loss=f"{history[-1]:.4f}")
+            if history:
+                bar.set_postfix(loss=f"{history[-1]:.4f}")
     opt.finish()
     road_map.refresh_elevation()
     return history, len(batches), (opt.maskless_reads, opt.maskless_hidden, opt.maskless_unchecked)
