@@ -48,6 +48,8 @@ class _View:
     T_world_camera: torch.Tensor  # (4, 4) float64
     image: torch.Tensor  # (H * W, 3) uint8
     semantics: torch.Tensor | None  # (H * W,) uint8, None: no semantics
+    occluders: torch.Tensor | None = None  # without semantics: the occlusion test's nearest standing depth per
+    # image cell (OcclusionTest.nearest_depths, float64); None: no test, or no Lidar scan near enough in time
 
 
 @dataclass
@@ -103,6 +105,15 @@ class FaithfulOptimisation:
         self.views = {id(kf): _View(put(kf.T_world_camera, torch.float64), put(kf.image.reshape(-1, 3)),
                                     None if kf.semantics is None else put(kf.semantics.reshape(-1)))
                       for kf in keyframes}
+        self._hidden_count = torch.zeros((), dtype=torch.int64, device=device)
+        self._untested: set[int] = set()  # views without semantics the occlusion test cannot test
+        for kf in keyframes:  # what hides the road in a view depends on the view only: found once, on the host
+            if kf.semantics is None and occlusion is not None:
+                nearest = occlusion.nearest_depths(kf, cameras[kf.camera])
+                if nearest is None:
+                    self._untested.add(id(kf))
+                else:
+                    self.views[id(kf)].occluders = put(nearest, torch.float64)
         self.origin = None
         if road_map.elevation is not None:
             road_map.elevation.to(device)
@@ -151,6 +162,8 @@ class FaithfulOptimisation:
         if rm.elevation is not None:
             rm.elevation.to(_CPU)
         rm.decoder.to(_CPU)
+        self.maskless_hidden += int(self._hidden_count)
+        self._hidden_count.zero_()
         rm.z_now[:] = self.z_now.cpu().numpy()
         rm.observed[:] = self.observed.cpu().numpy()
         rm.labelled[:] = self.labelled.cpu().numpy()
@@ -176,20 +189,24 @@ class FaithfulOptimisation:
 
     def _unhidden(self, kf: Keyframe, cam: CameraModel, pixels: torch.Tensor, tri: torch.Tensor):
         """The pixels of a view without semantics (and their triangles) the occlusion test does not find hidden
-        (each at its triangle's first vertex: within 0.1 m of the point it sees). The occlusion test runs on the
-        host: a view without semantics reads its pixels back each step (the views with semantics do not)."""
+        (each at its triangle's first vertex: within 0.1 m of the point it sees): OcclusionTest.hidden on the
+        device, against the view's standing depths found before the loop; the hidden count is read after it."""
         self.maskless_reads += len(pixels)
         if self.occlusion is None:
             return pixels, tri
-        pixels_h, first = pixels.cpu().numpy(), tri[:, 0]
-        points = torch.cat([self.xy[first], self.z_now[first, None].to(torch.float64)], 1).cpu().numpy()
-        uv = np.stack([pixels_h % cam.width, pixels_h // cam.width], 1).astype(np.float64)
-        hidden = self.occlusion.hidden(kf, cam, uv, points)
-        if hidden is None:
-            self.maskless_unchecked += 1
+        occluders = self.views[id(kf)].occluders
+        if occluders is None:
+            self.maskless_unchecked += id(kf) in self._untested
             return pixels, tri
-        self.maskless_hidden += int(hidden.sum())
-        keep = torch.from_numpy(~hidden).to(self.device)
+        cell, T = self.occlusion.settings.cell_px, self.views[id(kf)].T_world_camera
+        first = tri[:, 0]
+        points = torch.cat([self.xy[first], self.z_now[first, None].to(torch.float64)], 1)
+        d = points - T[:3, 3]
+        depth = d[:, 0] * T[0, 2] + d[:, 1] * T[1, 2] + d[:, 2] * T[2, 2]  # lidar_occlusion._depth
+        behind = occluders[torch.div(pixels, cam.width, rounding_mode="floor") // cell, (pixels % cam.width) // cell]
+        hidden = behind < depth - self.occlusion.settings.margin_m
+        self._hidden_count += hidden.sum()
+        keep = ~hidden
         return pixels[keep], tri[keep]
 
     # -- one optimisation step ------------------------------------------------------------------

@@ -5,6 +5,7 @@ host_sync_watch.py: what would be a GPU round trip each step is caught on the CP
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import subprocess
@@ -19,6 +20,7 @@ from daemon.spine.config import EXIT_CONFIG_ERROR
 from daemon.spine.mapper_config import FaithfulFitConfig
 from mapping.fits.reconstruction import reconstruct
 from mapping.method.compute_device import optimisation_loop, resolve_device
+from mapping.method.scene_data import StandingPoints
 from mapping.offline.reconstruct_command import main as reconstruct_main
 from tests.daemon_fixtures import REPO
 from tests.mapping.host_sync_watch import HostSyncWatch
@@ -60,16 +62,28 @@ def scene():
     return make_scene(length_m=20.0, width=96, height=54, rate_hz=10.0)
 
 
-@pytest.mark.parametrize("faithful", [False, True], ids=["fast", "faithful"])
-def test_the_optimisation_loops_copy_nothing_between_host_and_device(scene, faithful):
+@pytest.mark.parametrize(("faithful", "maskless"), [(False, False), (True, False), (False, True), (True, True)],
+                         ids=["fast", "faithful", "fast-maskless", "faithful-maskless"])
+def test_the_optimisation_loops_copy_nothing_between_host_and_device(scene, faithful, maskless):
+    """Both fits on the synthetic road; `maskless`: every other view without semantics, tested against a wall the
+    Lidar saw standing across the road (scans for the first 2 s only: the later views cannot be tested)."""
     config = CONFIG.model_copy(update={"device": "cpu", "faithful_fit": FaithfulFitConfig(epochs=1, batch_size=4)})
+    keyframes, standing = scene.keyframes, None
+    if maskless:
+        keyframes = [dataclasses.replace(kf, semantics=None) if i % 2 else kf for i, kf in enumerate(keyframes)]
+        wall = np.array([(12.0, y, z) for y in np.arange(-5, 5.01, 0.2) for z in np.arange(0.5, 2.51, 0.2)],
+                        np.float32)
+        standing = StandingPoints.of([(t, wall) for t in np.arange(0.0, 2.01, 0.1)])
     with HostSyncWatch() as watch:
-        result = reconstruct(scene.keyframes, scene.cameras, scene.trajectory, scene.lidar, config,
+        result = reconstruct(keyframes, scene.cameras, scene.trajectory, scene.lidar, config,
                              scene.reference_height_m, gt=scene.gt, faithful=faithful, holdout_every=5,
-                             progress=False)
+                             progress=False, lidar_standing=standing)
     assert watch.loops_seen == ({"faithful"} if faithful else {"fast elevation", "fast colour"})
     assert watch.found == []
-    assert result.metrics["steps"] > 1 and np.isfinite(result.metrics["loss_last"])
+    m = result.metrics
+    assert m["steps"] > 1 and np.isfinite(m["loss_last"])
+    if maskless:  # the test ran, inside the loop for the faithful fit
+        assert m["maskless_hidden_pct"] > 1 and m["maskless_views_unchecked"] > 0
     assert result.road_map.colour_params.device.type == "cpu"  # the map comes back to the host after the fit
 
 
