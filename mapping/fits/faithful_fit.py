@@ -1,7 +1,9 @@
 """The paper-faithful fit (EMIE-MAP as published): trajectory-based batches of adjacent keyframes, each step
 the whole window (`windows.before_m` + `windows.after_m` around the batch) through the elevation MLP and the
 colour decoders, every pixel of every batch image rasterised exactly against the full mesh, the four losses,
-one Adam per parameter group (row-sparse Adam for the per-vertex colour codes and semantic logits)."""
+one Adam per parameter group (row-sparse Adam for the per-vertex colour codes and semantic logits). On
+`mapper.device`: the mesh, the keyframes and the model move there once before the loop, and a step copies nothing
+between host and device (the windows are cut by index on the host; the losses are read back once an epoch)."""
 
 from __future__ import annotations
 
