@@ -7,9 +7,11 @@ the per-stage wall times: `process_wall_s` the whole process as `time` sees it (
 too), `optimise_wall_s` the reconstruction itself, `evaluate_wall_s` what the evaluation still takes once the map
 is made, `inputs_export_wall_s` the command's time outside the optimisation and the evaluation. The
 faithful path is ~100x slower than real time here: `--faithful-epochs` (1 with --quick) bounds it.
+`--device` (auto, cpu, cuda; default auto) is the fits' torch device, named in the summary line (`device`); cuda
+where torch sees no GPU is refused before anything runs (one `error:` line, exit 2).
 Drives are cached under /tmp/maplab/.
 
-    .venv/bin/python bench/mapping.py [--quick] [--scenario city] [--seconds 10]
+    .venv/bin/python bench/mapping.py [--quick] [--scenario city] [--seconds 10] [--device cuda]
 """
 
 from __future__ import annotations
@@ -23,6 +25,11 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # the package `mapping`, not this script
+
+from daemon.spine.config import EXIT_CONFIG_ERROR, ConfigError  # noqa: E402
+from mapping.method.compute_device import DEVICES, device_name, resolve_device  # noqa: E402
+
 ROADLOG = str(ROOT / ".venv" / "bin" / "roadlog")
 CACHE = Path("/tmp/maplab")
 KEYS = ("psnr_db", "psnr_train_db", "miou_pct", "miou_mask_pct", "elev_error_cm", "elev_mae_gt_cm", "rtf",
@@ -60,16 +67,23 @@ def main() -> int:
     parser.add_argument("--scenario", default="city")
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--faithful-epochs", type=int, default=5)
+    parser.add_argument("--device", choices=DEVICES, default="auto", help="torch device of the fits")
     args = parser.parse_args()
+    try:
+        device = resolve_device(args.device, "--device")
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_CONFIG_ERROR
     seconds = 3.0 if args.quick else args.seconds
     log = drive(args.scenario, seconds)
     with tempfile.TemporaryDirectory() as tmp:
-        fast = run(log, Path(tmp) / "fast")
+        fast = run(log, Path(tmp) / "fast", "--device", device.type)
         print("fast", json.dumps(fast), flush=True)
         epochs = 1 if args.quick else args.faithful_epochs
-        faithful = run(log, Path(tmp) / "faithful", "--faithful", "--epochs", str(epochs))
+        faithful = run(log, Path(tmp) / "faithful", "--faithful", "--epochs", str(epochs), "--device", device.type)
         print("faithful", json.dumps(faithful), flush=True)
-    out = {"scenario": args.scenario, "drive_s": fast["drive_s"], "faithful_epochs": epochs,
+    out = {"scenario": args.scenario, "device": device_name(device), "drive_s": fast["drive_s"],
+           "faithful_epochs": epochs,
            "rtf_fast": fast["rtf"], "rtf_faithful": faithful["rtf"],
            "process_wall_s_fast": fast["process_wall_s"], "process_wall_s_faithful": faithful["process_wall_s"],
            "peak_rss_mb_fast": fast["peak_rss_mb"], "peak_rss_mb_faithful": faithful["peak_rss_mb"]}

@@ -195,6 +195,8 @@ class MapperConfig(StrictModel):
     """The road-surface mapper (the live worker and `roadlog reconstruct`)."""
 
     enabled: bool = True  # run the live mapping worker beside the recorder
+    device: Literal["auto", "cpu", "cuda"] = "auto"  # torch device of the fits (mapping.method.compute_device):
+    # auto = cuda when torch sees a CUDA GPU, else cpu; cuda without one is a configuration error at start
     mesh: MeshConfig = MeshConfig()
     windows: WindowsConfig = WindowsConfig()
     model: ModelConfig = ModelConfig()

@@ -21,6 +21,7 @@ from mapping.fits.observation_fit import fit_colours, fit_elevation, fit_lattice
 from mapping.fits.photometric_elevation import SweepSettings, lattice_nodes, sweep_heights
 from mapping.fits.vertex_observations import MeshFootprint, VertexObservations, observe_keyframe
 from mapping.localization.trajectory import HorizontalTrack
+from mapping.method.compute_device import resolve_device
 from mapping.method.mesh_location import Located
 from mapping.method.road_map import RoadMap, WindowIndex
 from mapping.method.scene_data import CameraModel, Keyframe
@@ -33,7 +34,7 @@ def fit_surface(road_map: RoadMap, supervision: np.ndarray | None, lidar_at: Loc
     (None: none, or an ablation without them), `lidar_at`: the ground points placed on the mesh."""
     fast = config.fast_fit
     started = time.perf_counter()
-    elevation_first_last = _fit_elevation(road_map, supervision, lidar_at, fast, rng)
+    elevation_first_last = _fit_elevation(road_map, supervision, lidar_at, fast, rng, resolve_device(config.device))
     timings["elevation_fit_wall_s"] = time.perf_counter() - started
     if road_map.elevation is not None and supervision is not None and len(supervision) and fast.lidar_detail_passes:
         started = time.perf_counter()
@@ -45,14 +46,14 @@ def fit_surface(road_map: RoadMap, supervision: np.ndarray | None, lidar_at: Loc
 
 
 def _fit_elevation(road_map: RoadMap, lidar: np.ndarray | None, located: Located | None, fast: FastFitConfig,
-                   rng: np.random.Generator) -> tuple[float, float]:
+                   rng: np.random.Generator, device: torch.device) -> tuple[float, float]:
     """The fast path's elevation: the residual MLP fitted to the Lidar lattice (mapping.fits.observation_fit);
     the weighted loss of its first and last step."""
     if road_map.elevation is None or lidar is None or not len(lidar):
         return 0.0, 0.0
     first_last = fit_elevation(road_map, lidar, located, fast.elevation_lattice_m, fast.elevation_epochs,
                                fast.elevation_min_steps, fast.elevation_batch, fast.elevation_smooth_pairs,
-                               fast.elevation_lr, fast.elevation_loss_weight, fast.smoothness_loss_weight, rng)
+                               fast.elevation_lr, fast.elevation_loss_weight, fast.smoothness_loss_weight, rng, device)
     road_map.refresh_elevation()
     return first_last
 
@@ -80,7 +81,8 @@ def fit_surface_from_images(road_map: RoadMap, train: list[Keyframe], cameras: d
     first_last = fit_lattice(road_map, lattice.nodes, sweep.residual, lattice.z0, sweep.confidence,
                              fast.elevation_lattice_m, fast.elevation_epochs, fast.elevation_min_steps,
                              fast.elevation_batch, fast.elevation_smooth_pairs, fast.elevation_lr,
-                             fast.elevation_loss_weight, fast.smoothness_loss_weight, rng)
+                             fast.elevation_loss_weight, fast.smoothness_loss_weight, rng,
+                             resolve_device(config.device))
     road_map.refresh_elevation()
     timings["elevation_fit_wall_s"] = time.perf_counter() - started
     return first_last
@@ -137,7 +139,7 @@ def fit_colour(road_map: RoadMap, obs: VertexObservations, config: MapperConfig,
     fast = config.fast_fit
     started = time.perf_counter()
     losses_first_last = fit_colours(road_map, obs, seen, fast.colour_encoder_steps, fast.colour_batch,
-                                    fast.colour_decoder_lr, fast.colour_encoder_lr, rng)
+                                    fast.colour_decoder_lr, fast.colour_encoder_lr, rng, resolve_device(config.device))
     timings["colour_fit_wall_s"] = time.perf_counter() - started
     return losses_first_last
 

@@ -22,12 +22,14 @@ import torch
 from torch import nn
 
 from mapping.fits.vertex_observations import VertexObservations
+from mapping.method.compute_device import optimisation_loop
 from mapping.method.mesh_location import Located
 from mapping.method.road_map import RoadMap
 
 LABEL_PRIOR = 0.1
 FINAL_LR_FRACTION = 0.05  # the elevation fit's learning rate ends at 5 % of the paper's
 _KEY = 1 << 21
+_CPU = torch.device("cpu")  # where the road map lives between the fits (the evaluation and the exports read it)
 
 
 def semantic_logits_from_counts(counts: np.ndarray) -> torch.Tensor:
@@ -67,50 +69,58 @@ def _lattice_edges(nodes: np.ndarray) -> np.ndarray:
 
 def fit_elevation(road_map: RoadMap, points: np.ndarray, located: Located, lattice_m: float, epochs: float,
                   min_steps: int, batch: int, smooth_pairs: int, lr: float, w_elevation: float, w_smooth: float,
-                  rng: np.random.Generator) -> tuple[float, float]:
+                  rng: np.random.Generator, device: torch.device = _CPU) -> tuple[float, float]:
     """Fit the residual MLP to the Lidar ground points (L1; `located`: the points placed on the mesh) with
-    lattice smoothness (fit_lattice); returns the weighted loss of the first and the last step."""
+    lattice smoothness (fit_lattice, on `device`); returns the weighted loss of the first and the last step."""
     nodes, target, z0, _ = lidar_lattice_targets(road_map, points, located, lattice_m)
     return fit_lattice(road_map, nodes, target, z0, None, lattice_m, epochs, min_steps, batch, smooth_pairs, lr,
-                       w_elevation, w_smooth, rng)
+                       w_elevation, w_smooth, rng, device)
 
 
 def fit_lattice(road_map: RoadMap, nodes: np.ndarray, target: np.ndarray, z0: np.ndarray,
                 weight: np.ndarray | None, lattice_m: float, epochs: float, min_steps: int, batch: int,
                 smooth_pairs: int, lr: float, w_elevation: float, w_smooth: float,
-                rng: np.random.Generator) -> tuple[float, float]:
+                rng: np.random.Generator, device: torch.device = _CPU) -> tuple[float, float]:
     """Fit the residual MLP to residual targets `target` at lattice nodes `nodes` (K, 2) (their z0 `z0`) by L1,
     weighted per node by `weight` (None: all alike; a node of weight 0 takes part in the smoothness only), with
     lattice smoothness, `epochs` passes over the nodes in minibatches of `batch` nodes and `smooth_pairs`
     neighbour pairs (at least `min_steps` steps), the learning rate decaying from `lr` to 5 % of it along a
-    cosine; returns the weighted loss of the first and the last step."""
+    cosine; returns the weighted loss of the first and the last step. The MLP and the lattice go to `device` once
+    (every step's draws too, drawn before the loop in the order the steps take them), the MLP comes back after."""
     steps = max(min_steps, int(np.ceil(epochs * len(nodes) / batch)))
     edges = _lattice_edges(nodes)
-    xy = torch.from_numpy((nodes * lattice_m).astype(np.float32))
-    target_t, z0_t = torch.from_numpy(target), torch.from_numpy(z0)
-    weight_t = torch.from_numpy(weight.astype(np.float32)) if weight is not None else None
-    opt = torch.optim.Adam(road_map.elevation.parameters(), lr=lr)
+    draws = [(rng.choice(len(nodes), batch, replace=False) if len(nodes) > batch else np.arange(len(nodes)),
+              rng.choice(len(edges), smooth_pairs, replace=False) if len(edges) > smooth_pairs
+              else np.arange(len(edges))) for _ in range(steps)]
+    picks = torch.from_numpy(np.stack([pick for pick, _ in draws])).to(device)
+    pairs = torch.from_numpy(np.stack([edges[e] for _, e in draws])).to(device)
+    xy = torch.from_numpy((nodes * lattice_m).astype(np.float32)).to(device)
+    target_t, z0_t = torch.from_numpy(target).to(device), torch.from_numpy(z0).to(device)
+    weight_t = torch.from_numpy(weight.astype(np.float32)).to(device) if weight is not None else None
+    elevation = road_map.elevation.to(device)
+    opt = torch.optim.Adam(elevation.parameters(), lr=lr)
     decay = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=FINAL_LR_FRACTION * lr)
-    history = []
-    for _ in range(steps):
-        pick = rng.choice(len(nodes), batch, replace=False) if len(nodes) > batch else np.arange(len(nodes))
-        e = rng.choice(len(edges), smooth_pairs, replace=False) if len(edges) > smooth_pairs else slice(None)
-        pair = torch.from_numpy(edges[e])
-        r = road_map.elevation(torch.cat([xy[pick], xy[pair[:, 0]], xy[pair[:, 1]]]))  # one MLP pass
-        r_nodes, r_a, r_b = torch.split(r, [len(pick), len(pair), len(pair)])
-        if weight_t is None:
-            loss_z = (r_nodes - target_t[pick]).abs().mean()
-        else:
-            w = weight_t[pick]
-            loss_z = (w * (r_nodes - target_t[pick]).abs()).sum() / w.sum().clamp(min=1e-6)
-        loss_s = ((z0_t[pair[:, 0]] + r_a - z0_t[pair[:, 1]] - r_b) ** 2).mean()
-        loss = w_elevation * loss_z + w_smooth * loss_s
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        decay.step()
-        history.append(float(loss.detach()))
-    return (history[0], history[-1]) if history else (0.0, 0.0)
+    first = last = None
+    with optimisation_loop("fast elevation"):
+        for step in range(steps):
+            pick, pair = picks[step], pairs[step]
+            r = elevation(torch.cat([xy[pick], xy[pair[:, 0]], xy[pair[:, 1]]]))  # one MLP pass
+            r_nodes, r_a, r_b = torch.split(r, [len(pick), len(pair), len(pair)])
+            if weight_t is None:
+                loss_z = (r_nodes - target_t[pick]).abs().mean()
+            else:
+                w = weight_t[pick]
+                loss_z = (w * (r_nodes - target_t[pick]).abs()).sum() / w.sum().clamp(min=1e-6)
+            loss_s = ((z0_t[pair[:, 0]] + r_a - z0_t[pair[:, 1]] - r_b) ** 2).mean()
+            loss = w_elevation * loss_z + w_smooth * loss_s
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            decay.step()
+            last = loss.detach()
+            first = last if first is None else first
+    road_map.elevation.to(_CPU)
+    return (float(first), float(last)) if last is not None else (0.0, 0.0)
 
 
 def _observation_features(obs: VertexObservations, ids: np.ndarray) -> torch.Tensor:
@@ -129,29 +139,39 @@ def _colour_l1(road_map: RoadMap, codes: torch.Tensor, target: torch.Tensor, pre
 
 
 def fit_colours(road_map: RoadMap, obs: VertexObservations, ids: np.ndarray, encoder_steps: int, batch: int,
-                lr_decoder: float, lr_encoder: float, rng: np.random.Generator) -> tuple[float, float]:
+                lr_decoder: float, lr_encoder: float, rng: np.random.Generator,
+                device: torch.device = _CPU) -> tuple[float, float]:
     """Fit the colour codes of vertices `ids` and the decoders (see module docstring); returns the L1
-    colour loss of the first and the last step."""
+    colour loss of the first and the last step. The observations, the encoder and the decoders go to `device`
+    once (every step's draw too, drawn before the loop), the codes and the decoders come back after."""
     names = obs.camera_names
-    features = _observation_features(obs, ids)
-    target = torch.from_numpy(obs.colour_mean(ids))
-    present = torch.from_numpy((obs.colour_count[ids] > 0).astype(np.float32))
+    features = _observation_features(obs, ids).to(device)
+    target = torch.from_numpy(obs.colour_mean(ids)).to(device)
+    present = torch.from_numpy((obs.colour_count[ids] > 0).astype(np.float32)).to(device)
     dim = road_map.colour_params.shape[1]
-    encoder = nn.Sequential(nn.Linear(features.shape[1], 64), nn.ReLU(), nn.Linear(64, dim))
+    encoder = nn.Sequential(nn.Linear(features.shape[1], 64), nn.ReLU(), nn.Linear(64, dim)).to(device)
+    road_map.decoder.to(device)
     decoder_params = list(road_map.decoder.parameters())
     opts = [torch.optim.Adam(encoder.parameters(), lr=lr_encoder)]
     if decoder_params:
         opts.append(torch.optim.Adam(decoder_params, lr=lr_decoder))
-    history = []
-    for _ in range(encoder_steps):
-        pick = torch.from_numpy(rng.choice(len(ids), min(batch, len(ids)), replace=False))
-        loss = _colour_l1(road_map, encoder(features[pick]), target[pick], present[pick], names)
-        for o in opts:
-            o.zero_grad(set_to_none=True)
-        loss.backward()
-        for o in opts:
-            o.step()
-        history.append(float(loss.detach()))
+    size = min(batch, len(ids))
+    picks = torch.from_numpy(np.stack([rng.choice(len(ids), size, replace=False) for _ in range(encoder_steps)]
+                                      ).reshape(encoder_steps, size)).to(device)
+    first = last = None
+    with optimisation_loop("fast colour"):
+        for step in range(encoder_steps):
+            pick = picks[step]
+            loss = _colour_l1(road_map, encoder(features[pick]), target[pick], present[pick], names)
+            for o in opts:
+                o.zero_grad(set_to_none=True)
+            loss.backward()
+            for o in opts:
+                o.step()
+            last = loss.detach()
+            first = last if first is None else first
     with torch.no_grad():
-        road_map.colour_params[torch.from_numpy(ids)] = encoder(features)
-    return (history[0], history[-1]) if history else (0.0, 0.0)
+        codes = encoder(features).to(road_map.colour_params.device)
+    road_map.decoder.to(_CPU)
+    road_map.colour_params[torch.from_numpy(ids)] = codes
+    return (float(first), float(last)) if last is not None else (0.0, 0.0)

@@ -375,7 +375,10 @@ def keyframe_semantics(image: np.ndarray, mask: SemanticMask | None,
 def check_config(car: CarConfig, config_path: str | Path) -> None:
     """What the mapper (live worker or reconstruct) needs of the config before it starts (also run by `roadlog
     check-config`): the segmentation model loads, the Lidar metadata or calibration reads and fits the model (a
-    point-cloud Lidar has none)."""
+    point-cloud Lidar has none), the torch device is there (mapper.device: cuda needs a CUDA GPU)."""
+    from mapping.method.compute_device import resolve_device  # torch, only for the check
+
+    resolve_device(car.mapper.device, f"{config_path}: mapper.device")
     segmenter_for(car, config_path)
     if car.sensors.lidar is not None:
         configured_decoding(car.sensors.lidar, config_path)

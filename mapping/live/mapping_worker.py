@@ -77,6 +77,7 @@ from mapping.live.final_map import FinalMapMetadata, TileStore, write_final_map
 from mapping.live.keyframe_spool import KeyframeSpool
 from mapping.live.map_images import preview_images, write_previews
 from mapping.live.odometry import Odometry, wheel_speed_mps
+from mapping.live.window_inputs import WindowInputs
 from mapping.live.window_schedule import window_span, windows_ended, windows_for_drive
 from mapping.live.worker_journal import VERSION as JOURNAL_VERSION
 from mapping.live.worker_journal import (
@@ -90,7 +91,8 @@ from mapping.live.worker_journal import (
 )
 from mapping.localization.sensor_time import span_clock
 from mapping.localization.trajectory import HorizontalTrack, Trajectory
-from mapping.method.scene_data import Keyframe, StandingPoints
+from mapping.method.compute_device import DEVICES, resolve_device, with_device
+from mapping.method.scene_data import Keyframe
 from mapping.outputs.map_export import bev_rasters
 
 PROCESS = "mapper"
@@ -100,23 +102,6 @@ INPUT_HORIZON_NS = 2_000_000_000  # a window's inputs reach this far past its en
 TILE_M = 40.0
 WINDOW_ATTEMPTS = 2
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class WindowInputs:
-    """What one window is optimised from, gathered from the spool and the small streams."""
-
-    centre_m: float  # the window's centre, start and end along the drive (end clipped to the distance driven)
-    start_m: float
-    end_m: float
-    t_lo_ns: int  # the host time span the window covers (within the fused trajectory)
-    t_hi_ns: int
-    trajectory: Trajectory  # fused over the small streams held, up to t_hi_ns + INPUT_HORIZON_NS
-    path: HorizontalTrack  # the window's track: times in seconds from t_lo_ns
-    keyframes: list[Keyframe]
-    ground: np.ndarray | None  # Lidar ground points, None without a Lidar
-    provenance: dict  # host time range, per-topic seq ranges, log segments, input counts (into the journal)
-    standing: StandingPoints | None  # what the Lidar saw standing on the road, for keyframes without masks
 
 
 @dataclass
@@ -140,6 +125,7 @@ class MappingWorker:
         self.config_path = str(Path(config_path).resolve())
         self.config_sha256 = hashlib.sha256(Path(config_path).read_bytes()).hexdigest()
         self.mapper = config.mapper
+        resolve_device(self.mapper.device, f"{config_path}: mapper.device")  # cuda without a GPU: exit 2
         self.folder = data_dir(config, config_path, output_dir) / "map"
         self._archive_finished_map()
         self.tiles_dir = self.folder / "tiles"
@@ -483,9 +469,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="mapping_worker", description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", required=True, help="car config YAML")
     parser.add_argument("--output-dir", help="data folder (default: recorder.output_dir of the config)")
+    parser.add_argument("--device", choices=DEVICES, help="torch device of the fits (default: mapper.device)")
     args = parser.parse_args(argv)
     setup_logging("mapper")
-    config = load_config(args.config)
+    config = with_device(load_config(args.config), args.device)
     worker = MappingWorker(config, args.config, args.output_dir)  # a ConfigError here: exit 2, not retried
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):

@@ -20,7 +20,7 @@ _KEY_BASE = 1 << 21
 def positional_encoding(p: torch.Tensor, dim: int) -> torch.Tensor:
     """(M, 2) scaled coordinates -> (M, dim): p itself then sin/cos(2^k pi p) for k < (dim - 2) / 4."""
     n_freq = (dim - 2) // 4
-    freqs = (2.0 ** torch.arange(n_freq, dtype=p.dtype)) * torch.pi
+    freqs = (2.0 ** torch.arange(n_freq, dtype=p.dtype, device=p.device)) * torch.pi
     angles = (p[:, None, :] * freqs[None, :, None]).reshape(len(p), -1)
     enc = torch.cat([p, torch.sin(angles), torch.cos(angles)], 1)
     if enc.shape[1] < dim:  # odd remainders are padded with zeros so the width is what was asked for
@@ -61,16 +61,18 @@ class ElevationMLP(nn.Module):
 
     def residual(self, xy_world: np.ndarray, lattice_m: float = 0.0) -> torch.Tensor:
         """Residual at world points; lattice_m > 0 evaluates only the lattice nodes around them."""
-        p = self.local(xy_world)
+        return self.residual_at(self.local(xy_world), lattice_m)
+
+    def residual_at(self, p: torch.Tensor, lattice_m: float = 0.0) -> torch.Tensor:
+        """`residual` at (M, 2) float32 points relative to origin_xy (a tensor on the MLP's device)."""
         if lattice_m <= 0:
             return self(p)
         g = p / lattice_m
         base = torch.floor(g)
         f = g - base
         base = base.to(torch.int64)
-        corners = torch.stack(
-            [base, base + torch.tensor([1, 0]), base + torch.tensor([0, 1]), base + torch.tensor([1, 1])], 1
-        )  # (M, 4, 2)
+        step = torch.tensor([[1, 0], [0, 1], [1, 1]], device=base.device)
+        corners = torch.stack([base, base + step[0], base + step[1], base + step[2]], 1)  # (M, 4, 2)
         key = (corners[..., 0] + _KEY_OFFSET) * _KEY_BASE + (corners[..., 1] + _KEY_OFFSET)
         unique_key, inverse = torch.unique(key.reshape(-1), return_inverse=True)
         nodes = torch.stack([unique_key // _KEY_BASE, unique_key % _KEY_BASE], 1) - _KEY_OFFSET

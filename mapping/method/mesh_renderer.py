@@ -39,6 +39,13 @@ def to_camera(T_world_camera: np.ndarray, points_world: np.ndarray) -> np.ndarra
     return d[:, 0:1] * R[0] + d[:, 1:2] * R[1] + d[:, 2:3] * R[2]
 
 
+def to_camera_tensors(T_world_camera: torch.Tensor, points_world: torch.Tensor) -> torch.Tensor:
+    """`to_camera` on tensors (float64, on their device), the same arithmetic in the same order."""
+    R, t = T_world_camera[:3, :3], T_world_camera[:3, 3]
+    d = points_world - t
+    return d[:, 0:1] * R[0] + d[:, 1:2] * R[1] + d[:, 2:3] * R[2]
+
+
 def distort_normalised(x: torch.Tensor, y: torch.Tensor, distortion) -> tuple[torch.Tensor, torch.Tensor]:
     k1, k2, p1, p2, k3 = distortion
     r2 = x * x + y * y
@@ -116,17 +123,36 @@ def rasterise(
     oy, ox = offset if offset is not None else (stride // 2, stride // 2)
     hs = len(range(oy, camera.height, stride))
     ws = len(range(ox, camera.width, stride))
-    out = torch.full((hs * ws,), -1, dtype=torch.int64)
     if len(faces) == 0:
-        return out.reshape(hs, ws).numpy()
+        return np.full((hs, ws), -1, np.int64)
     if len(vertices_world) > 3 * faces.size:  # project only the vertices these faces use
         used, local = used_vertices(faces, len(vertices_world))
     else:
         used, local = np.arange(len(vertices_world)), faces
-    cam = torch.from_numpy(to_camera(T_world_camera, vertices_world[used]).astype(np.float32))
+    grid = rasterise_tensors(torch.from_numpy(np.ascontiguousarray(vertices_world[used], np.float64)),
+                             torch.from_numpy(local.astype(np.int64)), camera,
+                             torch.from_numpy(np.ascontiguousarray(T_world_camera, np.float64)), stride, offset)
+    return grid.reshape(hs, ws).numpy()
+
+
+def rasterise_tensors(vertices_world: torch.Tensor, faces: torch.Tensor, camera: CameraModel,
+                      T_world_camera: torch.Tensor, stride: int = 1, offset: tuple[int, int] | None = None,
+                      max_candidates: int | None = _MAX_CANDIDATES) -> torch.Tensor:
+    """`rasterise` on tensors, on their device: vertices (V, 3) float64, faces (F, 3) int64 into them, the pose
+    (4, 4) float64; the face seen by each sampled pixel, flat (H' * W',). The pixel / face candidates are tested
+    `max_candidates` at a time (the chunks are sized on the host); None: all at once, nothing read back (the
+    optimisation loops: about 100 bytes a candidate, some 2 per pixel a face covers)."""
+    oy, ox = offset if offset is not None else (stride // 2, stride // 2)
+    hs = len(range(oy, camera.height, stride))
+    ws = len(range(ox, camera.width, stride))
+    device = vertices_world.device
+    out = torch.full((hs * ws,), -1, dtype=torch.int64, device=device)
+    if len(faces) == 0:
+        return out
+    cam = to_camera_tensors(T_world_camera, vertices_world).to(torch.float32)
     uv, valid = project(cam, camera)
-    g = (uv - torch.tensor([ox, oy], dtype=uv.dtype)) / stride
-    fl = torch.from_numpy(local.astype(np.int64))
+    g = torch.stack([uv[:, 0] - ox, uv[:, 1] - oy], 1) / stride  # (the offset as scalars: nothing to upload)
+    fl = faces
     visible = torch.nonzero(valid[fl].all(1))[:, 0]  # faces with every vertex in front and in the image
     fl = fl[visible]
     fg = g[fl]  # (F, 3, 2)
@@ -139,11 +165,15 @@ def rasterise(
     n = (hi - lo + 1).clamp(min=0).to(torch.int64)
     count = n[:, 0] * n[:, 1]
     fid = torch.nonzero(count > 0)[:, 0]
-    inv_depth = torch.zeros(hs * ws)
+    inv_depth = torch.zeros(hs * ws, device=device)
     face_depth = cam[:, 2][fl]
-    chunk = torch.div(torch.cumsum(count[fid], 0) - 1, _MAX_CANDIDATES, rounding_mode="floor")
+    if max_candidates is None:
+        parts: tuple[torch.Tensor, ...] = (fid,)
+    else:
+        chunk = torch.div(torch.cumsum(count[fid], 0) - 1, max_candidates, rounding_mode="floor")
+        parts = torch.split(fid, torch.unique_consecutive(chunk, return_counts=True)[1].tolist())
     cand_f, cand_p, cand_d = [], [], []
-    for part in torch.split(fid, torch.unique_consecutive(chunk, return_counts=True)[1].tolist()):
+    for part in parts:
         f, p, d = _candidates(part, count, n, lo, fg, face_depth, ws)
         inv_depth.scatter_reduce_(0, p, d, "amax")
         cand_f.append(f)
@@ -152,7 +182,7 @@ def rasterise(
     for f, p, d in zip(cand_f, cand_p, cand_d, strict=True):
         win = d >= inv_depth[p]
         out[p[win]] = visible[f[win]]
-    return out.reshape(hs, ws).numpy()
+    return out
 
 
 def _candidates(fid, count, n, lo, fg, depth, ws):
@@ -160,7 +190,7 @@ def _candidates(fid, count, n, lo, fg, depth, ws):
     c = count[fid]
     f = torch.repeat_interleave(fid, c)
     first = torch.cumsum(c, 0) - c
-    k = torch.arange(int(c.sum())) - torch.repeat_interleave(first, c)
+    k = torch.arange(len(f), device=f.device) - torch.repeat_interleave(first, c)
     nx = n[f, 0]
     px = lo[f, 0] + (k % nx)
     py = lo[f, 1] + torch.div(k, nx, rounding_mode="floor")
@@ -205,3 +235,9 @@ def sampled_pixels(camera: CameraModel, stride: int, offset: tuple[int, int] | N
 def world_rays(T_world_camera: np.ndarray, rays_cam: np.ndarray) -> np.ndarray:
     r, R = rays_cam.astype(np.float64), T_world_camera[:3, :3]
     return r[:, 0:1] * R[:, 0] + r[:, 1:2] * R[:, 1] + r[:, 2:3] * R[:, 2]  # r @ R.T without BLAS (see to_camera)
+
+
+def world_rays_tensors(T_world_camera: torch.Tensor, rays_cam: torch.Tensor) -> torch.Tensor:
+    """`world_rays` on tensors (the pose float64, on their device), the same arithmetic in the same order."""
+    r, R = rays_cam.to(torch.float64), T_world_camera[:3, :3]
+    return r[:, 0:1] * R[:, 0] + r[:, 1:2] * R[:, 1] + r[:, 2:3] * R[:, 2]

@@ -19,7 +19,7 @@ from mapping.method.scene_data import CameraModel, Keyframe
 CODE_INIT_STD = 0.1
 SEMANTIC_INIT_STD = 0.1
 NO_LABEL = 255
-_DECODE_CHUNK = 262_144
+DECODE_CHUNK = 262_144  # vertices per batch when the whole mesh goes through the models
 
 
 @dataclass(frozen=True)
@@ -73,16 +73,16 @@ class RoadMap:
 
     @torch.no_grad()
     def refresh_elevation(self) -> None:
-        for lo in range(0, self.mesh.num_vertices, _DECODE_CHUNK):
-            ids = np.arange(lo, min(lo + _DECODE_CHUNK, self.mesh.num_vertices))
+        for lo in range(0, self.mesh.num_vertices, DECODE_CHUNK):
+            ids = np.arange(lo, min(lo + DECODE_CHUNK, self.mesh.num_vertices))
             self.z_now[ids] = self.elevation_of(ids).numpy()
 
     @torch.no_grad()
     def vertex_colours(self, camera: str, ids: np.ndarray | None = None) -> np.ndarray:
         ids = np.arange(self.mesh.num_vertices) if ids is None else ids
         out = np.empty((len(ids), 3), np.float32)
-        for lo in range(0, len(ids), _DECODE_CHUNK):
-            part = ids[lo : lo + _DECODE_CHUNK]
+        for lo in range(0, len(ids), DECODE_CHUNK):
+            part = ids[lo : lo + DECODE_CHUNK]
             out[lo : lo + len(part)] = self.decoder.decode(self.colour_params[part], camera).numpy()
         return out
 

@@ -20,14 +20,15 @@ class RowSparseAdam:
     def __init__(self, table: torch.Tensor, lr: float, betas=(0.9, 0.999), eps: float = 1e-8):
         self.table = table  # (N, D), updated in place
         self.lr, self.betas, self.eps = lr, betas, eps
-        self.slot = torch.full((len(table),), -1, dtype=torch.int64)
+        device = table.device  # every buffer beside the table: a step reads nothing back to the host
+        self.slot = torch.full((len(table),), -1, dtype=torch.int64, device=device)
         width = table.shape[1]
-        self.m = torch.zeros(0, width)
-        self.v = torch.zeros(0, width)
-        self.last = torch.zeros(0, dtype=torch.int64)  # global step of each row's last update
+        self.m = torch.zeros(0, width, device=device)
+        self.v = torch.zeros(0, width, device=device)
+        self.last = torch.zeros(0, dtype=torch.int64, device=device)  # global step of each row's last update
         self.used = 0
         self.t = 0  # global step count
-        self._cum = torch.zeros(0, _EXACT_IDLE + 1, dtype=torch.float64)
+        self._cum = torch.zeros(0, _EXACT_IDLE + 1, dtype=torch.float64, device=device)
 
     def _slots(self, rows: torch.Tensor) -> torch.Tensor:
         new = rows[self.slot[rows] < 0]
@@ -38,19 +39,18 @@ class RowSparseAdam:
                 self.m = torch.cat([self.m, self.m.new_zeros(grow, self.m.shape[1])])
                 self.v = torch.cat([self.v, self.v.new_zeros(grow, self.v.shape[1])])
                 self.last = torch.cat([self.last, self.last.new_zeros(grow)])
-            self.slot[new] = torch.arange(self.used, need)
+            self.slot[new] = torch.arange(self.used, need, device=self.slot.device)
             self.last[self.used : need] = self.t - 1
             self.used = need
         return self.slot[rows]
 
     def _catch_up(self, rows: torch.Tensor, s: torch.Tensor, until: int) -> None:
-        """Apply the zero-gradient steps last+1 .. until-1 that rows `rows` (slots `s`) missed."""
+        """Apply the zero-gradient steps last+1 .. until-1 that rows `rows` (slots `s`) missed (none idle: every
+        update below is over no rows; not tested first, which would read the device back each step)."""
         b1, b2 = self.betas
         last = self.last[s]
         k = (until - 1 - last).clamp(min=0)
         idle = k > 0
-        if not idle.any():
-            return
         rows, s, last, k = rows[idle], s[idle], last[idle], k[idle].to(self.m.dtype)
         m, v = self.m[s], self.v[s]
         r = b1 / b2**0.5
@@ -71,11 +71,13 @@ class RowSparseAdam:
         if len(self._cum) < until:
             b1, b2 = self.betas
             n = max(until, 2 * len(self._cum), 256)
-            step = torch.arange(n, dtype=torch.float64)[:, None] + torch.arange(1, _EXACT_IDLE + 1)[None, :]
+            device = self.table.device
+            step = (torch.arange(n, dtype=torch.float64, device=device)[:, None]
+                    + torch.arange(1, _EXACT_IDLE + 1, device=device)[None, :])
             bias = (1 - b2**step).sqrt() / (1 - b1**step)
             r = b1 / b2**0.5
-            terms = (r ** torch.arange(1, _EXACT_IDLE + 1, dtype=torch.float64)) * bias
-            self._cum = torch.cat([torch.zeros(n, 1, dtype=torch.float64), terms.cumsum(1)], 1)
+            terms = (r ** torch.arange(1, _EXACT_IDLE + 1, dtype=torch.float64, device=device)) * bias
+            self._cum = torch.cat([torch.zeros(n, 1, dtype=torch.float64, device=device), terms.cumsum(1)], 1)
         return self._cum
 
     def step(self, rows: torch.Tensor, grad: torch.Tensor) -> None:

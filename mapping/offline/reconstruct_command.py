@@ -38,6 +38,7 @@ from daemon.spine.recorded_config import sectioned_recorded_config
 from daemon.spine.yaml_document import UnusableYaml, load_yaml
 from mapping.fits.reconstruction import ReconstructionResult, reconstruct
 from mapping.inputs.drive_inputs import DriveInputs, missing_masks_warning, start_loading_drive
+from mapping.method.compute_device import DEVICES, resolve_device, with_device
 from mapping.method.road_map import ABLATIONS, variant_for
 from mapping.method.scene_data import GroundTruth
 
@@ -162,6 +163,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--faithful", action="store_true", help="the paper's full computation (slow)")
     parser.add_argument("--epochs", type=int,
                         help="epochs of the faithful fit (default: the config's mapper.faithful_fit.epochs)")
+    parser.add_argument("--device", choices=DEVICES,
+                        help="torch device of the fit: auto (cuda when there is a GPU), cpu or cuda (default: the "
+                             "config's mapper.device)")
     args = parser.parse_args(argv)
     given = load_config(args.config) if args.config else None  # the config's own error first, as every process
     problems = [why for why in map(not_a_log, args.logs) if why]
@@ -174,6 +178,9 @@ def main(argv: list[str] | None = None) -> int:
         config, config_path = given, Path(args.config)
     else:
         config, config_path = config_from_logs(args.logs)
+    config = with_device(config, args.device)
+    source = "--device" if args.device is not None else f"{args.config or args.logs[0]}: mapper.device"
+    resolve_device(config.mapper.device, source)  # cuda without a GPU: one error line, exit 2
     if args.epochs is not None:
         faithful_fit = config.mapper.faithful_fit.model_copy(update={"epochs": args.epochs})
         config = config.model_copy(update={"mapper": config.mapper.model_copy(update={"faithful_fit": faithful_fit})})
