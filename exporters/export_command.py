@@ -1,11 +1,11 @@
 """`roadlog export FORMAT LOG... --out OUT`: roadlog logs in another system's format, for its tools. One exporter
-module per format, each with `add_arguments(parser)` and `run(args)` (as `importers/import_command.py`)."""
+module per format, each with `add_arguments(parser)` and `run(args)` (daemon/commands/format_subcommands.py)."""
 
 from __future__ import annotations
 
-import argparse
-import importlib
 import sys
+
+from daemon.commands.format_subcommands import run_format_command
 
 # format -> (module, one-line help): the only place an export format is declared
 FORMATS: dict[str, tuple[str, str]] = {
@@ -14,15 +14,7 @@ FORMATS: dict[str, tuple[str, str]] = {
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="roadlog export", description=__doc__.split("\n\n")[0])
-    formats = parser.add_subparsers(dest="format", metavar="FORMAT", required=True)
-    for name, (module, help_text) in FORMATS.items():
-        sub = formats.add_parser(name, help=help_text, description=help_text)
-        exporter = importlib.import_module(module)
-        exporter.add_arguments(sub)
-        sub.set_defaults(run=exporter.run)
-    args = parser.parse_args(argv)
-    return int(args.run(args))
+    return run_format_command("roadlog export", __doc__.split("\n\n")[0], FORMATS, argv)
 
 
 if __name__ == "__main__":

@@ -1,12 +1,12 @@
 """`roadlog import FORMAT SOURCE --out LOG.mcap`: a dataset or another system's recording as a roadlog log (with
 its car config recorded, so `roadlog reconstruct LOG` and `roadlog log-info LOG` need nothing else). One importer
-module per format, each with `add_arguments(parser)` and `run(args)`."""
+module per format, each with `add_arguments(parser)` and `run(args)` (daemon/commands/format_subcommands.py)."""
 
 from __future__ import annotations
 
-import argparse
-import importlib
 import sys
+
+from daemon.commands.format_subcommands import run_format_command
 
 # format -> (module, one-line help): the only place an import format is declared
 FORMATS: dict[str, tuple[str, str]] = {
@@ -17,15 +17,7 @@ FORMATS: dict[str, tuple[str, str]] = {
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="roadlog import", description=__doc__.split("\n\n")[0])
-    formats = parser.add_subparsers(dest="format", metavar="FORMAT", required=True)
-    for name, (module, help_text) in FORMATS.items():
-        sub = formats.add_parser(name, help=help_text, description=help_text)
-        importer = importlib.import_module(module)
-        importer.add_arguments(sub)
-        sub.set_defaults(run=importer.run)
-    args = parser.parse_args(argv)
-    return int(args.run(args))
+    return run_format_command("roadlog import", __doc__.split("\n\n")[0], FORMATS, argv)
 
 
 if __name__ == "__main__":
