@@ -180,6 +180,30 @@ def _interpolate_with_gaps(times: np.ndarray, sample_t: np.ndarray, values: np.n
     return result
 
 
+def _initial_heading(gnss_enu, gnss_t, imu_t, yaw_rate, mounting, baseline_m) -> float:
+    """Heading at the first fix from the rear axle's chord over the first `baseline_m`: the axle moves along the
+    car's heading, and over an arc its chord points half the angle turned (the gyro's) ahead of the start's."""
+    horizontal = np.linalg.norm(gnss_enu[:, :2] - gnss_enu[0, :2], axis=1)
+    far = np.flatnonzero(horizontal > baseline_m)
+    if not len(far):
+        return 0.0
+    end = far[0]
+    along = (imu_t >= gnss_t[0]) & (imu_t <= gnss_t[end])
+    turned = float(np.trapezoid(yaw_rate[along], imu_t[along])) if np.count_nonzero(along) > 1 else 0.0
+    arm = (np.asarray(mounting.gnss_lever_arm, float) - np.asarray(mounting.rear_axle_lever_arm, float))[:2]
+    yaw = np.arctan2(*(gnss_enu[end, 1::-1] - gnss_enu[0, 1::-1]))
+    for _ in range(3):  # the antenna sits beside and ahead of the axle: its chord differs while turning
+        start, finish = yaw - 0.5 * turned, yaw + 0.5 * turned
+        chord = (gnss_enu[end, :2] - _rotate(arm, finish)) - (gnss_enu[0, :2] - _rotate(arm, start))
+        yaw = float(np.arctan2(chord[1], chord[0]))
+    return yaw - 0.5 * turned
+
+
+def _rotate(xy: np.ndarray, angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([c * xy[0] - s * xy[1], s * xy[0] + c * xy[1]])
+
+
 def _initial_state(gnss_enu, gnss_cov0, gnss_t, imu_t, force_ref, gyro, wheel_t, rear_speed, mounting, settings):
     """Attitude from gravity (less the car's own acceleration: along its track from the speeds, centripetal from
     the gyro) and the first GNSS displacement; returns x, P."""
@@ -204,10 +228,7 @@ def _initial_state(gnss_enu, gnss_cov0, gnss_t, imu_t, force_ref, gyro, wheel_t,
     # for gravity it tilts the start by 2.5 deg, which a drive at constant speed and curvature never corrects
     up_i = force - accel_forward * forward_i - np.cross(rate, speed0 * forward_i)
     up_i /= np.linalg.norm(up_i)
-    horizontal = np.linalg.norm(gnss_enu[:, :2] - gnss_enu[0, :2], axis=1)
-    far = np.flatnonzero(horizontal > settings.heading_baseline_m)
-    direction = gnss_enu[far[0], :2] - gnss_enu[0, :2] if len(far) else np.array([1.0, 0.0])
-    yaw = np.arctan2(direction[1], direction[0])
+    yaw = _initial_heading(gnss_enu, gnss_t, imu_t, gyro @ up_i, mounting, settings.heading_baseline_m)
     heading_i = forward_i - (forward_i @ up_i) * up_i
     heading_i /= np.linalg.norm(heading_i)
     body = np.column_stack([heading_i, np.cross(up_i, heading_i), up_i])
