@@ -7,15 +7,19 @@ import argparse
 import importlib.util
 import json
 import statistics
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from mapping.localization.pose_fusion import fuse_trajectory
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))  # the package `mapping`, not bench/mapping.py beside this script
 
-TESTS = Path(__file__).resolve().parent.parent / "tests" / "test_pose_fusion.py"
+from mapping.localization.pose_fusion import fuse_trajectory  # noqa: E402
+
+TESTS = ROOT / "tests" / "mapping" / "test_pose_fusion.py"
 
 
 def load_simulator():
