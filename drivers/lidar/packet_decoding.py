@@ -72,6 +72,21 @@ def empty_points(counts: dict[str, int], model: str | None) -> DecodedPoints:
     )
 
 
+def points_buffer(capacity: int) -> tuple[np.ndarray, ...]:
+    """Uninitialised arrays for up to `capacity` points that a compiled decode loop fills, in DecodedPoints' order:
+    xyz, distance_m, intensity, laser_id, ring, azimuth_cdeg, return_type, timestamp_ns, packet_index."""
+    return (np.empty((capacity, 3), np.float32), np.empty(capacity, np.float32), np.empty(capacity, np.float32),
+            np.empty(capacity, np.uint16), np.empty(capacity, np.uint16), np.empty(capacity, np.uint16),
+            np.empty(capacity, np.uint8), np.empty(capacity, np.int64), np.empty(capacity, np.int64))
+
+
+def filled_points(model: str, buffer: tuple[np.ndarray, ...], n: int) -> DecodedPoints:
+    """The first n points of a points_buffer as DecodedPoints (views; counts left for the decoder to set)."""
+    xyz, distance, intensity, laser, ring, azimuth, return_type, time_ns, packet = (a[:n] for a in buffer)
+    return DecodedPoints(model=model, xyz=xyz, distance_m=distance, intensity=intensity, laser_id=laser, ring=ring,
+                         azimuth_cdeg=azimuth, return_type=return_type, timestamp_ns=time_ns, packet_index=packet)
+
+
 def rotation_starts(azimuth_cdeg: np.ndarray) -> np.ndarray:
     """Indices of the packets (their first firings' azimuths, in order) that begin a new rotation: where the
     azimuth falls by more than half a turn from the packet before."""
