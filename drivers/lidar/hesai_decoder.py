@@ -178,8 +178,9 @@ class HesaiDecoder:
         block = unit // fmt.n_channels % fmt.n_blocks
         distance = (raw_distance.ravel()[unit] * dis_unit[row]).astype(f32)
         raw_azimuth = self._block_azimuth(batch)[row, block - block % n_returns[row]]
-        firing_ns = fmt.firing_ns(n_returns, batch)  # (n or 1, blocks, channels)
-        firing_unit = unit if firing_ns.shape[0] == n else unit % per_packet
+        firing = fmt.firing
+        firing_ns = firing.block_ns(fmt.n_blocks)[n_returns[row], block]
+        firing_ns += firing.channel_ns[firing.rows(n_returns, batch, fmt.n_blocks)[row, block], channel]
         return DecodedPoints(
             model=self.model,
             xyz=self._xyz(distance, raw_azimuth, channel),
@@ -189,7 +190,7 @@ class HesaiDecoder:
             ring=self.angles.ring[channel],
             azimuth_cdeg=self._firing_azimuth(raw_azimuth).astype(np.uint16),
             return_type=return_type,
-            timestamp_ns=packet_times_ns(fmt, batch)[0][row] + firing_ns.ravel()[firing_unit],
+            timestamp_ns=packet_times_ns(fmt, batch)[0][row] + firing_ns,
             packet_index=index[row],
         )
 
