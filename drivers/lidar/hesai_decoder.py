@@ -100,7 +100,7 @@ class HesaiDecoder:
         counts["packets_decoded"] = len(index)
         if len(index) == 0:
             return empty_points(counts, self.model)
-        points = self._decode_points(batch, index)
+        points = self._decode_points(batch, index, len(packets))
         points.counts = counts
         return points
 
@@ -158,7 +158,7 @@ class HesaiDecoder:
         doubled = ((raw_azimuth - start) % _AT128_TURN) * 2 % _AT128_TURN
         return (doubled // 256).astype(np.int32)
 
-    def _decode_points(self, batch: np.ndarray, index: np.ndarray) -> DecodedPoints:
+    def _decode_points(self, batch: np.ndarray, index: np.ndarray, n_packets: int) -> DecodedPoints:
         """What is per packet and block (stamps, range bounds, azimuths, firing tables) with numpy, then every unit in
         one compiled loop (_decode_units) in nebula's order: packet, firing, channel, return."""
         fmt = self.format
@@ -171,14 +171,15 @@ class HesaiDecoder:
         frame_start = (self.angles.frame_start[self._at128_field(raw_azimuth)] if fmt.fine_azimuth
                        else np.zeros_like(raw_azimuth))
         firing = fmt.firing
+        stamps_ns = packet_times_ns(fmt, batch)[0]
         out = points_buffer(n * fmt.n_blocks * fmt.n_channels)
         kept = _decode_units(
-            batch, index, packet_times_ns(fmt, batch)[0], fmt.first_block + fmt.first_unit, fmt.block_size,
+            batch, index, stamps_ns, fmt.first_block + fmt.first_unit, fmt.block_size,
             fmt.unit_size, fmt.n_channels, n_returns, mode, lo, hi, _raw_below(dis_unit, self.dual_threshold_m),
             dis_unit, raw_azimuth, self._firing_azimuth(raw_azimuth), frame_start, firing.block_ns(fmt.n_blocks),
             firing.channel_ns, firing.rows(n_returns, batch, fmt.n_blocks), self._types, fmt.fine_azimuth,
             self._pandar_angles, *self._at128_angles, self.angles.ring, *out)
-        return filled_points(self.model, out, kept)
+        return filled_points(self.model, out, kept, n_packets, index, stamps_ns)
 
 
 @compiled

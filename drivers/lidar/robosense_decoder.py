@@ -139,7 +139,7 @@ class RobosenseDecoder:
         counts["packets_decoded"] = int(batch.shape[0])
         if batch.shape[0] == 0:
             return empty_points(counts, None)
-        points = self._decode_points(batch, index)
+        points = self._decode_points(batch, index, counts["packets_in"])
         points.counts = counts
         return points
 
@@ -191,7 +191,7 @@ class RobosenseDecoder:
                                [RETURN_TYPE_LAST, RETURN_TYPE_STRONGEST, RETURN_TYPE_LAST]).astype(np.uint8)
         return step, block_ns, return_type
 
-    def _decode_points(self, batch: np.ndarray, index: np.ndarray) -> DecodedPoints:
+    def _decode_points(self, batch: np.ndarray, index: np.ndarray, n_packets: int) -> DecodedPoints:
         """Per block (azimuth, step, time) with numpy, then every channel in one compiled loop (_decode_channels)."""
         m = self._m
         n = batch.shape[0]
@@ -199,14 +199,15 @@ class RobosenseDecoder:
         step, block_ns, block_return_type = self._block_timing(block_azimuth)
         if block_return_type is None:
             block_return_type = np.zeros((n, m.blocks), np.uint8)  # the channel's type (_return_type) is used
+        stamps_ns = self._stamps_ns(batch)
         out = points_buffer(n * m.blocks * m.channels)
         kept = _decode_channels(
-            batch, index, self._stamps_ns(batch), m.header_bytes, block_azimuth, step.astype(np.float32),
+            batch, index, stamps_ns, m.header_bytes, block_azimuth, step.astype(np.float32),
             np.ascontiguousarray(block_ns), block_return_type, np.float32(m.distance_resolution_m),
             np.float32(m.min_range_m), np.float32(m.max_range_m), np.float32(m.lens_offset_m), self._azimuth_fraction,
             self._az_offset, self._cos_el, self._sin_el, self._cos, self._sin, self._laser.astype(np.uint16),
             self._ring, self._return_type, self._firing_ns, *out)
-        return filled_points(m.name, out, kept)
+        return filled_points(m.name, out, kept, n_packets, index, stamps_ns)
 
 
 @compiled

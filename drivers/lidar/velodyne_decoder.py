@@ -176,7 +176,7 @@ class VelodyneDecoder:
         counts["packets_decoded"] = int(batch.shape[0])
         if model is None or batch.shape[0] == 0:
             return empty_points(counts, None if model is None else model.name)
-        points = self._decode_points(batch, index, model)
+        points = self._decode_points(batch, index, model, counts["packets_in"])
         points.counts = counts
         return points
 
@@ -232,7 +232,8 @@ class VelodyneDecoder:
         self._prev_azimuth = int(az[-1])
         return rate
 
-    def _decode_points(self, batch: np.ndarray, index: np.ndarray, model: VelodyneModel) -> DecodedPoints:
+    def _decode_points(self, batch: np.ndarray, index: np.ndarray, model: VelodyneModel,
+                       n_packets: int) -> DecodedPoints:
         """What is per packet (azimuths, modes, rotation rates) with numpy, then every return in one compiled loop
         (_decode_returns) in velodyne-decoder's order: block by block, a dual pair channel by channel (last,
         strongest); what depends on the laser and firing only comes from per-slot tables."""
@@ -260,7 +261,7 @@ class VelodyneDecoder:
             t["order"], t["block"], t["in_use"], t["laser"], t["dt"], t["time_ns"], t["dist_correction"],
             f32(cal.distance_resolution_m), self.min_range_m, self.max_range_m, self._cos_table, self._sin_table,
             self._laser_tables, cal.ring, self._has_offsets, cal.two_point_correction, self._intensity_rule, *out)
-        return filled_points(model.name, out, kept)
+        return filled_points(model.name, out, kept, n_packets, index, timestamp_us.astype(np.int64) * 1000)
 
     @property
     def _intensity_rule(self) -> int:
