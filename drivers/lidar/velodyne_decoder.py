@@ -228,7 +228,7 @@ class VelodyneDecoder:
         prev = np.concatenate([[-1 if self._prev_azimuth is None else self._prev_azimuth], az[:-1]])
         rate = ((az - prev + 36000) % 36000).astype(np.float32) / packet_duration
         rate[prev < 0] = 0.0
-        self._prev_rate = _keep_plausible_rates(rate, prev >= 0, self._prev_rate)
+        self._prev_rate = np.float32(_keep_plausible_rates(rate, prev >= 0, self._prev_rate))  # numba gives a float
         self._prev_azimuth = int(az[-1])
         return rate
 
