@@ -1,8 +1,9 @@
 """Hesai data packets (Pandar40P, Pandar64, PandarQT128, PandarXT32, Pandar128E4X/OT128, PandarAT128) decoded a
-batch at a time with numpy: returns per firing from the tail's return mode, range, reflectivity, channel,
-ring, per-point firing time on the sensor's UTC clock and xyz in the sensor frame (x forward, y left, z up).
-Foreign, truncated and malformed datagrams are counted per reason and skipped. `hesai_decoder(model, path)`
-builds one from the model's angle table; `hesai_imu_samples` reads the IMU fields the 128E4X tail carries."""
+batch at a time (numpy per packet, a compiled loop per return): returns per firing from the tail's return mode,
+range, reflectivity, channel, ring, per-point firing time on the sensor's UTC clock and xyz in the sensor frame
+(x forward, y left, z up). Foreign, truncated and malformed datagrams are counted per reason and skipped.
+`hesai_decoder(model, path)` builds one from the model's angle table; `hesai_imu_samples` reads the IMU fields the
+128E4X tail carries."""
 
 from __future__ import annotations
 

@@ -1,8 +1,8 @@
-"""Velodyne data packets (1,206 bytes: 12 blocks of 32 returns, a timestamp, two factory bytes) decoded
-a batch at a time with numpy: model and return mode from the factory bytes (HDL-64E: configured, its upper
-and lower blocks alternate, dual return seen in its azimuths), azimuth interpolated over each firing's time,
-range, intensity, laser id, ring, per-point time and xyz in the sensor frame (x forward, y left, z up, as
-velodyne-decoder gives them). Bad packets are counted and skipped."""
+"""Velodyne data packets (1,206 bytes: 12 blocks of 32 returns, a timestamp, two factory bytes) decoded a batch at a
+time (numpy per packet, a compiled loop per return): model and return mode from the factory bytes (HDL-64E:
+configured, its upper and lower blocks alternate, dual return seen in its azimuths), azimuth interpolated over each
+firing's time, range, intensity, laser id, ring, per-point time and xyz in the sensor frame (x forward, y left,
+z up, as velodyne-decoder gives them). Bad packets are counted and skipped."""
 
 from __future__ import annotations
 
