@@ -34,7 +34,13 @@ from drivers.lidar.ouster_decoder import count_missing_packets, decode_packets, 
 from drivers.lidar.ouster_imu import decode_imu_packet, imu_profile_supported
 from drivers.lidar.ouster_metadata import OusterMetadata, configured_metadata, imu_port
 from drivers.lidar.ouster_packet_layout import OusterPacketLayout, packet_layout, packets_per_second
-from drivers.lidar.udp_receive import ReceiveBuffer, open_lidar_socket, receive_queued, serve_batches
+from drivers.lidar.udp_receive import (
+    ReceiveBuffer,
+    open_lidar_socket,
+    receive_queued,
+    report_short_buffer,
+    serve_batches,
+)
 
 PROCESS = "lidar"
 log = logging.getLogger(__name__)
@@ -231,9 +237,7 @@ def run_lidar_driver(
     rate = packets_per_second(metadata)
     period_s = batch_period(granted, layout, rate, batch_period_s)
     stats = LidarDriverStats(receive_buffer_bytes=granted, batch_period_ms=round(1000 * period_s, 3))
-    if granted < config.receive_buffer_bytes:
-        health.last_error = (f"receive buffer {granted} B granted of {config.receive_buffer_bytes} B asked "
-                             f"(raise net.core.rmem_max)")
+    report_short_buffer(granted, config.receive_buffer_bytes, health)
     loss = PacketLossCounter(layout, round(RESTART_AFTER_S * rate))
     buf = ReceiveBuffer.allocate(batch_packets, layout.packet_size)
     imu_sock = _open_imu_socket(config, metadata, stats, health)

@@ -68,6 +68,12 @@ def open_lidar_socket(bind_address: str, port: int, receive_buffer_bytes: int) -
     return sock, sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
 
 
+def report_short_buffer(granted: int, asked: int, health: HealthCounters) -> None:
+    """A receive buffer smaller than the config asks for, as the health's last error."""
+    if granted < asked:
+        health.last_error = f"receive buffer {granted} B granted of {asked} B asked (raise net.core.rmem_max)"
+
+
 def receive_queued(sock: socket.socket, buf: ReceiveBuffer, start: int, mono_minus_real_ns: int,
                     stats: SocketStats, health: HealthCounters) -> int:
     """Receive the datagrams already queued into rows start.. of `buf`; returns the rows filled."""

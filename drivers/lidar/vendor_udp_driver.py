@@ -30,7 +30,7 @@ from daemon.spine.process_logging import setup_logging
 from daemon.spine.topics import LIDAR_IMU, LIDAR_PACKETS, health_topic
 from drivers.lidar.lidar_models import VENDOR_LIDARS, configured_decoder
 from drivers.lidar.packet_decoding import PacketDecoder
-from drivers.lidar.udp_receive import ReceiveBuffer, open_lidar_socket, serve_batches
+from drivers.lidar.udp_receive import ReceiveBuffer, open_lidar_socket, report_short_buffer, serve_batches
 
 PROCESS = "lidar"
 log = logging.getLogger(__name__)
@@ -173,9 +173,7 @@ def run_vendor_lidar_driver(
     `health_period_s`. Raises OSError when the socket cannot be bound."""
     sock, granted = open_lidar_socket(config.bind_address, config.port, config.receive_buffer_bytes)
     stats = VendorDriverStats(model=decoder.model, receive_buffer_bytes=granted)
-    if granted < config.receive_buffer_bytes:
-        health.last_error = (f"receive buffer {granted} B granted of {config.receive_buffer_bytes} B asked "
-                             f"(raise net.core.rmem_max)")
+    report_short_buffer(granted, config.receive_buffer_bytes, health)
     lidar = VENDOR_LIDARS[config.model]
     clock = StampClock(lidar.stamp_period_ns)
     imu = PacketImu(lidar.imu_readings) if lidar.imu_readings is not None else None
