@@ -3,6 +3,9 @@
 
 Under `vendors`, the other models decoded, on the shared real captures (bench/lidar_vendors.py).
 
+`realtime_factor` (Ouster) and each vendor's `realtime_factor_128` are points/s over a 128-beam sensor's real rate
+(SENSOR_POINTS_PER_S); issue 16's target is REALTIME_FACTOR_TARGET for every vendor model (`vendors_below_target`).
+
 Run: .venv/bin/python bench/lidar.py [--quick]. Last line: JSON with points_per_s, ouster_sdk_ratio, vendors."""
 
 import os
@@ -25,7 +28,8 @@ from drivers.lidar.ouster_metadata import metadata_to_json, simulated_os128_meta
 from drivers.lidar.ouster_packet_layout import packet_layout  # noqa: E402
 from drivers.lidar.ouster_xyz import make_xyz_lut  # noqa: E402
 
-SENSOR_POINTS_PER_S = 2048 * 128 * 10  # an OS-128 at 2048x10: 2.62 M points/s
+SENSOR_POINTS_PER_S = 2048 * 128 * 10  # an OS-128 at 2048x10: 2.62 M points/s, the 128-beam rate the targets count in
+REALTIME_FACTOR_TARGET = 20  # issue 16: every vendor decoder at least 20x a 128-beam sensor's point rate on one core
 
 
 def make_frames(layout, n_frames: int, seed: int = 0) -> list[np.ndarray]:
@@ -136,7 +140,11 @@ def main() -> None:
     vendors = velodyne_figures(time_medians, repeats)
     vendors |= hdl64e_figures(time_medians, repeats)
     vendors |= hesai_figures(time_medians, repeats)
-    vendors |= robosense_figures(args.quick)
+    vendors |= robosense_figures(time_medians, repeats, args.quick)
+    for figures in vendors.values():
+        figures["realtime_factor_128"] = round(figures["points_per_s"] / SENSOR_POINTS_PER_S, 2)
+    below_target = [model for model, figures in vendors.items()
+                    if figures["realtime_factor_128"] < REALTIME_FACTOR_TARGET]
     print(
         f"OS-128 2048x10 LEGACY, {n_frames} frames x 128 packets, median of {repeats}, core {args.core}, "
         "points/s per CPU-second of this thread unless wall_clock"
@@ -156,11 +164,14 @@ def main() -> None:
             if "reference_points_per_s" in figures
             else f"  reference: {figures['reference']}"
         ) + ("  [synthetic]" if figures.get("synthetic") else "")
-        print(f"  {model:18s} points_per_s {figures['points_per_s'] / 1e6:6.1f} M{error}{reference}")
+        print(f"  {model:18s} points_per_s {figures['points_per_s'] / 1e6:6.1f} M "
+              f"(x{figures['realtime_factor_128']:5.1f} of 128 beams){error}{reference}")
+    print(f"vendors below {REALTIME_FACTOR_TARGET}x a 128-beam sensor's rate: {', '.join(below_target) or 'none'}")
     print(
         json.dumps(
             {k: round(v, 3) if v < 1e3 else round(v) for k, v in results.items()}
-            | {"frames": n_frames, "repeats": repeats, "xyz_dtype": "float32 (sdk: float64)", "vendors": vendors}
+            | {"frames": n_frames, "repeats": repeats, "xyz_dtype": "float32 (sdk: float64)", "vendors": vendors,
+               "vendor_realtime_factor_128_target": REALTIME_FACTOR_TARGET, "vendors_below_target": below_target}
         )
     )
 

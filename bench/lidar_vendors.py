@@ -204,26 +204,13 @@ def hdl64e_figures(time_medians: Callable[[list, int], tuple[list[float], list[f
     }
 
 
-def robosense_figures(quick: bool) -> dict:
+def robosense_figures(time_medians: Callable[[list, int], tuple[list[float], list[float]]], repeats: int,
+                      quick: bool) -> dict:
     """{model: figures} for RoboSense: our decoder's points/s on one core (CPU seconds of this thread,
-    median of repeats) and its largest xyz difference from the reference. Helios-16P: the shared real capture,
+    median of `repeats`) and its largest xyz difference from the reference. Helios-16P: the shared real capture,
     against Nebula's decoded cloud of its first rotation (no Python decoder exists to time beside it).
     Ruby-128: packets from the test-side encoder (synthetic), against the float64 geometry that test computes."""
-    import statistics
-    import time
-
     from drivers.lidar.robosense_decoder import robosense_decoder
-
-    repeats = 3 if quick else 9
-
-    def median_cpu(run: Callable[[], object]) -> float:
-        run()
-        times = []
-        for _ in range(repeats):
-            start = time.thread_time()
-            run()
-            times.append(time.thread_time() - start)
-        return statistics.median(times)
 
     figures = {}
     payloads = [d.payload for d in read_pcap_udp(NEBULA / "robosense" / "helios16P.pcap").datagrams]
@@ -232,7 +219,6 @@ def robosense_figures(quick: bool) -> dict:
     reference = np.loadtxt(NEBULA / "robosense" / "helios16P.reference.pcd", skiprows=11)
     error = np.abs(points.xyz[: len(reference)].astype(np.float64) - reference[:, :3]).max(axis=1)
     figures["Helios-16P"] = {
-        "points_per_s": round(len(points.xyz) / median_cpu(lambda: decoder.decode(payloads))),
         "max_abs_err_m": float(error.max()),
         "p99_abs_err_m": float(np.quantile(error, 0.99)),
         "reference": "Nebula's decoded first rotation (point by point)",
@@ -251,11 +237,12 @@ def robosense_figures(quick: bool) -> dict:
     points = ruby.decode(packets)
     expected = expected_ruby128_points(raw, azimuth)
     figures["Ruby-128"] = {
-        "points_per_s": round(len(points.xyz) / median_cpu(lambda: ruby.decode(packets))),
         "max_abs_err_m": float(np.abs(points.xyz - expected[:, :3]).max()),
         "reference": "float64 geometry from the MSOP layout, self-made packets and angle table",
         "points": len(points.xyz),
         "packets": len(packets),
         "synthetic": True,
     }
-    return figures
+    cpu, _ = time_medians([lambda: decoder.decode(payloads), lambda: ruby.decode(packets)], repeats)
+    return {model: {"points_per_s": round(f["points"] / t)} | f for (model, f), t in zip(figures.items(), cpu,
+                                                                                       strict=True)}

@@ -1,8 +1,9 @@
 """Hesai data packets (Pandar40P, Pandar64, PandarQT128, PandarXT32, Pandar128E4X/OT128, PandarAT128) decoded a
-batch at a time with numpy: returns per firing from the tail's return mode, range, reflectivity, channel,
-ring, per-point firing time on the sensor's UTC clock and xyz in the sensor frame (x forward, y left, z up).
-Foreign, truncated and malformed datagrams are counted per reason and skipped. `hesai_decoder(model, path)`
-builds one from the model's angle table; `hesai_imu_samples` reads the IMU fields the 128E4X tail carries."""
+batch at a time (numpy per packet, a compiled loop per return): returns per firing from the tail's return mode,
+range, reflectivity, channel, ring, per-point firing time on the sensor's UTC clock and xyz in the sensor frame
+(x forward, y left, z up). Foreign, truncated and malformed datagrams are counted per reason and skipped.
+`hesai_decoder(model, path)` builds one from the model's angle table; `hesai_imu_samples` reads the IMU fields the
+128E4X tail carries."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drivers.lidar.compiled_loops import compiled
 from drivers.lidar.hesai_calibration import (
     AT128_ADJUST_ENTRIES,
     AT128_ADJUST_STEP_UNITS,
@@ -29,7 +31,7 @@ from drivers.lidar.hesai_packet_formats import (
     return_type_table,
     u16,
 )
-from drivers.lidar.packet_decoding import DecodedPoints, PacketCheck, empty_points
+from drivers.lidar.packet_decoding import DecodedPoints, PacketCheck, empty_points, filled_points, points_buffer
 
 __all__ = ["HESAI_MODELS", "HesaiDecoder", "hesai_decoder", "hesai_imu_samples"]
 
@@ -43,6 +45,7 @@ BAD_TIMESTAMP = "bad_timestamp"  # the tail's date or microseconds are out of ra
 REASONS = (WRONG_SIZE, FOREIGN_MODEL, BAD_HEADER, BAD_BLOCK_FLAG, UNKNOWN_RETURN_MODE, BAD_TIMESTAMP)
 
 _AT128_TURN = 360 * AT128_ANGLE_UNITS_PER_DEG
+_COS_ELEVATION, _SIN_ELEVATION, _COS_OFFSET, _SIN_OFFSET = range(4)  # rows of HesaiDecoder._pandar_angles
 _COS_CDEG = np.cos(np.deg2rad(np.arange(36000) * 0.01)).astype(np.float32)
 _SIN_CDEG = np.sin(np.deg2rad(np.arange(36000) * 0.01)).astype(np.float32)
 
@@ -61,10 +64,19 @@ class HesaiDecoder:
         self.min_range_m = max(min_range_m, fmt.min_range_m)
         self.max_range_m = min(max_range_m, fmt.max_range_m)
         self.dual_threshold_m = dual_return_distance_threshold_m
+        channels = fmt.n_channels
+        # _decode_units' angles: the one kind the table is, the other's arrays empty
+        self._pandar_angles = np.zeros((4, channels), np.float32)
+        self._at128_angles = (np.zeros(channels, np.int64), np.zeros(channels, np.int64),
+                              np.zeros((channels, AT128_ADJUST_ENTRIES), np.int64),
+                              np.zeros((channels, AT128_ADJUST_ENTRIES), np.int64))
         if isinstance(angles, HesaiAngles):  # per-channel cosines and sines, float32
             elevation, offset = np.deg2rad(angles.elevation_deg), np.deg2rad(angles.azimuth_offset_deg)
-            self._cos_elevation, self._sin_elevation = (f(elevation).astype(np.float32) for f in (np.cos, np.sin))
-            self._cos_offset, self._sin_offset = (f(offset).astype(np.float32) for f in (np.cos, np.sin))
+            self._pandar_angles = np.stack([np.cos(elevation), np.sin(elevation), np.cos(offset),
+                                            np.sin(offset)]).astype(np.float32)
+        else:
+            self._at128_angles = tuple(np.ascontiguousarray(a, dtype=np.int64) for a in (
+                angles.azimuth, angles.elevation, angles.azimuth_adjust, angles.elevation_adjust))
         self._types = return_type_table(fmt.first_last_reversed)
 
     @property
@@ -89,7 +101,7 @@ class HesaiDecoder:
         counts["packets_decoded"] = len(index)
         if len(index) == 0:
             return empty_points(counts, self.model)
-        points = self._decode_points(batch, index)
+        points = self._decode_points(batch, index, len(packets))
         points.counts = counts
         return points
 
@@ -147,130 +159,117 @@ class HesaiDecoder:
         doubled = ((raw_azimuth - start) % _AT128_TURN) * 2 % _AT128_TURN
         return (doubled // 256).astype(np.int32)
 
-    def _decode_points(self, batch: np.ndarray, index: np.ndarray) -> DecodedPoints:
-        """Units looked at densely, per packet, firing (block group), return and channel; the kept ones picked
-        out in nebula's order: packet, firing, channel, return."""
+    def _decode_points(self, batch: np.ndarray, index: np.ndarray, n_packets: int) -> DecodedPoints:
+        """What is per packet and block (stamps, range bounds, azimuths, firing tables) with numpy, then every unit in
+        one compiled loop (_decode_units) in nebula's order: packet, firing, channel, return."""
         fmt = self.format
-        n, f32 = len(batch), np.float32
-        blocks = batch[:, fmt.first_block : fmt.first_block + fmt.n_blocks * fmt.block_size]
-        blocks = blocks.reshape(n, fmt.n_blocks, fmt.block_size)
-        units = blocks[:, :, fmt.first_unit : fmt.first_unit + fmt.n_channels * fmt.unit_size]
-        units = units.reshape(n, fmt.n_blocks, fmt.n_channels, fmt.unit_size)
-        raw_distance = units[:, :, :, 0].astype(np.int32) | (units[:, :, :, 1].astype(np.int32) << 8)
-        reflectivity = units[:, :, :, 2]
+        n = len(batch)
         dis_unit = np.full(n, 0.004) if fmt.dis_unit_at is None else batch[:, fmt.dis_unit_at] * 1e-3
         mode = batch[:, fmt.return_mode_at]
         n_returns = N_RETURNS[mode]
-        per_packet = fmt.n_blocks * fmt.n_channels
-        parts = []
-        for nr in np.unique(n_returns):
-            rows = np.flatnonzero(n_returns == nr)
-            unit, return_type = self._kept_returns(int(nr), mode[rows], raw_distance[rows], reflectivity[rows],
-                                                   dis_unit[rows])
-            parts.append((rows[unit // per_packet] * per_packet + unit % per_packet, return_type))
-        if len(parts) > 1:
-            unit, return_type = (np.concatenate([p[i] for p in parts]) for i in range(2))
-            order = np.argsort(unit // per_packet, kind="stable")
-            unit, return_type = unit[order], return_type[order]
-        else:
-            unit, return_type = parts[0]
-        row, channel = unit // per_packet, unit % fmt.n_channels
-        block = unit // fmt.n_channels % fmt.n_blocks
-        distance = (raw_distance.ravel()[unit] * dis_unit[row]).astype(f32)
-        raw_azimuth = self._block_azimuth(batch)[row, block - block % n_returns[row]]
-        firing_ns = fmt.firing_ns(n_returns, batch)  # (n or 1, blocks, channels)
-        firing_unit = unit if firing_ns.shape[0] == n else unit % per_packet
-        return DecodedPoints(
-            model=self.model,
-            xyz=self._xyz(distance, raw_azimuth, channel),
-            distance_m=distance,
-            intensity=reflectivity.ravel()[unit].astype(f32),
-            laser_id=channel.astype(np.uint16),
-            ring=self.angles.ring[channel],
-            azimuth_cdeg=self._firing_azimuth(raw_azimuth).astype(np.uint16),
-            return_type=return_type,
-            timestamp_ns=packet_times_ns(fmt, batch)[0][row] + firing_ns.ravel()[firing_unit],
-            packet_index=index[row],
-        )
-
-    def _kept_returns(self, nr: int, mode: np.ndarray, raw_distance: np.ndarray, reflectivity: np.ndarray,
-                      dis_unit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Flat indices into the (m, blocks, channels) units of m packets with `nr` returns per firing of the
-        returns kept, in order of packet, firing, channel, return; and their return types. Ranges are compared
-        in raw units: per packet, the raw bounds that the metre limits give."""
-        m, n_blocks, n_channels = raw_distance.shape
-        shape = (m, n_blocks // nr, nr, n_channels)  # packet, firing, return, channel
-        d = raw_distance.reshape(shape)
         lo, hi = _raw_bounds(dis_unit, self.min_range_m, self.max_range_m)
-        keep = (d >= lo[:, None, None, None]) & (d <= hi[:, None, None, None])  # lo >= 1: raw 0 is no return
-        if nr == 1:
-            unit = np.flatnonzero(keep)
-            return unit, self._types[mode[unit // (n_blocks * n_channels)], 0, 1]
-        refl = reflectivity.reshape(shape)
-        strongest = (refl == refl.max(axis=2, keepdims=True)).ravel()
-        # A return equal to or within the threshold of another of its firing is dropped unless it is the last;
-        # the last then stands for it and carries its type bits too (nebula keeps only the last).
-        near_raw = _raw_below(dis_unit, self.dual_threshold_m)[:, None, None]
-        dropped = np.zeros_like(keep)
-        for r in range(nr - 1):
-            for other in range(nr):
-                if other != r:
-                    dropped[:, :, r] |= np.abs(d[:, :, r] - d[:, :, other]) <= near_raw
-                    if near_raw.min() < 0:  # else an equal distance is near already
-                        dropped[:, :, r] |= (d[:, :, r] == d[:, :, other]) & (refl[:, :, r] == refl[:, :, other])
-        dropped &= keep
-        keep &= ~dropped
-        t = np.flatnonzero(keep.transpose(0, 1, 3, 2))  # ((packet, firing), channel, return)
-        ret, channel, firing = t % nr, t // nr % n_channels, t // (nr * n_channels)
-        unit = (firing * nr + ret) * n_channels + channel
-        mode = mode[unit // (n_blocks * n_channels)]
-        return_type = self._types[mode, ret, strongest[unit].astype(np.intp)]
-        last = np.flatnonzero(ret == nr - 1)
-        dropped = dropped.ravel()
-        for r in range(nr - 1):
-            other = unit[last] - (nr - 1 - r) * n_channels
-            was = last[dropped[other]]
-            return_type[was] |= self._types[mode[was], r, strongest[other[dropped[other]]].astype(np.intp)]
-        return unit, return_type
+        raw_azimuth = self._block_azimuth(batch)
+        frame_start = (self.angles.frame_start[self._at128_field(raw_azimuth)] if fmt.fine_azimuth
+                       else np.zeros_like(raw_azimuth))
+        firing = fmt.firing
+        stamps_ns = packet_times_ns(fmt, batch)[0]
+        out = points_buffer(n * fmt.n_blocks * fmt.n_channels)
+        kept = _decode_units(
+            batch, index, stamps_ns, fmt.first_block + fmt.first_unit, fmt.block_size,
+            fmt.unit_size, fmt.n_channels, n_returns, mode, lo, hi, _raw_below(dis_unit, self.dual_threshold_m),
+            dis_unit, raw_azimuth, self._firing_azimuth(raw_azimuth), frame_start, firing.block_ns(fmt.n_blocks),
+            firing.channel_ns, firing.rows(n_returns, batch, fmt.n_blocks), self._types, fmt.fine_azimuth,
+            self._pandar_angles, *self._at128_angles, self.angles.ring, *out)
+        return filled_points(self.model, out, kept, n_packets, index, stamps_ns)
 
-    def _xyz(self, distance: np.ndarray, raw_azimuth: np.ndarray, channel: np.ndarray) -> np.ndarray:
-        """x forward, y left, z up of each return, float32. Hesai's azimuth runs clockwise seen from above, 0
-        forward. Pandar: the block azimuth's cosine and sine from a 0.01 degree table, the channel's offset added
-        by the angle sum formulas."""
-        f32 = np.float32
-        xyz = np.empty((len(distance), 3), f32)
-        if self.format.fine_azimuth:
-            azimuth, elevation = self._angles_rad(raw_azimuth, channel)
-            xy = distance * np.cos(elevation)
-            xyz[:, 0], xyz[:, 1], xyz[:, 2] = xy * np.cos(azimuth), -xy * np.sin(azimuth), distance * np.sin(elevation)
-            return xyz
-        cos_b, sin_b = _COS_CDEG[raw_azimuth % 36000], _SIN_CDEG[raw_azimuth % 36000]
-        cos_o, sin_o = self._cos_offset[channel], self._sin_offset[channel]
-        xy = distance * self._cos_elevation[channel]
-        np.multiply(xy, cos_b * cos_o - sin_b * sin_o, out=xyz[:, 0])
-        np.multiply(xy, -(sin_b * cos_o + cos_b * sin_o), out=xyz[:, 1])
-        np.multiply(distance, self._sin_elevation[channel], out=xyz[:, 2])
-        return xyz
 
-    def _angles_rad(self, raw_azimuth: np.ndarray, channel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """AT128: corrected azimuth and elevation of each point from the correction file. The azimuth is twice
-        the motor angle past the mirror's frame start, less the channel's azimuth, plus the adjustment that
-        the file gives every 2 degrees of motor angle, interpolated (nebula's rule; past the last entry the
-        last one is taken)."""
-        c = self.angles
-        start = c.frame_start[self._at128_field(raw_azimuth)]
-        step = raw_azimuth // AT128_ADJUST_STEP_UNITS
-        k = (raw_azimuth - step * AT128_ADJUST_STEP_UNITS) / AT128_ADJUST_STEP_UNITS
-        upper = np.minimum(step + 1, AT128_ADJUST_ENTRIES - 1)
-
-        def adjust(table: np.ndarray) -> np.ndarray:  # 0.01 degree -> angle units
-            hundredths = np.round((1 - k) * table[channel, step] + k * table[channel, upper])
-            return hundredths * (AT128_ANGLE_UNITS_PER_DEG // 100)
-
-        azimuth = ((raw_azimuth - start) % _AT128_TURN) * 2 - c.azimuth[channel] + adjust(c.azimuth_adjust)
-        elevation = c.elevation[channel] + adjust(c.elevation_adjust)
-        unit = np.pi / (180 * AT128_ANGLE_UNITS_PER_DEG)
-        return (azimuth % _AT128_TURN) * unit, ((elevation + _AT128_TURN // 2) % _AT128_TURN - _AT128_TURN // 2) * unit
+@compiled
+def _decode_units(batch, index, stamps_ns, first_unit, block_size, unit_size, n_channels, n_returns, mode, lo, hi,
+                  near_raw, dis_unit, raw_azimuth, firing_azimuth, frame_start, block_ns, channel_ns, table_rows,
+                  types, at128, pandar_angles, at128_azimuth, at128_elevation, at128_azimuth_adjust,
+                  at128_elevation_adjust, rings, xyz, distance, intensity, laser, ring, azimuth, return_type, time_ns,
+                  packet):  # pragma: no cover - compiled
+    """The kept returns of every packet into the points_buffer arrays; returns how many. A return is kept with a raw
+    range within the packet's bounds [lo, hi] (the metre limits in its unit); of a multiple-return firing's returns,
+    one equal to another (distance and reflectivity) or within near_raw of it is dropped unless it is the firing's
+    last, which then carries its type bits too (nebula keeps only the last). Pandar: the block azimuth's cosine and
+    sine from a 0.01 degree table, the channel's offset added by the angle sum formulas, float32. AT128 (float64,
+    then float32): the azimuth twice the motor angle past the mirror's frame start, less the channel's azimuth,
+    plus the adjustment the file gives every 2 degrees of motor angle, interpolated (nebula's rule; past the last
+    entry the last one is taken), the elevation the channel's plus its adjustment. Hesai's azimuth runs clockwise
+    seen from above, 0 forward."""
+    f32 = np.float32
+    units_d = np.empty(3, np.int64)
+    units_refl = np.empty(3, np.int64)
+    dropped = np.zeros(3, np.bool_)
+    angle_unit = np.pi / (180 * AT128_ANGLE_UNITS_PER_DEG)
+    hundredth = AT128_ANGLE_UNITS_PER_DEG // 100
+    last_entry = AT128_ADJUST_ENTRIES - 1
+    k = 0
+    for p in range(batch.shape[0]):
+        nr = n_returns[p]
+        for f in range(raw_azimuth.shape[1] // nr):
+            first = f * nr  # the firing's first block: its azimuth
+            for c in range(n_channels):
+                brightest = 0
+                for r in range(nr):
+                    at = first_unit + (first + r) * block_size + c * unit_size
+                    units_d[r] = batch[p, at] | (np.int64(batch[p, at + 1]) << 8)
+                    units_refl[r] = batch[p, at + 2]
+                    brightest = max(brightest, units_refl[r])
+                for r in range(nr):
+                    d_r = units_d[r]
+                    dropped[r] = False
+                    if d_r < lo[p] or d_r > hi[p]:
+                        continue
+                    if r < nr - 1:
+                        for o in range(nr):
+                            if o != r and (abs(d_r - units_d[o]) <= near_raw[p] or (
+                                    d_r == units_d[o] and units_refl[r] == units_refl[o])):
+                                dropped[r] = True
+                        if dropped[r]:
+                            continue
+                    kind = types[mode[p], r, 1 if units_refl[r] == brightest else 0]
+                    if r == nr - 1:
+                        for o in range(nr - 1):
+                            if dropped[o]:
+                                kind |= types[mode[p], o, 1 if units_refl[o] == brightest else 0]
+                    block = first + r
+                    d = f32(d_r * dis_unit[p])
+                    raw = raw_azimuth[p, first]
+                    if not at128:
+                        cos_b, sin_b = _COS_CDEG[raw % 36000], _SIN_CDEG[raw % 36000]
+                        cos_o, sin_o = pandar_angles[_COS_OFFSET, c], pandar_angles[_SIN_OFFSET, c]
+                        xy = d * pandar_angles[_COS_ELEVATION, c]
+                        xyz[k, 0] = xy * (cos_b * cos_o - sin_b * sin_o)
+                        xyz[k, 1] = xy * -(sin_b * cos_o + cos_b * sin_o)
+                        xyz[k, 2] = d * pandar_angles[_SIN_ELEVATION, c]
+                    else:
+                        step = min(raw // AT128_ADJUST_STEP_UNITS, last_entry)  # (a raw angle past the turn: bad)
+                        part = (raw - step * AT128_ADJUST_STEP_UNITS) / AT128_ADJUST_STEP_UNITS
+                        upper = min(step + 1, last_entry)
+                        az_adjust = np.rint((1 - part) * at128_azimuth_adjust[c, step] + part * at128_azimuth_adjust[
+                            c, upper]) * hundredth
+                        el_adjust = np.rint((1 - part) * at128_elevation_adjust[c, step] + part *
+                                            at128_elevation_adjust[c, upper]) * hundredth
+                        az = ((raw - frame_start[p, first]) % _AT128_TURN) * 2 - at128_azimuth[c] + az_adjust
+                        el = at128_elevation[c] + el_adjust
+                        az_rad = (az % _AT128_TURN) * angle_unit
+                        el_rad = ((el + _AT128_TURN // 2) % _AT128_TURN - _AT128_TURN // 2) * angle_unit
+                        xy = np.float64(d) * np.cos(el_rad)
+                        xyz[k, 0] = xy * np.cos(az_rad)
+                        xyz[k, 1] = -xy * np.sin(az_rad)
+                        xyz[k, 2] = np.float64(d) * np.sin(el_rad)
+                    distance[k] = d
+                    intensity[k] = units_refl[r]
+                    laser[k] = c
+                    ring[k] = rings[c]
+                    azimuth[k] = firing_azimuth[p, first]
+                    return_type[k] = kind
+                    time_ns[k] = stamps_ns[p] + block_ns[nr, block] + channel_ns[table_rows[p, block], c]
+                    packet[k] = index[p]
+                    k += 1
+    return k
 
 
 def _raw_bounds(dis_unit: np.ndarray, min_m: float, max_m: float) -> tuple[np.ndarray, np.ndarray]:

@@ -1,9 +1,11 @@
 """When each return of a Hesai data packet was fired, in nanoseconds after the packet's own timestamp (negative:
-before it), per model: a per-block term by return mode and a per-channel term, from the firing time tables of
-Hesai's user manuals (the figures tier4/nebula uses). Each function takes the packets' (n,) number of returns
-and their raw bytes and gives an (n, blocks, channels) int64 array."""
+before it), per model as data (FiringTimes): a per-block term by return mode and a per-channel term from one of the
+model's tables, from the firing time tables of Hesai's user manuals (the figures tier4/nebula uses)."""
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -86,53 +88,55 @@ _AT128 = np.array([
 ], np.int64)
 
 
-def _blocks(n_blocks: int) -> np.ndarray:
-    return np.arange(n_blocks, dtype=np.int64)[None, :, None]
+@dataclass(frozen=True)
+class FiringTimes:
+    """A model's firing times: a return of block b in a packet of r returns per firing, channel c, fired
+    `block_offset_ns + block_step_ns * ((last block - b) // r) + channel_ns[row, c]` after the packet's stamp, `row`
+    the channel table the block fires by (`table_rows`; None: the one table)."""
+
+    block_offset_ns: int
+    block_step_ns: int
+    channel_ns: np.ndarray  # (tables, channels) int64
+    table_rows: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None  # (n_returns, packets) -> (n, blocks)
+
+    def block_ns(self, n_blocks: int) -> np.ndarray:
+        """(4, n_blocks) int64: the block term by returns per firing (row 0 unused) and block."""
+        returns = np.maximum(np.arange(4), 1)[:, None]
+        return self.block_offset_ns + self.block_step_ns * ((n_blocks - 1 - np.arange(n_blocks)) // returns)
+
+    def rows(self, n_returns: np.ndarray, packets: np.ndarray, n_blocks: int) -> np.ndarray:
+        """(n, n_blocks) intp: the channel table of each packet's blocks."""
+        if self.table_rows is None:
+            return np.zeros((len(packets), n_blocks), np.intp)
+        return np.ascontiguousarray(self.table_rows(n_returns, packets), dtype=np.intp)
 
 
-def pandar40p(n_returns: np.ndarray, packets: np.ndarray) -> np.ndarray:
-    block = -28580 - 55560 * ((9 - _blocks(10)) // n_returns[:, None, None])
-    return block + _P40[None, None, :]
+def _qt128_loops(n_returns: np.ndarray, packets: np.ndarray, mode_flag_offset: int = 1066) -> np.ndarray:
+    """PandarQT128, table 0 loop 1 and 1 loop 2. Single return: block 0 fires loop 1, block 1 loop 2, 111.11 us
+    apart; multiple return: both blocks are returns of one firing of the loop that bit 0 of the tail's mode flag
+    names (1: loop 1). Nebula divides the block term by the number of returns after multiplying, which puts the two
+    returns of one dual firing 55.6 us apart; here they share the firing's time, as the QT128C2X manual has it ("the
+    measurements from each round of firing are stored in the two blocks of one packet")."""
+    flag_loop1 = (packets[:, mode_flag_offset] & 1)[:, None] == 1
+    return np.where(np.where(n_returns[:, None] == 1, np.arange(2)[None, :] == 0, flag_loop1), 0, 1)
 
 
-def pandar64(n_returns: np.ndarray, packets: np.ndarray) -> np.ndarray:
-    block = -42580 - 55560 * ((5 - _blocks(6)) // n_returns[:, None, None])
-    return block + _P64[None, None, :]
-
-
-def pandarqt128(n_returns: np.ndarray, packets: np.ndarray, mode_flag_offset: int = 1066) -> np.ndarray:
-    """Single return: block 0 fires loop 1, block 1 loop 2, 111.11 us apart; multiple return: both blocks are
-    returns of one firing of the loop that bit 0 of the tail's mode flag names (1: loop 1). Nebula divides the
-    block term by the number of returns after multiplying, which puts the two returns of one dual firing
-    55.6 us apart; here they share the firing's time, as the QT128C2X manual has it ("the measurements from
-    each round of firing are stored in the two blocks of one packet")."""
-    nr = n_returns[:, None, None]
-    block = 9000 + 111110 * ((1 - _blocks(2)) // nr)
-    loop1 = np.where(nr == 1, _blocks(2) % 2 == 0, (packets[:, mode_flag_offset] & 1)[:, None, None] == 1)
-    return block + np.where(loop1, _QT128_LOOP1[None, None, :], _QT128_LOOP2[None, None, :])
-
-
-def pandarxt32(n_returns: np.ndarray, packets: np.ndarray) -> np.ndarray:
-    block = 5632 - 50000 * ((7 - _blocks(8)) // n_returns[:, None, None])
-    return block + 368 + 1512 * np.arange(32, dtype=np.int64)[None, None, :]
-
-
-def pandar128e4x(n_returns: np.ndarray, packets: np.ndarray, azimuth_state_offset: int = 814,
-                 operational_state_offset: int = 816) -> np.ndarray:
-    """Standard mode (operational state 1) from one table; high-resolution mode (0) from the table of each
-    block's azimuth state (2 bits per block, block 0 in bits 15-14 of the tail's azimuth state; the manual's
+def _e4x_states(n_returns: np.ndarray, packets: np.ndarray, azimuth_state_offset: int = 814,
+                operational_state_offset: int = 816) -> np.ndarray:
+    """Pandar128E4X: table 0 in standard mode (operational state 1); in high-resolution mode (0) table 1 or 2 by
+    each block's azimuth state (2 bits per block, block 0 in bits 15-14 of the tail's azimuth state; the manual's
     tables are for states 0 and 1, nebula takes the state-1 table for any other state, as here)."""
-    nr = n_returns[:, None, None]
-    block = np.where(nr == 1, -27778 * 2 * (1 - _blocks(2)), 0) + 43346
     state = packets[:, azimuth_state_offset].astype(np.int64) | packets[:, azimuth_state_offset + 1].astype(
         np.int64) << 8
-    azimuth_state = ((state[:, None] >> (14 - 2 * np.arange(2))) & 3 != 0).astype(np.intp)  # (n, 2): 0 or not
-    hires = (packets[:, operational_state_offset] == 0)[:, None, None]
-    channel = np.where(hires, _E4X_HIRES[azimuth_state], _E4X_STANDARD[None, None, :])
-    return block + channel
+    azimuth_state = (state[:, None] >> (14 - 2 * np.arange(2))) & 3 != 0  # (n, 2)
+    hires = (packets[:, operational_state_offset] == 0)[:, None]
+    return np.where(hires, 1 + azimuth_state, 0)
 
 
-def pandarat128(n_returns: np.ndarray, packets: np.ndarray) -> np.ndarray:
-    nr = n_returns[:, None, None]
-    block = np.where(nr == 1, -9249 - 41666 * (2 - _blocks(2)), -9249 - 41666)
-    return block + _AT128[None, None, :]
+PANDAR40P = FiringTimes(-28580, -55560, _P40[None, :])
+PANDAR64 = FiringTimes(-42580, -55560, _P64[None, :])
+PANDARQT128 = FiringTimes(9000, 111110, np.stack([_QT128_LOOP1, _QT128_LOOP2]), _qt128_loops)
+PANDARXT32 = FiringTimes(5632, -50000, 368 + 1512 * np.arange(32, dtype=np.int64)[None, :])
+# Pandar128E4X: single return, block 0 fires 55.556 us before block 1; multiple return: both at once.
+PANDAR128E4X = FiringTimes(43346, -27778 * 2, np.concatenate([_E4X_STANDARD[None, :], _E4X_HIRES]), _e4x_states)
+PANDARAT128 = FiringTimes(-9249 - 41666, -41666, _AT128[None, :])

@@ -4,12 +4,19 @@ Learnt from tier4/nebula's packet structs and Hesai's user manuals; offsets are 
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.lidar import hesai_firing_times
+from drivers.lidar.hesai_firing_times import (
+    PANDAR40P,
+    PANDAR64,
+    PANDAR128E4X,
+    PANDARAT128,
+    PANDARQT128,
+    PANDARXT32,
+    FiringTimes,
+)
 from drivers.lidar.packet_decoding import RETURN_TYPE_LAST, RETURN_TYPE_OTHER, RETURN_TYPE_STRONGEST
 
 # Tail return-mode byte -> returns per firing (the blocks of one firing are consecutive).
@@ -49,7 +56,7 @@ class HesaiFormat:
     date_kind: str
     min_range_m: float
     max_range_m: float
-    firing_ns: Callable[[np.ndarray, np.ndarray], np.ndarray]  # see hesai_firing_times
+    firing: FiringTimes
     first_last_reversed: bool = False  # dual first+last: the sensor puts the last return first
     imu_at: int | None = None  # offset of the IMU fields in the tail
 
@@ -65,19 +72,19 @@ FORMATS = {
     f.model: f
     for f in (
         HesaiFormat("hesai-pandar40p", (1262, 1266), ((0, 0xFF), (1, 0xEE)), 10, 40, 0, 124, 2, False, 4, 3,
-                    b"\xff\xee", None, 1254, 1250, 1256, DATE_YMDHMS, 0.3, 200.0, hesai_firing_times.pandar40p),
+                    b"\xff\xee", None, 1254, 1250, 1256, DATE_YMDHMS, 0.3, 200.0, PANDAR40P),
         HesaiFormat("hesai-pandar64", (1194, 1198), _SIGNATURE + ((2, 64), (3, 6)), 6, 64, 8, 194, 0, False, 2, 3,
-                    b"", 5, 1186, 1182, 1188, DATE_YMDHMS, 0.3, 200.0, hesai_firing_times.pandar64),
+                    b"", 5, 1186, 1182, 1188, DATE_YMDHMS, 0.3, 200.0, PANDAR64),
         HesaiFormat("hesai-pandarqt128", (1095, 1127), _header12(3, 128, 2), 2, 128, 12, 514, 0, False, 2, 4,
-                    b"", 9, 1073, 1082, 1076, DATE_YMDHMS, 0.05, 50.0, hesai_firing_times.pandarqt128),
+                    b"", 9, 1073, 1082, 1076, DATE_YMDHMS, 0.05, 50.0, PANDARQT128),
         HesaiFormat("hesai-pandarxt32", (1076, 1080), _header12(6, 32, 8), 8, 32, 12, 130, 0, False, 2, 4,
-                    b"", 9, 1062, 1071, 1065, DATE_YMDHMS, 0.05, 120.0, hesai_firing_times.pandarxt32,
+                    b"", 9, 1062, 1071, 1065, DATE_YMDHMS, 0.05, 120.0, PANDARXT32,
                     first_last_reversed=True),
         HesaiFormat("hesai-pandar128e4x", (861, 893), _header12(1, 128, 2), 2, 128, 12, 386, 0, False, 2, 3,
-                    b"", 9, 817, 826, 820, DATE_YMDHMS, 0.1, 230.0, hesai_firing_times.pandar128e4x,
+                    b"", 9, 817, 826, 820, DATE_YMDHMS, 0.1, 230.0, PANDAR128E4X,
                     first_last_reversed=True, imu_at=835),
         HesaiFormat("hesai-pandarat128", (1086, 1118), _header12(4, 128, 2), 2, 128, 12, 515, 0, True, 3, 4,
-                    b"", 9, 1070, 1066, 1072, DATE_EPOCH, 1.0, 180.0, hesai_firing_times.pandarat128),
+                    b"", 9, 1070, 1066, 1072, DATE_EPOCH, 1.0, 180.0, PANDARAT128),
     )
 }
 HESAI_MODELS = tuple(FORMATS)

@@ -5,7 +5,7 @@ datagram that the driver stamps and counts packets with (PacketCheck), the point
 A decoder is an object with `model` (its name), `check(packets) -> PacketCheck` and
 `decode(packets) -> DecodedPoints`; `packets` is a list of datagram payloads of any size, in arrival order.
 Times are on the sensor's clock as its packets carry it (Velodyne: past the top of the hour; Hesai and
-RoboSense: UTC), so a point's time after its packet's stamp is `timestamp_ns - check.sensor_time_ns[packet]`.
+RoboSense: UTC), so a point's time after its packet's stamp is `timestamp_ns - packet_time_ns[packet_index]`.
 """
 
 from __future__ import annotations
@@ -44,6 +44,7 @@ class DecodedPoints:
     return_type: np.ndarray  # (N,) uint8, RETURN_TYPE_* bits
     timestamp_ns: np.ndarray  # (N,) int64, firing time on the sensor's clock
     packet_index: np.ndarray  # (N,) int64, position of the point's packet in the decode call's input
+    packet_time_ns: np.ndarray  # (P,) int64, each input packet's own stamp as PacketCheck's; 0 where not decoded
     # packets_in, packets_decoded, and reason -> datagrams skipped for it
     counts: dict[str, int] = field(default_factory=dict)
 
@@ -68,8 +69,29 @@ def empty_points(counts: dict[str, int], model: str | None) -> DecodedPoints:
         return_type=np.zeros(0, np.uint8),
         timestamp_ns=np.zeros(0, np.int64),
         packet_index=np.zeros(0, np.int64),
+        packet_time_ns=np.zeros(counts.get("packets_in", 0), np.int64),
         counts=counts,
     )
+
+
+def points_buffer(capacity: int) -> tuple[np.ndarray, ...]:
+    """Uninitialised arrays for up to `capacity` points that a compiled decode loop fills, in DecodedPoints' order:
+    xyz, distance_m, intensity, laser_id, ring, azimuth_cdeg, return_type, timestamp_ns, packet_index."""
+    return (np.empty((capacity, 3), np.float32), np.empty(capacity, np.float32), np.empty(capacity, np.float32),
+            np.empty(capacity, np.uint16), np.empty(capacity, np.uint16), np.empty(capacity, np.uint16),
+            np.empty(capacity, np.uint8), np.empty(capacity, np.int64), np.empty(capacity, np.int64))
+
+
+def filled_points(model: str, buffer: tuple[np.ndarray, ...], n: int, n_packets: int, index: np.ndarray,
+                  stamps_ns: np.ndarray) -> DecodedPoints:
+    """The first n points of a points_buffer as DecodedPoints (views; counts left for the decoder to set), of n_packets
+    input packets of which those at `index` decoded with their own stamps `stamps_ns`."""
+    xyz, distance, intensity, laser, ring, azimuth, return_type, time_ns, packet = (a[:n] for a in buffer)
+    packet_time_ns = np.zeros(n_packets, np.int64)
+    packet_time_ns[index] = stamps_ns
+    return DecodedPoints(model=model, xyz=xyz, distance_m=distance, intensity=intensity, laser_id=laser, ring=ring,
+                         azimuth_cdeg=azimuth, return_type=return_type, timestamp_ns=time_ns, packet_index=packet,
+                         packet_time_ns=packet_time_ns)
 
 
 def rotation_starts(azimuth_cdeg: np.ndarray) -> np.ndarray:

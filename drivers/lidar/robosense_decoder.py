@@ -1,9 +1,9 @@
 """RoboSense MSOP data packets (1,248 bytes: a header with the UTC time, blocks of one azimuth and its
-channels' ranges, big-endian) of the Helios-16P and Ruby-128 decoded a batch at a time with numpy: firing
-azimuth interpolated over each channel's firing time, range, intensity, laser, ring, per-point time on the
-sensor's UTC clock and xyz in the sensor frame (x forward, y left, z up). Device-info (DIFOP) packets and bad
-packets are counted by reason and skipped. The return mode is not in the MSOP packet (only in DIFOP):
-it is configured."""
+channels' ranges, big-endian) of the Helios-16P and Ruby-128 decoded a batch at a time (numpy per packet, a
+compiled loop per channel): firing azimuth interpolated over each channel's firing time, range, intensity, laser,
+ring, per-point time on the sensor's UTC clock and xyz in the sensor frame (x forward, y left, z up). Device-info
+(DIFOP) packets and bad packets are counted by reason and skipped. The return mode is not in the MSOP packet (only
+in DIFOP): it is configured."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drivers.lidar.compiled_loops import compiled
 from drivers.lidar.packet_decoding import (
     RETURN_TYPE_LAST,
     RETURN_TYPE_OTHER,
@@ -19,6 +20,8 @@ from drivers.lidar.packet_decoding import (
     DecodedPoints,
     PacketCheck,
     empty_points,
+    filled_points,
+    points_buffer,
 )
 from drivers.lidar.robosense_calibration import RobosenseCalibration, load_robosense_calibration
 
@@ -136,7 +139,7 @@ class RobosenseDecoder:
         counts["packets_decoded"] = int(batch.shape[0])
         if batch.shape[0] == 0:
             return empty_points(counts, None)
-        points = self._decode_points(batch, index)
+        points = self._decode_points(batch, index, counts["packets_in"])
         points.counts = counts
         return points
 
@@ -188,46 +191,63 @@ class RobosenseDecoder:
                                [RETURN_TYPE_LAST, RETURN_TYPE_STRONGEST, RETURN_TYPE_LAST]).astype(np.uint8)
         return step, block_ns, return_type
 
-    def _decode_points(self, batch: np.ndarray, index: np.ndarray) -> DecodedPoints:
-        """All channels computed densely as (n, blocks, channels), then the ones with a range kept."""
+    def _decode_points(self, batch: np.ndarray, index: np.ndarray, n_packets: int) -> DecodedPoints:
+        """Per block (azimuth, step, time) with numpy, then every channel in one compiled loop (_decode_channels)."""
         m = self._m
-        f32 = np.float32
         n = batch.shape[0]
-        blocks = self._blocks(batch)
-        block_azimuth = _be16(blocks, 2).astype(np.int32)  # (n, blocks)
+        block_azimuth = _be16(self._blocks(batch), 2).astype(np.int32)  # (n, blocks)
         step, block_ns, block_return_type = self._block_timing(block_azimuth)
-        returns = blocks[:, :, 4:].reshape(n, m.blocks, m.channels, 3)
-        raw_distance = _be16(returns, 0)
-        distance = raw_distance.astype(f32) * f32(m.distance_resolution_m)
-        keep = (raw_distance != 0) & (distance >= f32(m.min_range_m)) & (distance <= f32(m.max_range_m))
-        kept_packet, kept_block, kept_channel = np.nonzero(keep)
-        d = distance[keep]
-        # As RoboSense's SDK does: whole 0.01 degree steps, the interpolation truncated.
-        firing_azimuth = block_azimuth[kept_packet, kept_block] + (
-            step[kept_packet, kept_block] * self._azimuth_fraction[kept_channel]
-        ).astype(np.int32)
-        final = (firing_azimuth + self._az_offset[kept_channel]) % _ONE_TURN
-        firing_azimuth %= _ONE_TURN
-        xy = d * self._cos_el[kept_channel]
-        lens = f32(m.lens_offset_m)
-        xyz = np.empty((d.shape[0], 3), f32)
-        xyz[:, 0] = xy * self._cos[final] + lens * self._cos[firing_azimuth]
-        xyz[:, 1] = -(xy * self._sin[final] + lens * self._sin[firing_azimuth])
-        xyz[:, 2] = d * self._sin_el[kept_channel]
-        stamps = self._stamps_ns(batch)
-        return DecodedPoints(
-            model=m.name,
-            xyz=xyz,
-            distance_m=d,
-            intensity=returns[:, :, :, 2][keep].astype(f32),
-            laser_id=self._laser[kept_channel].astype(np.uint16),
-            ring=self._ring[kept_channel],
-            azimuth_cdeg=firing_azimuth.astype(np.uint16),
-            return_type=self._return_type[kept_channel] if block_return_type is None
-            else block_return_type[kept_packet, kept_block],
-            timestamp_ns=stamps[kept_packet] + block_ns[kept_packet, kept_block] + self._firing_ns[kept_channel],
-            packet_index=index[kept_packet],
-        )
+        if block_return_type is None:
+            block_return_type = np.zeros((n, m.blocks), np.uint8)  # the channel's type (_return_type) is used
+        stamps_ns = self._stamps_ns(batch)
+        out = points_buffer(n * m.blocks * m.channels)
+        kept = _decode_channels(
+            batch, index, stamps_ns, m.header_bytes, block_azimuth, step.astype(np.float32),
+            np.ascontiguousarray(block_ns), block_return_type, np.float32(m.distance_resolution_m),
+            np.float32(m.min_range_m), np.float32(m.max_range_m), np.float32(m.lens_offset_m), self._azimuth_fraction,
+            self._az_offset, self._cos_el, self._sin_el, self._cos, self._sin, self._laser.astype(np.uint16),
+            self._ring, self._return_type, self._firing_ns, *out)
+        return filled_points(m.name, out, kept, n_packets, index, stamps_ns)
+
+
+@compiled
+def _decode_channels(batch, index, stamps_ns, header_bytes, block_azimuth, step, block_ns, block_return_type,
+                     resolution, min_range, max_range, lens, azimuth_fraction, azimuth_offset, cos_elevation,
+                     sin_elevation, cos_table, sin_table, lasers, rings, channel_return_type, firing_ns, xyz, distance,
+                     intensity, laser, ring, azimuth, return_type, time_ns, packet):  # pragma: no cover - compiled
+    """The channels with a range within the limits of every packet's blocks into the points_buffer arrays, in
+    packet, block, channel order; returns how many. The firing azimuth in whole 0.01 degree steps, the
+    interpolation truncated, as RoboSense's SDK does; float32 throughout."""
+    n_blocks, n_channels = block_azimuth.shape[1], azimuth_fraction.shape[0]
+    block_bytes = 4 + 3 * n_channels
+    k = 0
+    for p in range(batch.shape[0]):
+        for b in range(n_blocks):
+            for c in range(n_channels):
+                at = header_bytes + b * block_bytes + 4 + 3 * c
+                raw = (np.int64(batch[p, at]) << 8) | batch[p, at + 1]
+                if raw == 0:
+                    continue
+                d = np.float32(raw) * resolution
+                if d < min_range or d > max_range:
+                    continue
+                firing = block_azimuth[p, b] + np.int32(step[p, b] * azimuth_fraction[c])
+                final = (firing + azimuth_offset[c]) % 36000
+                firing %= 36000
+                xy = d * cos_elevation[c]
+                xyz[k, 0] = xy * cos_table[final] + lens * cos_table[firing]
+                xyz[k, 1] = -(xy * sin_table[final] + lens * sin_table[firing])
+                xyz[k, 2] = d * sin_elevation[c]
+                distance[k] = d
+                intensity[k] = batch[p, at + 2]
+                laser[k] = lasers[c]
+                ring[k] = rings[c]
+                azimuth[k] = firing
+                return_type[k] = block_return_type[p, b] or channel_return_type[c]  # the block's, where it has one
+                time_ns[k] = stamps_ns[p] + block_ns[p, b] + firing_ns[c]
+                packet[k] = index[p]
+                k += 1
+    return k
 
 
 def robosense_decoder(model: str, calibration_path: str | Path | None = None, dual_return: bool = False,

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
-import select
 import signal
 import socket
 import threading
@@ -35,7 +34,13 @@ from drivers.lidar.ouster_decoder import count_missing_packets, decode_packets, 
 from drivers.lidar.ouster_imu import decode_imu_packet, imu_profile_supported
 from drivers.lidar.ouster_metadata import OusterMetadata, configured_metadata, imu_port
 from drivers.lidar.ouster_packet_layout import OusterPacketLayout, packet_layout, packets_per_second
-from drivers.lidar.udp_receive import ReceiveBuffer, gather_batch, open_lidar_socket, receive_queued
+from drivers.lidar.udp_receive import (
+    ReceiveBuffer,
+    open_lidar_socket,
+    receive_queued,
+    report_short_buffer,
+    serve_batches,
+)
 
 PROCESS = "lidar"
 log = logging.getLogger(__name__)
@@ -232,34 +237,17 @@ def run_lidar_driver(
     rate = packets_per_second(metadata)
     period_s = batch_period(granted, layout, rate, batch_period_s)
     stats = LidarDriverStats(receive_buffer_bytes=granted, batch_period_ms=round(1000 * period_s, 3))
-    if granted < config.receive_buffer_bytes:
-        health.last_error = (f"receive buffer {granted} B granted of {config.receive_buffer_bytes} B asked "
-                             f"(raise net.core.rmem_max)")
+    report_short_buffer(granted, config.receive_buffer_bytes, health)
     loss = PacketLossCounter(layout, round(RESTART_AFTER_S * rate))
     buf = ReceiveBuffer.allocate(batch_packets, layout.packet_size)
-    poller = select.poll()
-    poller.register(sock, select.POLLIN)
     imu_sock = _open_imu_socket(config, metadata, stats, health)
     imu_buf = ReceiveBuffer.allocate(IMU_BATCH, IMU_ROW_BYTES)
-    if imu_sock is not None:
-        poller.register(imu_sock, select.POLLIN)
+    others = {} if imu_sock is None else {imu_sock: lambda: _handle_imu(imu_sock, imu_buf, publish, stats, health)}
     try:
-        _publish_health(publish, health, stats)
-        next_health = time.monotonic() + health_period_s
-        while not stop.is_set():
-            now = time.monotonic()
-            if now >= next_health:
-                _publish_health(publish, health, stats)
-                next_health = max(next_health + health_period_s, now)
-            wait_ms = max(0, round(1000 * min(idle_wait_s, next_health - now)))
-            ready = {fd for fd, _ in poller.poll(wait_ms)}
-            if imu_sock is not None and imu_sock.fileno() in ready:
-                _handle_imu(imu_sock, imu_buf, publish, stats, health)
-            if sock.fileno() not in ready:
-                continue
-            n = gather_batch(sock, buf, period_s, stats, health)
-            if n:
-                _handle_batch(buf, n, layout, prod_sn, publish, health, stats, loss)
+        serve_batches(sock, buf, period_s,
+                      lambda n: _handle_batch(buf, n, layout, prod_sn, publish, health, stats, loss),
+                      lambda: _publish_health(publish, health, stats), stop, stats, health, health_period_s,
+                      idle_wait_s, others)
     finally:
         sock.close()
         if imu_sock is not None:

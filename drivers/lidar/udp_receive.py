@@ -1,12 +1,16 @@
 """Receiving a Lidar's UDP datagrams in batches: a socket with kernel arrival times and overflow counts, and one
 (N, row bytes) buffer filled with what arrives within a batch period, each row with its real length and arrival
-time. Shared by the Ouster driver and the vendor packet driver."""
+time; and the drivers' serve loop (`serve_batches`: health on a period, batches as they arrive). Shared by the
+Ouster driver and the vendor packet driver."""
 
 from __future__ import annotations
 
+import select
 import socket
 import struct
+import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -64,6 +68,12 @@ def open_lidar_socket(bind_address: str, port: int, receive_buffer_bytes: int) -
     return sock, sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
 
 
+def report_short_buffer(granted: int, asked: int, health: HealthCounters) -> None:
+    """A receive buffer smaller than the config asks for, as the health's last error."""
+    if granted < asked:
+        health.last_error = f"receive buffer {granted} B granted of {asked} B asked (raise net.core.rmem_max)"
+
+
 def receive_queued(sock: socket.socket, buf: ReceiveBuffer, start: int, mono_minus_real_ns: int,
                     stats: SocketStats, health: HealthCounters) -> int:
     """Receive the datagrams already queued into rows start.. of `buf`; returns the rows filled."""
@@ -101,3 +111,31 @@ def gather_batch(sock: socket.socket, buf: ReceiveBuffer, batch_period_s: float,
         time.sleep(remaining)  # let datagrams gather in the kernel's buffer
         n = receive_queued(sock, buf, n, mono_minus_real_ns, stats, health)
     return n
+
+
+def serve_batches(sock: socket.socket, buf: ReceiveBuffer, batch_period_s: float, on_batch: Callable[[int], None],
+                  report_health: Callable[[], None], stop: threading.Event, stats: SocketStats, health: HealthCounters,
+                  health_period_s: float, idle_wait_s: float,
+                  others: dict[socket.socket, Callable[[], None]] | None = None) -> None:
+    """Until `stop` is set: health reported at once and then every `health_period_s`; each batch gathered on `sock`
+    (gather_batch) given to `on_batch` as its row count; each of `others` handled when it is readable, before the
+    batch. Waits at most `idle_wait_s` at a time, so that `stop` is seen."""
+    poller = select.poll()
+    handlers = {s.fileno(): handle for s, handle in (others or {}).items()}
+    for fd in (sock.fileno(), *handlers):
+        poller.register(fd, select.POLLIN)
+    report_health()
+    next_health = time.monotonic() + health_period_s
+    while not stop.is_set():
+        now = time.monotonic()
+        if now >= next_health:
+            report_health()
+            next_health = max(next_health + health_period_s, now)
+        ready = {fd for fd, _ in poller.poll(max(0, round(1000 * min(idle_wait_s, next_health - now))))}
+        for fd in ready & handlers.keys():
+            handlers[fd]()
+        if sock.fileno() not in ready:
+            continue
+        n = gather_batch(sock, buf, batch_period_s, stats, health)
+        if n:
+            on_batch(n)

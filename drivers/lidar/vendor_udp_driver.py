@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
-import select
 import signal
 import threading
 import time
@@ -31,7 +30,7 @@ from daemon.spine.process_logging import setup_logging
 from daemon.spine.topics import LIDAR_IMU, LIDAR_PACKETS, health_topic
 from drivers.lidar.lidar_models import VENDOR_LIDARS, configured_decoder
 from drivers.lidar.packet_decoding import PacketDecoder
-from drivers.lidar.udp_receive import ReceiveBuffer, gather_batch, open_lidar_socket
+from drivers.lidar.udp_receive import ReceiveBuffer, open_lidar_socket, report_short_buffer, serve_batches
 
 PROCESS = "lidar"
 log = logging.getLogger(__name__)
@@ -174,29 +173,17 @@ def run_vendor_lidar_driver(
     `health_period_s`. Raises OSError when the socket cannot be bound."""
     sock, granted = open_lidar_socket(config.bind_address, config.port, config.receive_buffer_bytes)
     stats = VendorDriverStats(model=decoder.model, receive_buffer_bytes=granted)
-    if granted < config.receive_buffer_bytes:
-        health.last_error = (f"receive buffer {granted} B granted of {config.receive_buffer_bytes} B asked "
-                             f"(raise net.core.rmem_max)")
+    report_short_buffer(granted, config.receive_buffer_bytes, health)
     lidar = VENDOR_LIDARS[config.model]
     clock = StampClock(lidar.stamp_period_ns)
     imu = PacketImu(lidar.imu_readings) if lidar.imu_readings is not None else None
     rotation_ns = round(1e9 / config.rate_hz)
     buf = ReceiveBuffer.allocate(batch_packets, ROW_BYTES)
-    poller = select.poll()
-    poller.register(sock, select.POLLIN)
     try:
-        _publish_health(publish, health, stats)
-        next_health = time.monotonic() + health_period_s
-        while not stop.is_set():
-            now = time.monotonic()
-            if now >= next_health:
-                _publish_health(publish, health, stats)
-                next_health = max(next_health + health_period_s, now)
-            if not poller.poll(max(0, round(1000 * min(idle_wait_s, next_health - now)))):
-                continue
-            n = gather_batch(sock, buf, batch_period_s, stats, health)
-            if n:
-                _handle_batch(buf, n, decoder, clock, rotation_ns, imu, publish, health, stats)
+        serve_batches(sock, buf, batch_period_s,
+                      lambda n: _handle_batch(buf, n, decoder, clock, rotation_ns, imu, publish, health, stats),
+                      lambda: _publish_health(publish, health, stats), stop, stats, health, health_period_s,
+                      idle_wait_s)
     finally:
         sock.close()
     _publish_health(publish, health, stats)

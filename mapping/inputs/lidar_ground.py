@@ -147,12 +147,10 @@ def vendor_scan_points(lead: LidarPacket | None, packets: list[LidarPacket], dec
     payloads = ([bytes(lead.data)] if lead is not None else []) + [bytes(p.data) for p in packets]
     stamps = np.array(([lead.sensor_time_ns] if lead is not None else []) + [p.sensor_time_ns for p in packets],
                       dtype=np.int64)
-    decoder = decoding.new_decoder()
-    check = decoder.check(payloads)
-    points = decoder.decode(payloads)
+    points = decoding.new_decoder().decode(payloads)
     keep = np.flatnonzero(points.packet_index >= (1 if lead is not None else 0))
     packet = points.packet_index[keep]
-    times_ns = stamps[packet] + (points.timestamp_ns[keep] - check.sensor_time_ns[packet])
+    times_ns = stamps[packet] + (points.timestamp_ns[keep] - points.packet_time_ns[packet])
     times, time_index = np.unique(times_ns, return_inverse=True)
     return ScanPoints(points.xyz[keep], time_index.ravel(), times, points.intensity[keep])
 

@@ -236,3 +236,14 @@ def test_vls128_dual_return_packets_ignore_their_four_empty_blocks():
         blank[block * 100 + 4 : block * 100 + 100] = bytes(96)
     again = VelodyneDecoder(calibration).decode([bytes(blank)])
     np.testing.assert_array_equal(points.xyz, again.xyz)
+
+
+def test_a_vls128_stream_decoded_call_by_call_gives_the_points_of_one_call():
+    """The rotation rate comes from the packet before, across calls too."""
+    payloads = [p for _, p in _payloads("vls128")[:300]]
+    calibration = load_velodyne_calibration(DATA / "calib" / "VLS128.yaml")
+    whole = VelodyneDecoder(calibration).decode(payloads)
+    decoder = VelodyneDecoder(calibration)
+    parts = [decoder.decode(payloads[i : i + 70]) for i in range(0, len(payloads), 70)]
+    np.testing.assert_array_equal(np.concatenate([p.xyz for p in parts]), whole.xyz)
+    np.testing.assert_array_equal(np.concatenate([p.azimuth_cdeg for p in parts]), whole.azimuth_cdeg)

@@ -232,6 +232,7 @@ def test_the_mapper_decodes_a_hesai_s_published_packets_as_its_decoder_decodes_t
     scans = lidar_scans(packets, [], lambda: decoding, 1)
     assert 1 <= len(scans.scans) <= 3  # 0.2 s of a 10 Hz sensor
     whole = decoding.new_decoder().decode(payloads)
+    np.testing.assert_array_equal(whole.packet_time_ns, stamps)  # the packets' own stamps, as check gives them
     decoded = [scans.decode(scan) for scan in scans.scans]
     np.testing.assert_array_equal(np.concatenate([d.xyz for d in decoded]), whole.xyz)
     np.testing.assert_array_equal(np.concatenate([d.times_ns[d.time_index] for d in decoded]), whole.timestamp_ns)
