@@ -12,9 +12,10 @@ recorder stops writing instead.
 
 `SegmentDeleter` keeps that rule's state across the recorder's disk checks and counts what it deleted; the hold-off
 (until when, on the wall clock, and how many undone deletions in a row) is also kept in STATE_FILE in the data
-folder, so a restarted recorder keeps pausing instead of deleting at once again. The rest are pure functions of sizes and names except `disk_usage`, the one call that asks the file system. Setting
-ROADLOG_SIMULATED_DISK_BYTES makes `disk_usage` report a disk of that size that holds only the given folder
-(free = size - bytes under the folder), so tests can fill a "small disk" without filling the real one.
+folder, so a restarted recorder keeps pausing instead of deleting at once again. The rest are pure functions of
+sizes and names except `disk_usage`, the one call that asks the file system. Setting ROADLOG_SIMULATED_DISK_BYTES
+makes `disk_usage` report a disk of that size that holds only the given folder (free = size - bytes under the
+folder), so tests can fill a "small disk" without filling the real one.
 """
 
 from __future__ import annotations
