@@ -28,8 +28,6 @@ import sys
 import tempfile
 import threading
 import time
-import urllib.error
-import urllib.request
 import uuid
 from collections import Counter
 from pathlib import Path
@@ -49,26 +47,13 @@ from drivers.can.can_bus import open_can_bus  # noqa: E402
 from drivers.lidar.ouster_metadata import parse_metadata  # noqa: E402
 from drivers.lidar.ouster_packet_layout import packet_layout  # noqa: E402
 from sim.live_drive import LiveDriveStats, open_gnss_pty, run_live_drive  # noqa: E402
+from tests.daemon_fixtures import free_port, http_json  # noqa: E402
 
 # the simulator's own counts of what it sent, per topic
 SIMULATOR_SENT = {"lidar/packets": "lidar_packets", "lidar/imu": "lidar_imu_packets", "can/frames": "can_frames",
                   "gnss/fix": "gnss_fixes", "imu": "imu_samples"}
 MIN_FREE_DISK_GB = 15.0  # the soak stops its drive early rather than fill a disk other people use
 STOP_TIMEOUT_S = 900.0
-
-
-def _free_port(kind=socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _status(port: int) -> dict:
-    try:
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/status", timeout=5) as r:
-            return json.loads(r.read())
-    except (OSError, ValueError, urllib.error.URLError):
-        return {}
 
 
 def write_config(work: Path, drive: Path, pty_path: str, segment_s: float, mapper: bool) -> Path:
@@ -78,14 +63,14 @@ def write_config(work: Path, drive: Path, pty_path: str, segment_s: float, mappe
     s = data["sensors"]
     for cam in s["cameras"]:
         cam.update(device=str(drive), loop=True)
-    s["lidar"].update(port=_free_port(socket.SOCK_DGRAM), imu_port=_free_port(socket.SOCK_DGRAM),
+    s["lidar"].update(port=free_port(socket.SOCK_DGRAM), imu_port=free_port(socket.SOCK_DGRAM),
                       metadata_file=str(ROOT / "configs" / s["lidar"]["metadata_file"]))
     s["gnss"]["port"] = pty_path
     s["can"].update(dbc_file=str(ROOT / "configs" / s["can"]["dbc_file"]),
                     options={"port": random.randint(40000, 49000)})
     data["recorder"].update(output_dir=str(work / "data"), segment_seconds=segment_s)
     data["mapper"]["enabled"] = mapper
-    data["status"]["port"] = _free_port()
+    data["status"]["port"] = free_port()
     path = work / "car.yaml"
     path.write_text(yaml.safe_dump(data))
     return path
@@ -247,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         names = {"lidar", "gnss", "can", "recorder", *(f"camera_{c.name}" for c in config.sensors.cameras)}
         deadline = time.monotonic() + 180
-        while not names <= set(_status(port).get("processes", {})):
+        while not names <= set(http_json(port, "/status", timeout_s=5.0)[1].get("processes", {})):
             if time.monotonic() > deadline or daemon.poll() is not None:
                 raise RuntimeError(f"the daemon did not come up (see {work / 'daemon.log'})")
             time.sleep(0.5)
@@ -270,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
         status: dict = {}
         while player.is_alive():
             player.join(args.sample_s)
-            status = _status(port)
+            status = http_json(port, "/status", timeout_s=5.0)[1]
             sampler.sample(status, time.monotonic() - t0)
             lost_now = sum(status.get("recorder", {}).get("lost", {}).values())
             if lost_now != (losses[-1][1] if losses else 0):
@@ -286,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
                 stop_drive.set()
         result["drive_wall_s"] = round(time.monotonic() - t0, 1)
         time.sleep(3.0)  # the cameras' and the recorder's last messages
-        status = _status(port)
+        status = http_json(port, "/status", timeout_s=5.0)[1]
         sampler.sample(status, time.monotonic() - t0)
         result["mapping_before_stop"] = status.get("mapping", {})
         result["restarts"] = {n: p.get("restarts", 0)
