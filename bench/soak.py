@@ -6,11 +6,15 @@ udp_multicast, sim cameras looping the same log) for `--duration` seconds, then 
 
 Every `--sample-s` it samples the RSS of every process of the daemon (by its name in the supervisor's table, with
 its children), the load average, the free disk and the mapper's windows; it counts every closed segment from its
-summary (messages per topic, and the recorder's own `lost_per_topic`) and deletes it, so an hour's recording
-(~22 MB/s) does not fill the disk. The drive ends at the end of a pass, so what was sent is exact: the simulator's
-own counts (Lidar packets and IMU, CAN, GNSS fixes and IMU samples; wheel speeds are passes x the drive's), and each
-camera's own `published` from its last logged health. Last line: one JSON object (per-topic sent/logged/lost, RSS
-per process start/end/max and slope, mapper windows, stop exit code and seconds, orphans, load average).
+summary (messages per topic, and the recorder's own `lost_per_topic`) and deletes it, so an hour's recording (~22
+MB/s) does not fill the disk. The drive ends at the end of a pass, so what was sent is exact: the simulator's own
+counts (Lidar packets and IMU, CAN, GNSS fixes and IMU samples; wheel speeds are passes x the drive's), and each
+camera's own `published` from its last logged health. What is missing is accounted for by the recorder's lost count,
+the Lidar driver's own count of packets missing from the sensor's numbering (lost in the socket before it read them),
+and the simulator's count of fixes and IMU samples cut off by a full pseudo-terminal (a serial overrun: the GNSS
+driver did not read in time): `unaccounted` is what none of them counted. Last line: one JSON object (per-topic
+sent/logged/lost, RSS per process start/end/max and slope, mapper windows, stop exit code and seconds, orphans, load
+average).
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ sys.path.insert(0, str(ROOT))
 
 from daemon.bus.pubsub import unlink_all  # noqa: E402
 from daemon.log_format.reader import read_log, read_metadata, summary_message_counts  # noqa: E402
+from daemon.processes.supervisor import die_with_parent  # noqa: E402
 from daemon.spine.config import load_config  # noqa: E402
 from daemon.spine.topics import health_topic  # noqa: E402
 from drivers.can.can_bus import open_can_bus  # noqa: E402
@@ -218,8 +223,12 @@ def main(argv: list[str] | None = None) -> int:
     layout = packet_layout(parse_metadata(Path(config.sensors.lidar.metadata_file)))
     daemon_log = open(work / "daemon.log", "wb")
     started = time.monotonic()
+    # the daemon is stopped (SIGTERM) however this process ends: killed (the kernel's death signal) or told to stop
     daemon = subprocess.Popen([sys.executable, "-m", "daemon.commands.cli", "run", "--config", str(config_path)],
-                              cwd=ROOT, start_new_session=True, stdout=daemon_log, stderr=subprocess.STDOUT)
+                              cwd=ROOT, start_new_session=True, stdout=daemon_log, stderr=subprocess.STDOUT,
+                              preexec_fn=die_with_parent(os.getpid(), signal.SIGTERM))
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, lambda signum, _: sys.exit(128 + signum))  # the `finally` below stops the daemon
     sampler = ProcessSampler(daemon.pid)
     tally = SegmentTally(work / "data")
     result: dict = {"work": str(work), "duration_s": args.duration, "passes_planned": passes,
@@ -228,6 +237,7 @@ def main(argv: list[str] | None = None) -> int:
     losses: list[tuple[float, int]] = []  # (drive s, the recorder's lost count) where it changed
     free_gb: list[float] = []
     stop_drive = threading.Event()
+    final_health: dict = {}
     stats_box: list[LiveDriveStats] = []
     try:
         names = {"lidar", "gnss", "can", "recorder", *(f"camera_{c.name}" for c in config.sensors.cameras)}
@@ -274,6 +284,7 @@ def main(argv: list[str] | None = None) -> int:
         status = http_json(port, "/status", timeout_s=5.0)[1]
         sampler.sample(status, time.monotonic() - t0)
         result["mapping_before_stop"] = status.get("mapping", {})
+        final_health = status.get("processes", {})
         result["restarts"] = {n: p.get("restarts", 0)
                               for n, p in status.get("supervisor", {}).get("processes", {}).items()}
         t_stop = time.monotonic()
@@ -285,9 +296,13 @@ def main(argv: list[str] | None = None) -> int:
         result["stop_s"] = round(time.monotonic() - t_stop, 1)
     finally:
         stop_drive.set()
-        if daemon.poll() is None:
-            os.killpg(daemon.pid, signal.SIGKILL)
-            daemon.wait()
+        if daemon.poll() is None:  # stopped early (an error, a signal): stopped as asked, then killed
+            daemon.send_signal(signal.SIGTERM)
+            try:
+                daemon.wait(60)
+            except subprocess.TimeoutExpired:
+                os.killpg(daemon.pid, signal.SIGKILL)
+                daemon.wait()
         daemon_log.close()
         pty.close()
         result["orphans"] = sampler.orphans()
@@ -310,11 +325,18 @@ def main(argv: list[str] | None = None) -> int:
                               if stats.passes == passes else None}
     for cam, health in cameras.items():
         topics[f"camera/{cam}+mask/{cam}"] = {"sent": health["published"], "camera_dropped": health["dropped"]}
+    # lost before the driver: Lidar packets missing from the sensor's numbering when the driver read its socket (the
+    # driver's count), fixes and IMU samples whose bytes did not fit into the full pseudo-terminal (the simulator's)
+    topics["lidar/packets"]["lost_before_driver"] = final_health.get("lidar", {}).get("dropped")
+    topics["gnss/fix"]["lost_before_driver"] = stats.gnss_fixes_cut
+    topics["imu"]["lost_before_driver"] = stats.imu_samples_cut
     for topic, row in topics.items():
         parts = topic.split("+")
         row["logged"] = sum(tally.logged[p] for p in parts)
         row["lost_recorder"] = sum(tally.lost[p] for p in parts)
         row["missing"] = None if row["sent"] is None else row["sent"] - row["logged"]
+        row["unaccounted"] = None if row["sent"] is None else (row["missing"] - row["lost_recorder"]
+                                                               - (row.get("lost_before_driver") or 0))
     result.update({
         "passes_done": stats.passes, "simulator": {"late": stats.late, "errors": stats.errors,
                                                    "gnss_dropped_bytes": stats.gnss_dropped_bytes,

@@ -56,6 +56,8 @@ class LiveDriveStats:
     can_frames: int = 0
     gnss_bytes: int = 0
     gnss_dropped_bytes: int = 0  # the pseudo-terminal was full: nobody is reading the receiver
+    gnss_fixes_cut: int = 0  # fixes (of gnss_fixes) whose bytes did not all fit into the pseudo-terminal
+    imu_samples_cut: int = 0  # IMU samples (of imu_samples) likewise
     late: int = 0  # records sent more than LATE_NS after their moment
     passes: int = 0  # passes of the drive played to their end
     errors: int = 0
@@ -192,10 +194,10 @@ def _send(topic: str, message: object, sock, lidar_address, lidar_imu_address, g
         sock.sendto(bytes(message.data), lidar_address)
         stats.lidar_packets += 1
     elif isinstance(message, GnssFix):
-        _write_serial(gnss_fd, gnss.fix(message), stats)
+        stats.gnss_fixes_cut += not _write_serial(gnss_fd, gnss.fix(message), stats)
         stats.gnss_fixes += 1
     elif isinstance(message, ImuSample):
-        _write_serial(gnss_fd, gnss.imu(message), stats)
+        stats.imu_samples_cut += not _write_serial(gnss_fd, gnss.imu(message), stats)
         stats.imu_samples += 1
     elif isinstance(message, CanFrame) and not message.is_error_frame:
         can_bus.send(can.Message(arbitration_id=message.arbitration_id, is_extended_id=message.is_extended_id,
@@ -203,13 +205,16 @@ def _send(topic: str, message: object, sock, lidar_address, lidar_imu_address, g
         stats.can_frames += 1
 
 
-def _write_serial(fd: int, data: bytes, stats: LiveDriveStats) -> None:
+def _write_serial(fd: int, data: bytes, stats: LiveDriveStats) -> bool:
+    """Write one message's bytes into the pseudo-terminal; whether they all went in (a full one drops the rest, as
+    a serial line overruns when nobody reads it)."""
     try:
         written = os.write(fd, data)
     except BlockingIOError:
         written = 0
     stats.gnss_bytes += written
     stats.gnss_dropped_bytes += len(data) - written
+    return written == len(data)
 
 
 def main(argv: list[str] | None = None) -> int:
