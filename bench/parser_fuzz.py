@@ -49,11 +49,11 @@ from daemon.spine.config import ConfigError, load_config  # noqa: E402
 from daemon.spine.messages import CameraFrame, CanFrame, GnssFix, ImuSample, LidarPacket, TimeAnchor  # noqa: E402
 from drivers.lidar.ouster_metadata import parse_metadata  # noqa: E402
 from drivers.lidar.ouster_packet_layout import packet_layout, packets_per_second  # noqa: E402
+from tests.log_damage import damaged_log  # noqa: E402
 
 CONFIGS = ROOT / "configs"
 SHARED_OUSTER = ROOT.parent / "shared" / "data" / "ouster"
 HANG_S = 10.0
-BLOCK = 4096
 PARSERS = ("ouster_metadata", "config", "mcap_reader", "recovery")
 
 
@@ -288,32 +288,8 @@ class LogCases:
         self.path = folder / "damaged.mcap"
 
     def __call__(self) -> tuple[Path, dict]:
-        rng = self.rng
-        data, originals = rng.choice(self.bases)
-        out = bytearray(data)
-        for _ in range(rng.choice((1, 1, 1, 2, 3))):
-            kind = rng.randrange(6)
-            at = rng.randrange(len(out))
-            if kind == 0:
-                out[at] ^= 1 << rng.randrange(8)
-            elif kind == 1:
-                at -= at % BLOCK
-                out[at:at + BLOCK] = bytes(len(out[at:at + BLOCK]))
-            elif kind == 2:
-                n = rng.randrange(1, 64)
-                out[at:at + n] = rng.randbytes(len(out[at:at + n]))
-            elif kind == 3:
-                del out[max(at, 9):]
-            elif kind == 4:
-                out[at:at + 9] = rng.randbytes(len(out[at:at + 9]))
-            else:  # a power cut: cut anywhere, the last few blocks before it torn (zeroed or stale garbage)
-                del out[max(at, 9):]
-                for _ in range(rng.randrange(1, 4)):
-                    b = max(0, len(out) - rng.randrange(1, 16) * BLOCK)
-                    b -= b % BLOCK
-                    out[b:b + BLOCK] = bytes(BLOCK) if rng.random() < 0.5 else rng.randbytes(BLOCK)
-                    del out[len(data):]
-        self.path.write_bytes(out)
+        data, originals = self.rng.choice(self.bases)
+        self.path.write_bytes(damaged_log(data, self.rng))
         return self.path, originals
 
 

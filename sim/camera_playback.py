@@ -6,7 +6,8 @@ now), and every frame and mask is released when its moment comes, its sensor tim
 host monotonic clock (as an OAK's are). Several simulated sensors given the same origin and start time
 stay in step. A record already more than two frame periods late is dropped (counted), like a camera
 whose consumer fell behind. Raw frames are JPEG-encoded when the camera's encoding is jpeg; other
-frames go out as logged. The stream ends with the log.
+frames go out as logged. The stream ends with the log, or, with the camera's `loop` on, plays the log again
+pass after pass (sim/drive_loop.py) until stopped.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from daemon.spine.messages import RAW_FORMAT_CHANNELS, CameraFrame, SemanticMask
 from daemon.spine.topics import camera_topic, mask_topic
 from drivers.camera.camera_process import camera_process_main
 from drivers.camera.frame_encoding import FrameEncodingError, encode_image, raw_frame_image
+from sim.drive_loop import loop_period_ns
 
 
 def _as_delivered(message: CameraFrame | SemanticMask, config: CameraConfig, sensor_time_ns: int):
@@ -44,30 +46,33 @@ def sim_frames(config: CameraConfig, stop: threading.Event, health: HealthCounte
     path = Path(config.device)
     if not path.is_file():
         raise ConfigError(f"camera {config.name}: sim log {path} does not exist")
-    records = read_log([path], topics=[camera_topic(config.name), mask_topic(config.name)])
+    topics = [camera_topic(config.name), mask_topic(config.name)]
+    records = read_log([path], topics=topics)
     first = next(records, None)
     if first is None:
         health.count_error(f"{path}: no frames of camera {config.name!r}")
         return
     origin = first.message.sensor_time_ns if log_origin_ns is None else log_origin_ns
     start = time.monotonic_ns() if start_mono_ns is None else start_mono_ns
+    period_ns = loop_period_ns(path) if config.loop else 0
     late_ns = int(2e9 / config.rate_hz)
-    for record in itertools.chain([first], records):
-        message = record.message
-        due_ns = start + (message.sensor_time_ns - origin)
-        wait_ns = due_ns - time.monotonic_ns()
-        if wait_ns > 0 and stop.wait(wait_ns / 1e9):
-            return
-        if stop.is_set():
-            return
-        health.received += 1
-        if wait_ns < -late_ns:
-            health.dropped += 1
-            continue
-        try:
-            yield _as_delivered(message, config, due_ns)
-        except FrameEncodingError as exc:
-            health.count_rejected(f"{record.topic}: {exc}")
+    for shift_ns in itertools.count(0, period_ns) if config.loop else (0,):
+        for record in (itertools.chain([first], records) if shift_ns == 0 else read_log([path], topics=topics)):
+            message = record.message
+            due_ns = start + shift_ns + (message.sensor_time_ns - origin)
+            wait_ns = due_ns - time.monotonic_ns()
+            if wait_ns > 0 and stop.wait(wait_ns / 1e9):
+                return
+            if stop.is_set():
+                return
+            health.received += 1
+            if wait_ns < -late_ns:
+                health.dropped += 1
+                continue
+            try:
+                yield _as_delivered(message, config, due_ns)
+            except FrameEncodingError as exc:
+                health.count_rejected(f"{record.topic}: {exc}")
 
 
 def _add_pacing(parser: argparse.ArgumentParser) -> None:

@@ -1,5 +1,11 @@
-"""Shared set-up for daemon tests: a sim config with a private bus prefix, written to a file."""
+"""Shared set-up for daemon tests: a sim config with a private bus prefix, written to a file; free ports; the status
+endpoint asked over HTTP; waiting for a condition."""
 
+import json
+import socket
+import time
+import urllib.error
+import urllib.request
 import uuid
 from pathlib import Path
 
@@ -26,3 +32,42 @@ def private_config(tmp_path: Path, *, point_clouds: bool = False, **updates) -> 
     path = tmp_path / "car.yaml"
     path.write_text(yaml.safe_dump(data))
     return load_config(path), path
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    """A port of 127.0.0.1 free now (TCP, or UDP with kind=socket.SOCK_DGRAM)."""
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def http_get(port: int, path: str, timeout_s: float = 3.0) -> tuple[int | None, bytes]:
+    """GET http://127.0.0.1:PORT/PATH: the answer's status and body, (None, b"") when nothing answers."""
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=timeout_s) as r:
+            return r.status, r.read()
+    except urllib.error.HTTPError as e:
+        return e.code, e.read()
+    except OSError:
+        return None, b""
+
+
+def http_json(port: int, path: str, timeout_s: float = 3.0) -> tuple[int | None, dict]:
+    """As http_get, the body read as a JSON object ({} for any other body)."""
+    code, body = http_get(port, path, timeout_s)
+    try:
+        doc = json.loads(body) if body.startswith(b"{") else {}
+    except ValueError:
+        doc = {}
+    return code, doc
+
+
+def wait_for(predicate, timeout_s: float, what: str, poll_s: float = 0.1):
+    """The first true value of predicate(), polled until timeout_s (then an AssertionError naming `what`)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(poll_s)
+    raise AssertionError(f"timed out waiting for {what}")

@@ -2,7 +2,6 @@
 udp_multicast, sim cameras. Status and metrics over HTTP, every message logged, a killed driver restarted,
 a killed daemon's open segment recovered at the next start."""
 
-import json
 import os
 import random
 import signal
@@ -11,8 +10,6 @@ import subprocess
 import sys
 import threading
 import time
-import urllib.error
-import urllib.request
 import uuid
 from collections import Counter
 from pathlib import Path
@@ -26,36 +23,10 @@ from daemon.log_format.reader import read_log
 from daemon.spine.config import load_config
 from drivers.can.can_bus import open_can_bus
 from sim.live_drive import open_gnss_pty, run_live_drive
-from tests.daemon_fixtures import REPO
+from tests.daemon_fixtures import REPO, free_port, http_get, http_json, wait_for
 
 DRIVER_TOPICS = ("lidar/packets", "lidar/imu", "can/frames", "wheel_speeds")
 CAMERAS = ("front_wide", "front_left", "front_right")
-
-
-def _free_port(kind=socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _get(port: int, path: str):
-    try:
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=3) as r:
-            return r.status, r.read()
-    except urllib.error.HTTPError as e:
-        return e.code, e.read()
-    except OSError:
-        return None, b""
-
-
-def _wait(predicate, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.2)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 class Daemon:
@@ -69,8 +40,8 @@ class Daemon:
                                      cwd=REPO, start_new_session=True)
 
     def status(self) -> dict:
-        code, body = _get(self.port, "/status")
-        return json.loads(body) if code == 200 else {}
+        code, doc = http_json(self.port, "/status")
+        return doc if code == 200 else {}
 
     def drivers_up(self) -> bool:
         procs = self.status().get("processes", {})
@@ -91,14 +62,14 @@ def live_setup(tmp_path, city_drive):
     s = data["sensors"]
     for cam in s["cameras"]:
         cam["device"] = str(city_drive)
-    s["lidar"].update(port=_free_port(socket.SOCK_DGRAM), imu_port=_free_port(socket.SOCK_DGRAM),
+    s["lidar"].update(port=free_port(socket.SOCK_DGRAM), imu_port=free_port(socket.SOCK_DGRAM),
                       metadata_file=str(REPO / "configs" / s["lidar"]["metadata_file"]))
     s["gnss"]["port"] = pty.path
     s["can"].update(dbc_file=str(REPO / "configs" / s["can"]["dbc_file"]),
                     options={"port": random.randint(40000, 49000)})
     data["recorder"].update(output_dir=str(tmp_path / "logs"), segment_seconds=3.0)
     data["mapper"]["enabled"] = False
-    data["status"]["port"] = _free_port()
+    data["status"]["port"] = free_port()
     path = tmp_path / "car.yaml"
     path.write_text(yaml.safe_dump(data))
     config = load_config(path)
@@ -128,8 +99,8 @@ def _counts(paths) -> tuple[Counter, list[bool]]:
 def test_daemon_logs_every_message_restarts_drivers_and_recovers_segments(live_setup, city_drive):
     config, daemon, pty, logs = live_setup
     daemon.start()
-    _wait(lambda: _get(daemon.port, "/livez")[0] == 200, 60, "the status endpoint")
-    _wait(daemon.drivers_up, 90, "every driver's first health report")
+    wait_for(lambda: http_get(daemon.port, "/livez")[0] == 200, 60, "the status endpoint")
+    wait_for(daemon.drivers_up, 90, "every driver's first health report")
     stats = _play(config, city_drive, pty)
     assert stats.errors == 0 and stats.lidar_imu_packets > 400  # the Lidar's IMU at 100 Hz, ~5 s
     time.sleep(2.0)  # the sim cameras play their own copy of the drive, started with their process
@@ -139,9 +110,9 @@ def test_daemon_logs_every_message_restarts_drivers_and_recovers_segments(live_s
     lidar = doc["processes"]["lidar"]
     assert lidar["published"] == stats.lidar_packets and lidar["dropped"] == 0 and lidar["rejected"] == 0
     assert doc["recorder"]["lost"] == {}
-    code, metrics = _get(daemon.port, "/metrics")
+    code, metrics = http_get(daemon.port, "/metrics")
     assert code == 200 and b'roadlog_published_total{process="lidar"}' in metrics
-    assert _get(daemon.port, "/nothing/../status")[0] == 404
+    assert http_get(daemon.port, "/nothing/../status")[0] == 404
 
     # kill -9 one driver: it is restarted, the others keep their process
     procs = doc["supervisor"]["processes"]
@@ -151,7 +122,7 @@ def test_daemon_logs_every_message_restarts_drivers_and_recovers_segments(live_s
         can = daemon.status().get("supervisor", {}).get("processes", {}).get("can", {})
         return can.get("restarts") == 1 and can.get("state") == "running" and can.get("pid") != can_pid
 
-    _wait(can_restarted, 30, "the CAN driver's restart")
+    wait_for(can_restarted, 30, "the CAN driver's restart")
     procs = daemon.status()["supervisor"]["processes"]
     assert procs["can"]["pid"] != can_pid and procs["lidar"]["pid"] == lidar_pid and procs["lidar"]["restarts"] == 0
 
@@ -176,11 +147,11 @@ def test_daemon_logs_every_message_restarts_drivers_and_recovers_segments(live_s
 
     # kill -9 the whole daemon mid-segment: the next start recovers the open segment
     daemon.start()
-    _wait(daemon.drivers_up, 90, "the drivers after a restart")
+    wait_for(daemon.drivers_up, 90, "the drivers after a restart")
     stop = threading.Event()
     player = threading.Thread(target=_play, args=(config, city_drive, pty, stop))
     player.start()
-    _wait(lambda: list(logs.glob("*.mcap.open")), 30, "an open segment")
+    wait_for(lambda: list(logs.glob("*.mcap.open")), 30, "an open segment")
     time.sleep(1.0)
     daemon.stop(signal.SIGKILL)
     stop.set()
@@ -188,7 +159,7 @@ def test_daemon_logs_every_message_restarts_drivers_and_recovers_segments(live_s
     open_segments = list(logs.glob("*.mcap.open"))
     assert open_segments
     daemon.start()
-    _wait(lambda: not list(logs.glob("*.mcap.open")), 60, "the recovery of the open segment")
+    wait_for(lambda: not list(logs.glob("*.mcap.open")), 60, "the recovery of the open segment")
     daemon.stop(signal.SIGTERM)
     recovered = logs / open_segments[0].name.removesuffix(".open")
     counts, complete = _counts([recovered])

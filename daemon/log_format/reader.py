@@ -306,3 +306,21 @@ def last_log_time(path: str | Path) -> int | None:
     if stats is None:
         return None
     return stats.message_end_time - max((log_time_offset(ch.metadata) for ch in summary.channels.values()), default=0)
+
+
+def summary_message_counts(path: str | Path) -> dict[str, int] | None:
+    """Messages per topic from a closed file's (trusted) summary statistics, without reading a message; None for a
+    file without one (open, torn or damaged: read it with read_log instead)."""
+    try:
+        with open(path, "rb") as f:
+            summary, _ = trusted_summary(f, os.fstat(f.fileno()).st_size)
+    except OSError:
+        return None
+    if summary is None or summary.statistics is None:
+        return None
+    counts: dict[str, int] = {}
+    for channel_id, n in summary.statistics.channel_message_counts.items():
+        channel = summary.channels.get(channel_id)
+        if channel is not None:
+            counts[channel.topic] = counts.get(channel.topic, 0) + n
+    return counts

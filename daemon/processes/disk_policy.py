@@ -10,14 +10,17 @@ per hold-off, not every recording, and a program that filled the disk once costs
 segments that together hold `recorder.keep_newest_s` seconds of drive are never deleted (the floor): below it the
 recorder stops writing instead.
 
-`SegmentDeleter` keeps that rule's state across the recorder's disk checks and counts what it deleted; the rest
-are pure functions of sizes and names except `disk_usage`, the one call that asks the file system. Setting
-ROADLOG_SIMULATED_DISK_BYTES makes `disk_usage` report a disk of that size that holds only the given folder
-(free = size - bytes under the folder), so tests can fill a "small disk" without filling the real one.
+`SegmentDeleter` keeps that rule's state across the recorder's disk checks and counts what it deleted; the hold-off
+(until when, on the wall clock, and how many undone deletions in a row) is also kept in STATE_FILE in the data
+folder, so a restarted recorder keeps pausing instead of deleting at once again. The rest are pure functions of
+sizes and names except `disk_usage`, the one call that asks the file system. Setting ROADLOG_SIMULATED_DISK_BYTES
+makes `disk_usage` report a disk of that size that holds only the given folder (free = size - bytes under the
+folder), so tests can fill a "small disk" without filling the real one.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shutil
@@ -33,6 +36,7 @@ MAX_BATCH = 64  # one segment at first, twice as many each time their space stay
 FIRST_HOLD_OFF_S = 2.0  # after a deletion whose space another program took, no deletion for this long,
 MAX_HOLD_OFF_S = 300.0  # twice as long after each further one in a row, up to this
 FREED_FRACTION = 0.5  # a deletion frees space when at least this part of its bytes comes back free
+STATE_FILE = "disk-policy-state.json"  # in the data folder: the hold-off, across recorder restarts
 log = logging.getLogger(__name__)
 
 
@@ -102,8 +106,10 @@ class SegmentDeleter:
     and what it deleted since the recorder started (segments, seconds of drive, bytes)."""
 
     def __init__(self, keep_newest_s: float, listing: Callable[[], list[Segment]],
-                 drive_seconds: Callable[[Path], float], count_error: Callable[[str], None]):
+                 drive_seconds: Callable[[Path], float], count_error: Callable[[str], None],
+                 state_path: Path | None = None):
         self.keep_newest_s = keep_newest_s
+        self._state_path = state_path  # where the hold-off is kept across restarts (None: not kept)
         self._listing = listing  # the closed and quarantined segments, oldest first
         self._read_seconds = drive_seconds
         self._count_error = count_error
@@ -117,6 +123,37 @@ class SegmentDeleter:
         self._batch = 1  # segments one round may delete: doubles while their space stays free
         self._last_round: tuple[float, int, int, int] | None = None  # (when, free before, own bytes, bytes deleted)
         self._seconds: dict[Path, float] = {}
+        self._restore_hold_off()
+
+    def _restore_hold_off(self) -> None:
+        """Take up the hold-off an earlier recorder left in the state file (an unreadable one is counted, ignored)."""
+        if self._state_path is None or not self._state_path.exists():
+            return
+        try:
+            state = json.loads(self._state_path.read_text())
+            until, in_a_row = float(state["hold_off_until_unix_s"]), int(state["undone_in_a_row"])
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+            why = f"disk policy: {self._state_path.name} unreadable ({exc}): no hold-off taken up"
+            self._count_error(why)
+            log.error("%s", why)
+            return
+        left = min(max(0.0, until - time.time()), MAX_HOLD_OFF_S)  # a clock set back cannot make it longer
+        self._undone_in_a_row = max(0, in_a_row)
+        self._hold_off_until = time.monotonic() + left
+        if left > 0:
+            log.warning("disk policy: held off for %.0f more s (a deletion before the restart freed nothing)", left)
+
+    def _save_hold_off(self) -> None:
+        if self._state_path is None:
+            return
+        left = max(0.0, self._hold_off_until - time.monotonic())
+        tmp = self._state_path.with_name(self._state_path.name + ".tmp")
+        try:
+            tmp.write_text(json.dumps({"hold_off_until_unix_s": time.time() + left,
+                                       "undone_in_a_row": self._undone_in_a_row}))
+            os.replace(tmp, self._state_path)
+        except OSError as exc:  # a full disk is when this matters most: counted, the pause still holds in memory
+            self._count_error(f"disk policy: saving {self._state_path.name}: {exc}")
 
     @property
     def judging(self) -> bool:
@@ -135,6 +172,7 @@ class SegmentDeleter:
         hold_off = hold_off_s(self._undone_in_a_row)
         self._hold_off_until = time.monotonic() + hold_off
         self._last_round = None
+        self._save_hold_off()
         self._count_error(f"disk policy: {why}")
         log.error("disk policy: %s: another program takes the space; no deletion for %.0f s", why, hold_off)
 
@@ -148,7 +186,9 @@ class SegmentDeleter:
                 return free  # too early to tell: no more deletions meanwhile
             self._last_round = None
             if freed(before, free, own_bytes - own_then, deleted):
-                self._undone_in_a_row = 0
+                if self._undone_in_a_row:
+                    self._undone_in_a_row = 0
+                    self._save_hold_off()
                 self._batch = min(2 * self._batch, MAX_BATCH)
             else:
                 self._undone(f"the {deleted} bytes deleted {now - when:.1f} s ago were taken again ({before} bytes "

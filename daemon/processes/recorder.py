@@ -135,7 +135,8 @@ class Recorder:
         self._last_sync = 0.0
         self.segments_closed = 0
         self.deleter = disk_policy.SegmentDeleter(config.recorder.keep_newest_s, lambda: oldest_first(output_dir),
-                                                  drive_seconds, self.health.count_error)
+                                                  drive_seconds, self.health.count_error,
+                                                  output_dir / disk_policy.STATE_FILE)
         self._closed_bytes = 0  # bytes written to the segments this recorder closed or abandoned
         self.tally = TopicTally()
         self._at_last_close = TopicTally()

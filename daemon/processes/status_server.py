@@ -4,12 +4,14 @@ Everything it shows comes from the processes' health topics on the bus (the late
 each; recorder, mapper, replay and supervisor put their extras as JSON in `detail`) and from the
 preview PNGs the mapping worker writes. No request changes the daemon's state; any other path,
 including path tricks, gets 404. Requests are served by threads, so a busy mapper never blocks it; at most
-MAX_THREADS at once (more connections are answered 503 and counted on /metrics), each closed when idle.
+MAX_THREADS at once (more connections are answered 503 and counted on /metrics), each closed when idle, and
+each request read whole within REQUEST_DEADLINE_S of its first byte (a client trickling it is cut off, counted).
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import logging
 import signal
@@ -35,6 +37,7 @@ from daemon.spine.topics import topic_table
 
 LISTEN_BACKLOG = 256  # connections the kernel queues before the server accepts them
 IDLE_TIMEOUT_S = 10.0  # a client that sends nothing (or stops reading) for this long is disconnected
+REQUEST_DEADLINE_S = 5.0  # the whole request (line and headers) must arrive within this of its first byte
 MAX_THREADS = 32  # connections served at once (one thread each); more are answered 503 and closed
 REFUSED_LINGER_S = 1.0  # longest wait for a refused client's request before its connection is closed
 BUSY_RESPONSE = (b"HTTP/1.0 503 Service Unavailable\r\nContent-Type: text/plain\r\nContent-Length: 5\r\n"
@@ -188,9 +191,10 @@ class _BoardCollector:
     gauges; the recorder's per-topic counters have a series for every logged topic from the start (0 until the
     recorder counts one), and the restarts one for every process the supervisor runs."""
 
-    def __init__(self, board: HealthBoard, refused=lambda: 0):
+    def __init__(self, board: HealthBoard, refused=lambda: 0, request_timeouts=lambda: 0):
         self.board = board
         self.refused = refused  # connections the server answered 503 (all its threads busy)
+        self.request_timeouts = request_timeouts  # requests cut off at their deadline
         self.logged_topics = sorted(name for name, t in topic_table(board.config).items() if t.logged)
 
     def collect(self):
@@ -255,10 +259,40 @@ class _BoardCollector:
         yield from (lost, written, *recorder_gauges.values(), *recorder_counters.values(), policy, restarts, malformed)
         yield CounterMetricFamily("roadlog_status_refused_connections", "connections answered 503 because every "
                                   "server thread was busy", value=self.refused())
+        yield CounterMetricFamily("roadlog_status_request_timeouts", "connections closed because their request was "
+                                  "not read whole within its deadline", value=self.request_timeouts())
+
+
+class _DeadlineSocketReader(io.RawIOBase):
+    """A connection's bytes, each read waiting at most the idle timeout and, while a request is being read, no
+    longer than its deadline: a client sending a byte now and then cannot stretch one request out."""
+
+    def __init__(self, sock: socket.socket, idle_timeout_s: float, on_deadline=lambda: None):
+        self.sock, self.idle_timeout_s, self.on_deadline = sock, idle_timeout_s, on_deadline
+        self.deadline: float | None = None  # monotonic time by which the request must be read
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, buffer) -> int:
+        timeout, by_deadline = self.idle_timeout_s, False
+        if self.deadline is not None:
+            left = self.deadline - time.monotonic()
+            timeout, by_deadline = min(timeout, max(left, 0.0)), left < timeout
+        try:
+            if timeout <= 0:
+                raise TimeoutError("the request was not read whole within its deadline")
+            self.sock.settimeout(timeout)
+            return self.sock.recv_into(buffer)
+        except TimeoutError:
+            if by_deadline:
+                self.deadline = None
+                self.on_deadline()
+            raise
 
 
 def make_handler(config: CarConfig, board: HealthBoard, registry: CollectorRegistry, data_folder: Path,
-                 idle_timeout_s: float = IDLE_TIMEOUT_S):
+                 idle_timeout_s: float = IDLE_TIMEOUT_S, request_deadline_s: float = REQUEST_DEADLINE_S):
     previews = {f"/preview/{name}.png": name for name in PREVIEWS}
 
     class Handler(BaseHTTPRequestHandler):
@@ -267,6 +301,33 @@ def make_handler(config: CarConfig, board: HealthBoard, registry: CollectorRegis
 
         def log_message(self, fmt, *args):  # keep the journal quiet: one line per request is noise
             pass
+
+        def setup(self):
+            super().setup()
+            self._reader = _DeadlineSocketReader(self.connection, idle_timeout_s,
+                                                 self.server.count_request_timeout)
+            self.rfile = io.BufferedReader(self._reader)
+
+        def handle_one_request(self):
+            """Wait (idle timeout) for a request's first byte, then read it whole within its deadline."""
+            try:
+                if not self.rfile.peek(1):  # the client closed the connection
+                    self.close_connection = True
+                    return
+            except OSError:  # idle too long (TimeoutError), or reset
+                self.close_connection = True
+                return
+            self._reader.deadline = time.monotonic() + request_deadline_s
+            try:
+                super().handle_one_request()  # answers nothing and closes on the deadline's TimeoutError
+            finally:
+                self._reader.deadline = None
+
+        def parse_request(self):
+            parsed = super().parse_request()  # line and headers read: the deadline is met
+            self._reader.deadline = None
+            self.connection.settimeout(idle_timeout_s)
+            return parsed
 
         def _send(self, code: int, body: bytes, content_type: str) -> None:
             self.send_response(code)
@@ -322,6 +383,8 @@ class StatusHTTPServer(ThreadingHTTPServer):
     def __init__(self, address, handler, max_threads: int = MAX_THREADS):
         self.max_threads = max_threads  # before binding: a failed bind closes the server (server_close)
         self.refused = 0
+        self.request_timeouts = 0  # requests not read whole within their deadline (the connection closed)
+        self._timeouts_lock = threading.Lock()
         self._slots = threading.BoundedSemaphore(max_threads)
         self._refused: deque[tuple[float, socket.socket]] = deque()  # answered, waiting for the client's bytes
         super().__init__(address, handler)
@@ -335,6 +398,10 @@ class StatusHTTPServer(ThreadingHTTPServer):
         except BaseException:  # no thread started: give its slot back
             self._slots.release()
             raise
+
+    def count_request_timeout(self) -> None:
+        with self._timeouts_lock:
+            self.request_timeouts += 1
 
     def process_request_thread(self, request, client_address):
         try:
@@ -379,11 +446,13 @@ class StatusHTTPServer(ThreadingHTTPServer):
 
 
 def make_server(config: CarConfig, board: HealthBoard, data_folder: Path, port: int | None = None,
-                idle_timeout_s: float = IDLE_TIMEOUT_S, max_threads: int = MAX_THREADS) -> StatusHTTPServer:
+                idle_timeout_s: float = IDLE_TIMEOUT_S, max_threads: int = MAX_THREADS,
+                request_deadline_s: float = REQUEST_DEADLINE_S) -> StatusHTTPServer:
     registry = CollectorRegistry()
     server = StatusHTTPServer((config.status.bind_address, config.status.port if port is None else port),
-                              make_handler(config, board, registry, data_folder, idle_timeout_s), max_threads)
-    registry.register(_BoardCollector(board, lambda: server.refused))
+                              make_handler(config, board, registry, data_folder, idle_timeout_s, request_deadline_s),
+                              max_threads)
+    registry.register(_BoardCollector(board, lambda: server.refused, lambda: server.request_timeouts))
     server.daemon_threads = True
     return server
 

@@ -68,12 +68,12 @@ PR_SET_PDEATHSIG = 1  # prctl(2): the signal a process gets when the thread that
 _libc = ctypes.CDLL(None, use_errno=True)
 
 
-def _die_with_parent(parent_pid: int):
-    """A child's preexec_fn: SIGKILL it when the supervisor dies (a killed daemon leaves no orphan holding its
-    rings, ports and segments; the open segment is recovered at the next start, as after a power cut)."""
+def die_with_parent(parent_pid: int, sig: int = signal.SIGKILL):
+    """A child's preexec_fn: `sig` to it when its parent (the supervisor) dies (a killed daemon leaves no orphan
+    holding its rings, ports and segments; the open segment is recovered at the next start, as after a power cut)."""
 
     def preexec() -> None:
-        _libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        _libc.prctl(PR_SET_PDEATHSIG, sig, 0, 0, 0)
         if os.getppid() != parent_pid:  # the supervisor died before prctl: no signal will come
             os._exit(1)
 
@@ -123,7 +123,7 @@ class Supervisor:
         if child.spec.nice:  # coreutils `nice` execs the process: its pid and parent stay the same
             cmd = ["nice", "-n", str(child.spec.nice), *cmd]
         child.popen = subprocess.Popen(cmd, env=dict(self.env, **{RESTARTS_ENV: str(child.restarts)}),
-                                       pass_fds=self.inherit_fds, preexec_fn=_die_with_parent(os.getpid()))
+                                       pass_fds=self.inherit_fds, preexec_fn=die_with_parent(os.getpid()))
         child.state = "running"
         child.started_at = time.monotonic()
 

@@ -96,6 +96,7 @@ class CameraConfig(StrictModel):
     encoding: Literal["jpeg", "png", "h264", "h265", "raw", "mono8"] = "jpeg"
     jpeg_quality: int = Field(90, ge=1, le=100)
     photometry: CameraPhotometry = CameraPhotometry()
+    loop: bool = False  # sim backend only: play the drive log again and again, an endless drive (soaks)
 
     @model_validator(mode="after")
     def _principal_point_inside(self) -> CameraConfig:
@@ -104,6 +105,8 @@ class CameraConfig(StrictModel):
         if self.encoding not in BACKEND_ENCODINGS[self.backend]:
             raise ValueError(f"the {self.backend} backend delivers {', '.join(BACKEND_ENCODINGS[self.backend])}, "
                              f"not {self.encoding}")
+        if self.loop and self.backend != "sim":
+            raise ValueError("loop: only a sim camera plays its drive again and again")
         return self
 
 

@@ -81,3 +81,27 @@ def encode_frame_packets(
         buf[:, 4:7] = np.frombuffer(init_id.to_bytes(3, "little"), np.uint8)
         buf[:, 7:12] = np.frombuffer(prod_sn.to_bytes(5, "little"), np.uint8)
     return buf
+
+
+def packet_frame_id(packet: bytes, layout: OusterPacketLayout) -> int:
+    """The frame id a packet carries (LEGACY: its first column's; otherwise its header's)."""
+    if layout.legacy:
+        return int.from_bytes(packet[10:12], "little")
+    return int.from_bytes(packet[4:8] if layout.fusa else packet[2:4], "little")
+
+
+def renumbered_packet(packet: bytes, layout: OusterPacketLayout, frame_id_offset: int, time_offset_ns: int) -> bytes:
+    """The same packet, `frame_id_offset` frames and `time_offset_ns` later (frame ids modulo the layout's):
+    a recorded stretch of packets sent again as the sensor would go on sending (the simulator's looped drive)."""
+    buf = np.frombuffer(packet, np.uint8).copy()[None]
+    k, size = layout.columns_per_packet, layout.column_size
+    times = _writable_view(buf, "<u8", layout.packet_header_size, (1, k), (layout.packet_size, size))
+    times += np.uint64(time_offset_ns)
+    frame = (packet_frame_id(packet, layout) + frame_id_offset) % layout.frame_id_modulus
+    if layout.legacy:
+        _writable_view(buf, "<u2", 10, (1, k), (layout.packet_size, size))[:] = frame
+    elif layout.fusa:
+        buf[0, 4:8] = np.frombuffer(frame.to_bytes(4, "little"), np.uint8)
+    else:
+        buf[0, 2:4] = np.frombuffer(frame.to_bytes(2, "little"), np.uint8)
+    return buf.tobytes()

@@ -2,7 +2,6 @@
 second one on the same bus or data folder is refused with one line); a killed daemon's children die with it, and
 the next start gets the ports and runs without restarts."""
 
-import json
 import os
 import random
 import signal
@@ -10,8 +9,6 @@ import socket
 import subprocess
 import sys
 import time
-import urllib.error
-import urllib.request
 import uuid
 from pathlib import Path
 
@@ -28,32 +25,16 @@ from daemon.processes.instance_lock import (
     hold_instance_locks,
 )
 from daemon.spine.config import load_config
-from tests.daemon_fixtures import REPO
+from tests.daemon_fixtures import REPO, free_port, http_json, wait_for
 
 LIVE = ("lidar", "gnss", "can", "recorder", "status")  # the sim cameras need a drive to play: they fail (exit 2)
-
-
-def _free_port(kind=socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _wait(predicate, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 def _write_config(tmp_path: Path, prefix: str, status_port: int, name: str = "car.yaml") -> Path:
     data = yaml.safe_load((REPO / "configs" / "sim.yaml").read_text())
     data["bus"] = {"shm_prefix": prefix}
     s = data["sensors"]
-    s["lidar"].update(port=_free_port(socket.SOCK_DGRAM), imu_port=_free_port(socket.SOCK_DGRAM),
+    s["lidar"].update(port=free_port(socket.SOCK_DGRAM), imu_port=free_port(socket.SOCK_DGRAM),
                       metadata_file=str(REPO / "configs" / s["lidar"]["metadata_file"]))
     s["gnss"]["port"] = str(tmp_path / "no-receiver")  # the driver keeps trying to open it: running, no data
     s["can"].update(dbc_file=str(REPO / "configs" / s["can"]["dbc_file"]),
@@ -78,11 +59,7 @@ class Daemon:
         return self.proc
 
     def processes(self) -> dict:
-        try:
-            with urllib.request.urlopen(f"http://127.0.0.1:{self.port}/status", timeout=3) as r:
-                return json.loads(r.read()).get("supervisor", {}).get("processes", {})
-        except (OSError, urllib.error.URLError, ValueError):
-            return {}
+        return http_json(self.port, "/status")[1].get("supervisor", {}).get("processes", {})
 
     def running(self) -> dict:
         """{name: pid} once every live process runs and the supervisor has published it."""
@@ -110,7 +87,7 @@ def _alive(pid: int) -> bool:
 @pytest.fixture
 def daemons(tmp_path):
     prefix = f"t{uuid.uuid4().hex[:10]}"
-    path = _write_config(tmp_path, prefix, _free_port())
+    path = _write_config(tmp_path, prefix, free_port())
     started: list[Daemon] = []
 
     def make(config_path=path):
@@ -129,8 +106,8 @@ def test_a_second_daemon_is_refused_with_one_line(daemons):
     make, tmp_path, prefix = daemons
     first = make()
     first.start()
-    pids = _wait(first.running, 60, "the first daemon's processes")
-    open_segments = _wait(lambda: list((tmp_path / "logs").glob("*.mcap.open")), 30, "the first daemon's segment")
+    pids = wait_for(first.running, 60, "the first daemon's processes")
+    open_segments = wait_for(lambda: list((tmp_path / "logs").glob("*.mcap.open")), 30, "the first daemon's segment")
 
     # the same config: its bus prefix is taken
     second = make()
@@ -145,7 +122,7 @@ def test_a_second_daemon_is_refused_with_one_line(daemons):
     assert took < 15, took
 
     # another bus prefix on the same data folder: the folder is taken (its recorder would take over the segment)
-    other = make(_write_config(tmp_path, f"t{uuid.uuid4().hex[:10]}", _free_port(), "other.yaml"))
+    other = make(_write_config(tmp_path, f"t{uuid.uuid4().hex[:10]}", free_port(), "other.yaml"))
     other.start(stderr=subprocess.PIPE, text=True)
     _, err = other.proc.communicate(timeout=60)
     assert other.proc.returncode == EXIT_ALREADY_RUNNING
@@ -167,17 +144,17 @@ def test_a_killed_daemons_children_die_and_the_next_start_runs(daemons):
     make, tmp_path, _ = daemons
     first = make()
     first.start()
-    pids = _wait(first.running, 60, "the daemon's processes")
+    pids = wait_for(first.running, 60, "the daemon's processes")
     os.kill(first.proc.pid, signal.SIGKILL)  # the supervisor alone, as an OOM kill or a crash would
     first.proc.wait(10)
     t0 = time.monotonic()
-    _wait(lambda: not any(_alive(p) for p in pids.values()), 5, "the orphaned children to die")
+    wait_for(lambda: not any(_alive(p) for p in pids.values()), 5, "the orphaned children to die")
     orphans_gone_s = time.monotonic() - t0
 
     # the next start: the stale lock does not block, the ports are free, nothing restarts
     second = make()
     second.start()
-    new_pids = _wait(second.running, 60, "the next start's processes")
+    new_pids = wait_for(second.running, 60, "the next start's processes")
     assert not set(new_pids.values()) & set(pids.values())
     time.sleep(3.0)  # a process failing on a port in use would have been restarted by now
     procs = second.processes()
@@ -209,10 +186,10 @@ def test_a_daemon_with_dead_sensors_is_ready_fed_and_logs_the_rest(daemons):
                 pass
 
     try:
-        _wait(lambda: drain(0.5) or any(m.startswith("READY=1") for _, m in received), 60, "READY=1")
-        _wait(lambda: drain(0.5) or any("camera_front_right failed" in m for _, m in received), 30,
+        wait_for(lambda: drain(0.5) or any(m.startswith("READY=1") for _, m in received), 60, "READY=1")
+        wait_for(lambda: drain(0.5) or any("camera_front_right failed" in m for _, m in received), 30,
               "the cameras' failure")
-        written = _wait(lambda: _recorder_written(daemon), 10, "the recorder's first messages")
+        written = wait_for(lambda: _recorder_written(daemon), 10, "the recorder's first messages")
         watched_from = time.monotonic()
         drain(3.0)
         daemon_written = _recorder_written(daemon)
@@ -233,18 +210,14 @@ def test_a_daemon_with_dead_sensors_is_ready_fed_and_logs_the_rest(daemons):
 
 def _recorder_written(daemon: Daemon) -> int:
     """Messages the recorder reports written, from /status."""
-    try:
-        with urllib.request.urlopen(f"http://127.0.0.1:{daemon.port}/status", timeout=3) as r:
-            written = json.loads(r.read()).get("recorder", {}).get("written", {})
-    except (OSError, ValueError):
-        return 0
+    written = http_json(daemon.port, "/status")[1].get("recorder", {}).get("written", {})
     return sum(written.values()) if isinstance(written, dict) else 0
 
 
 def test_instance_locks_refuse_at_once_and_a_clean_release_frees_them(tmp_path):
     """flock conflicts between two opens of the file even in one process: the second hold is refused without the
     wait a dead holder's children get, and once released (files removed) the next hold takes fresh files."""
-    config = load_config(_write_config(tmp_path, f"t{uuid.uuid4().hex[:10]}", _free_port()))
+    config = load_config(_write_config(tmp_path, f"t{uuid.uuid4().hex[:10]}", free_port()))
     folder = tmp_path / "logs" / "not-yet-made"
     first = hold_instance_locks(config, folder)
     try:

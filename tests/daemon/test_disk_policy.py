@@ -20,6 +20,7 @@ import pytest
 
 from daemon.bus import pubsub
 from daemon.log_format.reader import read_log
+from daemon.processes.disk_policy import SIMULATED_DISK_ENV, STATE_FILE
 from daemon.processes.status_server import HealthBoard, make_server
 from daemon.spine.config import load_config
 from daemon.spine.messages import LidarPacket
@@ -157,3 +158,67 @@ def test_the_floor_is_validated_at_start(tmp_path, value):
 
     with pytest.raises(ConfigError, match="keep_newest_s"):
         load_config(write_config(tmp_path, keep_newest_s=value))
+
+
+def fill_simulated(folder: Path, disk_bytes: int, stop: threading.Event) -> None:
+    """Another program on a simulated disk (SIMULATED_DISK_ENV: the folder is the whole disk): takes every byte
+    freed, until told to stop."""
+    with open(folder / "other-program.bin", "ab", buffering=0) as f:
+        while not stop.wait(0.01):
+            used = sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
+            if used < disk_bytes:
+                f.write(bytes(disk_bytes - used))
+
+
+def test_the_deletion_pause_outlives_a_recorder_restart(recorders, tmp_path):
+    disk = 16 * MB
+    config_path = write_config(tmp_path, segment_bytes=500_000, min_free_pct=10.0, keep_newest_s=0.5)
+    config = load_config(config_path)
+    logs = tmp_path / "logs"
+    env = {SIMULATED_DISK_ENV: str(disk)}
+    rec = RecorderProcess(config_path, logs, env)
+    lidar = pubsub.open_publisher(config, LIDAR_PACKETS)
+    rng = random.Random(7)
+    publish(lidar, 300, rng)  # 7.5 MB of a 16 MB disk
+    rec.wait_for(lambda d: d["written"].get(LIDAR_PACKETS, 0) == 300)
+    stop = threading.Event()
+    filler = threading.Thread(target=fill_simulated, args=(logs, disk, stop))
+    filler.start()
+    try:
+        # every deletion's space is taken: held off 2, 4, then 8 s
+        detail = rec.wait_for(lambda d: d["disk_policy"]["deletions_undone"] >= 3, timeout_s=40)
+        assert detail["disk_policy"]["held_off_s"] > 4.0, detail["disk_policy"]
+        deleted_before = detail["disk_policy"]["deleted_segments"]
+        assert rec.stop() == 0, rec.stderr
+        state = json.loads((logs / STATE_FILE).read_text())
+        assert state["undone_in_a_row"] == 3
+
+        rec = RecorderProcess(config_path, logs, env)  # the restarted recorder takes up the pause ...
+        first = rec.detail["disk_policy"]
+        assert first["held_off_s"] > 0 and first["deleted_segments"] == 0, first
+        resumed = rec.wait_for(lambda d: d["disk_policy"]["deleted_segments"] > 0, timeout_s=30)
+        segments_left = len(list(logs.glob("*.mcap")))
+        # ... deletes nothing until it ends, and the next undone deletion holds off longer still (16 s: the 4th)
+        detail = rec.wait_for(lambda d: d["disk_policy"]["deletions_undone"] >= 1, timeout_s=15)
+        assert detail["disk_policy"]["held_off_s"] > 8.0, detail["disk_policy"]
+        assert resumed["disk_policy"]["deleted_segments"] <= 2 and segments_left >= 1
+    finally:
+        stop.set()
+        filler.join()
+    lidar.close()
+    assert rec.stop() == 0, rec.stderr
+    assert "held off for" in rec.stderr
+    assert deleted_before <= 4
+    pubsub.unlink_all(config)
+
+
+def test_an_unreadable_pause_file_is_counted_and_ignored(recorders, tmp_path):
+    config_path = write_config(tmp_path)
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    (logs / STATE_FILE).write_text('{"hold_off_until_unix_s": "soon"')
+    rec = RecorderProcess(config_path, logs)
+    assert rec.detail["disk_policy"]["held_off_s"] == 0
+    assert rec.stop() == 0
+    assert f"{STATE_FILE} unreadable" in rec.stderr
+    pubsub.unlink_all(load_config(config_path))

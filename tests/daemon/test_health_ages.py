@@ -1,15 +1,11 @@
 """Readiness sees a stopped driver: the status server (a real process, over HTTP) ages each health message by the
 publisher's own stamp, so a SIGSTOPped driver's health grows old and /readyz turns 503; a replaced ring is followed."""
 
-import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
-import urllib.error
-import urllib.request
 
 import pytest
 import yaml
@@ -19,37 +15,9 @@ from daemon.spine.config import load_config
 from daemon.spine.health import HealthCounters
 from daemon.spine.process_table import required_drivers
 from daemon.spine.topics import health_topic
-from tests.daemon_fixtures import REPO, private_config
+from tests.daemon_fixtures import REPO, free_port, http_json, private_config, wait_for
 
 ENV = dict(os.environ, PYTHONPATH=f"{REPO / 'tests' / 'fakes'}{os.pathsep}{REPO}")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _get(port: int, path: str) -> tuple[int | None, dict]:
-    """The answer's status and its JSON ({} for another body), (None, {}) when nothing answers."""
-    try:
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=3) as r:
-            code, body = r.status, r.read()
-    except urllib.error.HTTPError as e:
-        code, body = e.code, e.read()
-    except OSError:
-        return None, {}
-    return code, json.loads(body) if body.startswith(b"{") else {}
-
-
-def _wait(predicate, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 @pytest.fixture
@@ -58,7 +26,7 @@ def status_server(tmp_path):
     _, path = private_config(tmp_path)
     data = yaml.safe_load(path.read_text())
     data["sensors"].update(cameras=data["sensors"]["cameras"][:1], can=None)
-    data["status"] = {"port": _free_port()}
+    data["status"] = {"port": free_port()}
     path.write_text(yaml.safe_dump(data))
     cfg = load_config(path)
     procs = [subprocess.Popen([sys.executable, "-m", "daemon.processes.status_server", "--config", str(path)],
@@ -71,7 +39,7 @@ def status_server(tmp_path):
         return procs[-1]
 
     try:
-        _wait(lambda: _get(port, "/livez")[0] is not None or None, 30, "the status endpoint")
+        wait_for(lambda: http_json(port, "/livez")[0] is not None or None, 30, "the status endpoint")
         yield cfg, port, start_fake
     finally:
         for p in procs:
@@ -86,19 +54,19 @@ def test_readyz_fails_for_a_sigstopped_driver_and_recovers(status_server):
     cfg, port, start_fake = status_server
     drivers = {name: start_fake(name) for name in required_drivers(cfg)}
     assert sorted(drivers) == ["camera_front_wide", "gnss", "lidar"]
-    _wait(lambda: _get(port, "/readyz")[0] == 200, 30, "every driver's health")
+    wait_for(lambda: http_json(port, "/readyz")[0] == 200, 30, "every driver's health")
     os.kill(drivers["lidar"].pid, signal.SIGSTOP)
     stopped_at = time.monotonic()
-    code, body = _wait(lambda: (r := _get(port, "/readyz"))[0] == 503 and r, 10, "/readyz to fail")
+    code, body = wait_for(lambda: (r := http_json(port, "/readyz"))[0] == 503 and r, 10, "/readyz to fail")
     took = time.monotonic() - stopped_at
     assert 2.8 <= took < 5.0, took  # max_health_age_s 3 s, less the age of its last health (published every 0.1 s)
     assert len(body["not_ready_because"]) == 1 and body["not_ready_because"][0].startswith("lidar: health is ")
     time.sleep(1.0)
-    processes = _get(port, "/status")[1]["processes"]
+    processes = http_json(port, "/status")[1]["processes"]
     assert processes["lidar"]["health_age_s"] > 3.9  # it grows while the driver is stopped ...
     assert processes["gnss"]["health_age_s"] < 1.0  # ... and only the stopped driver's
     os.kill(drivers["lidar"].pid, signal.SIGCONT)
-    _wait(lambda: _get(port, "/readyz")[0] == 200, 5, "/readyz after SIGCONT")
+    wait_for(lambda: http_json(port, "/readyz")[0] == 200, 5, "/readyz after SIGCONT")
 
 
 def test_board_follows_a_replaced_health_ring(status_server):
@@ -113,9 +81,9 @@ def test_board_follows_a_replaced_health_ring(status_server):
             pub.publish(snap)
 
     publish("first ring")
-    _wait(lambda: _get(port, "/status")[1].get("processes", {}).get("gnss", {}).get("detail") == "first ring", 10,
-          "the first ring's health")
+    wait_for(lambda: http_json(port, "/status")[1].get("processes", {}).get("gnss", {}).get("detail") == "first ring",
+             10, "the first ring's health")
     unlink_topic(cfg, health_topic("gnss"))  # what a new daemon does to the rings it finds
     publish("second ring")
-    _wait(lambda: _get(port, "/status")[1]["processes"]["gnss"]["detail"] == "second ring", 5,
+    wait_for(lambda: http_json(port, "/status")[1]["processes"]["gnss"]["detail"] == "second ring", 5,
           "the replaced ring's health")

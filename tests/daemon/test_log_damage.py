@@ -22,9 +22,9 @@ from daemon.log_format.reader import ReadReport, read_log, read_metadata
 from daemon.log_format.recovery import recover_log
 from daemon.log_format.writer import LogWriter
 from tests.daemon.test_log_format import CONFIG, _messages
+from tests.log_damage import BLOCK, damaged_log
 
 ROOT = Path(__file__).resolve().parents[2]
-BLOCK = 4096
 
 
 def second_lz4_block_header(data: bytes) -> int:
@@ -146,32 +146,10 @@ def test_a_damaged_summary_is_not_trusted_and_every_chunk_is_still_read(tmp_path
     assert got == {k: m for k, m in originals.items()}
 
 
-def _damage(data: bytes, rng: random.Random) -> bytes:
-    """One of the ways a file gets damaged: bit flips, a zeroed block, random bytes, a cut, or several."""
-    out = bytearray(data)
-    for _ in range(rng.choice((1, 1, 1, 2, 3))):
-        kind = rng.randrange(5)
-        at = rng.randrange(len(out))
-        if kind == 0:
-            out[at] ^= 1 << rng.randrange(8)
-        elif kind == 1:
-            out[at:at + BLOCK] = bytes(len(out[at:at + BLOCK]))
-        elif kind == 2:
-            n = rng.randrange(1, 64)
-            out[at:at + n] = rng.randbytes(len(out[at:at + n]))
-        elif kind == 3:
-            del out[at:]
-            if not out:
-                out = bytearray(data[:9])
-        else:
-            out[at:at + 9] = rng.randbytes(len(out[at:at + 9]))  # a record header
-    return bytes(out)
-
-
 def test_fuzzed_damage_never_raises_never_returns_a_corrupt_message_and_never_hides_a_loss(tmp_path):
     """200 damaged closed and unclosed files (zstd and lz4): read_log and recover_log never raise; every message
     read is one that was written; when messages are missing the file is reported incomplete; the recovered file
-    reads back complete with what was recovered. (bench/log_fuzz.py runs thousands.)"""
+    reads back complete with what was recovered. (bench/parser_fuzz.py runs thousands, of the same damage.)"""
     rng = random.Random(2026)
     cases = []
     for compression in ("lz4", "zstd"):
@@ -180,7 +158,7 @@ def test_fuzzed_damage_never_raises_never_returns_a_corrupt_message_and_never_hi
     path, fixed = tmp_path / "fuzzed.mcap", tmp_path / "fixed.mcap"
     for i in range(200):
         data, originals = cases[i % len(cases)]
-        path.write_bytes(_damage(data, rng))
+        path.write_bytes(damaged_log(data, rng))
         got, report = read_back(path)
         assert all(k in originals and originals[k] == m for k, m in got.items()), i
         if len(got) < len(originals) and report.files[0].complete:

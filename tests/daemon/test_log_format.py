@@ -3,12 +3,13 @@
 import json
 import os
 import random
+from collections import Counter
 from pathlib import Path
 
 import pytest
 from mcap.reader import make_reader
 
-from daemon.log_format.reader import ReadReport, read_log, read_metadata
+from daemon.log_format.reader import ReadReport, read_log, read_metadata, summary_message_counts
 from daemon.log_format.recovery import recover_log
 from daemon.log_format.writer import LogWriter
 from daemon.spine.config import load_config
@@ -157,3 +158,18 @@ def test_recover_log_makes_a_readable_closed_file(tmp_path):
     last = json.loads(meta["roadlog.counts"]["last_seq_per_topic"])
     assert last and all(seq == max(r.message.seq for r in back if r.topic == t) for t, seq in last.items())
     os.remove(path)
+
+
+def test_summary_message_counts_of_a_closed_file_and_none_of_a_cut_one(tmp_path):
+    msgs = _messages(5)
+    path = tmp_path / "full.mcap"
+    with LogWriter(path, CONFIG, chunk_size=16 * 1024) as writer:
+        for topic, msg in msgs:
+            writer.write(topic, msg)
+    read = Counter(r.topic for r in read_log([path]))
+    counts = summary_message_counts(path)
+    assert {t: counts[t] for t in read} == dict(read) and read["lidar/packets"] == 5
+    assert set(counts) - set(read) == {"tf_static", *(f"calibration/{c.name}" for c in CONFIG.sensors.cameras)}
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[:-100])  # no footer: only read_log can count it
+    assert summary_message_counts(cut) is None and summary_message_counts(tmp_path / "none.mcap") is None

@@ -263,3 +263,67 @@ def test_slow_clients_cannot_make_more_threads_than_the_cap(tmp_path):
     finally:
         server.shutdown()
         server.server_close()
+
+
+def _trickle(sock: socket.socket, request: bytes, stop: threading.Event, every_s: float = 0.5) -> float | None:
+    """Send the request one byte every `every_s`; the time the server closed the connection (None: it never did)."""
+    start = time.monotonic()
+    for byte in request:
+        try:
+            sock.sendall(bytes([byte]))
+        except OSError:  # reset: the server closed it
+            return time.monotonic() - start
+        if stop.wait(every_s):
+            return None
+        sock.setblocking(False)
+        try:
+            if sock.recv(4096) == b"":
+                return time.monotonic() - start
+        except BlockingIOError:
+            pass
+        except OSError:
+            return time.monotonic() - start
+        finally:
+            sock.setblocking(True)
+    return None
+
+
+def test_a_trickling_client_is_cut_off_at_its_request_deadline_and_others_are_answered(tmp_path):
+    cfg, _ = private_config(tmp_path)
+    server = make_server(cfg, HealthBoard(cfg), tmp_path / "logs", port=0, idle_timeout_s=30.0, max_threads=2,
+                         request_deadline_s=2.0)
+    threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True).start()
+    host, port = server.server_address[:2]
+    request = b"GET /livez HTTP/1.0\r\nHost: x\r\n\r\n"  # 33 bytes: 16 s at one byte per 0.5 s
+    stop = threading.Event()
+    closed_after: dict[int, float | None] = {}
+    tricklers = [socket.create_connection((host, port), timeout=5) for _ in range(2)]  # both server threads
+    threads = [threading.Thread(target=lambda i=i: closed_after.__setitem__(i, _trickle(tricklers[i], request, stop)))
+               for i in range(2)]
+    try:
+        for t in threads:
+            t.start()
+        time.sleep(0.7)
+        busy = socket.create_connection((host, port), timeout=5)  # every thread held: refused for now
+        busy.sendall(b"GET /livez HTTP/1.0\r\n\r\n")
+        assert busy.recv(4096).startswith(b"HTTP/1.0 503")
+        busy.close()
+        for t in threads:
+            t.join(6.0)
+        assert all(not t.is_alive() for t in threads)  # each was hung up on, well before its 16 s trickle ended
+        assert all(after is not None and 1.5 <= after <= 4.0 for after in closed_after.values()), closed_after
+        code, _, body = _get(f"http://{host}:{port}/livez")  # the threads are free again: a normal client is served
+        assert (code, body) == (200, b"ok\n")
+        quick = socket.create_connection((host, port), timeout=5)  # sent in pieces, whole within the deadline
+        for piece in (b"GET /li", b"vez HTTP/1.0\r\n", b"\r\n"):
+            quick.sendall(piece)
+            time.sleep(0.3)
+        assert quick.recv(4096).startswith(b"HTTP/1.0 200")
+        quick.close()
+        assert "roadlog_status_request_timeouts_total 2.0" in _get(f"http://{host}:{port}/metrics")[2].decode()
+    finally:
+        stop.set()
+        for s in tricklers:
+            s.close()
+        server.shutdown()
+        server.server_close()

@@ -22,7 +22,7 @@ from drivers.lidar.ouster_decoder import (
     ouster_scan_assembler,
     packet_sequence,
 )
-from drivers.lidar.ouster_encoder import encode_frame_packets
+from drivers.lidar.ouster_encoder import encode_frame_packets, packet_frame_id, renumbered_packet
 from drivers.lidar.ouster_metadata import metadata_to_json, parse_metadata, simulated_os128_metadata
 from drivers.lidar.ouster_packet_layout import PROFILE_PIXEL_FIELDS, packet_layout
 from drivers.lidar.ouster_xyz import make_xyz_lut
@@ -290,6 +290,22 @@ def test_encoded_frame_decodes_to_input_in_sdk_and_here(profile, columns):
     expected_xyz = sdk.XYZLut(info)(np.where(valid, pixels["range_mm"], 0).astype(np.uint32))
     np.testing.assert_allclose(cloud.xyz, expected_xyz[cloud.ring, cloud.column], **XYZ)
     assert len(cloud.xyz) == np.count_nonzero(np.where(valid, pixels["range_mm"], 0))
+
+
+@pytest.mark.parametrize("profile", sorted(PROFILE_PIXEL_FIELDS))
+def test_a_renumbered_packet_is_the_one_the_sensor_would_send_frames_later(profile):
+    meta = simulated_os128_metadata(1024, udp_profile_lidar=profile)
+    layout = packet_layout(meta)
+    pixels, timestamps, valid = _synthetic_frame(layout)
+    frame_id, later = layout.frame_id_modulus - 2, 5  # the frame id wraps
+    packets = encode_frame_packets(layout, frame_id, pixels, timestamps, valid, init_id=meta.init_id,
+                                   prod_sn=int(meta.prod_sn))
+    expected = encode_frame_packets(layout, frame_id + later, pixels, timestamps + np.uint64(8_000_000_000), valid,
+                                    init_id=meta.init_id, prod_sn=int(meta.prod_sn))
+    for packet, want in zip(packets, expected, strict=True):
+        assert packet_frame_id(bytes(packet), layout) == frame_id
+        moved = renumbered_packet(bytes(packet), layout, later, 8_000_000_000)
+        assert moved == bytes(want) and packet_frame_id(moved, layout) == 3
 
 
 def test_encoder_matches_sdk_frame_to_packets_byte_for_byte_on_pixels():

@@ -32,9 +32,9 @@ def column(img: np.ndarray) -> int:
     return int(np.argmax(img[img.shape[0] // 2, : 20 * N, 1].reshape(N, 20).mean(axis=1)))
 
 
-def write_drive(path: Path, raw: bool = False) -> None:
+def write_drive(path: Path, raw: bool = False, metadata: dict[str, str] | None = None) -> None:
     car = load_config(CONFIG_FILE)
-    with LogWriter(path, car) as log:
+    with LogWriter(path, car, metadata) as log:
         for i in range(N):
             t = T0 + i * PERIOD_NS
             for cam in ("front_left", "front_right"):
@@ -51,8 +51,8 @@ def write_drive(path: Path, raw: bool = False) -> None:
                                                         cv2.imencode(".png", mask)[1].tobytes()))
 
 
-def play(path: Path, start_mono_ns: int | None, stop_after_s: float | None = None):
-    config = load_config(CONFIG_FILE).camera("front_left").model_copy(update={"device": str(path)})
+def play(path: Path, start_mono_ns: int | None, stop_after_s: float | None = None, loop: bool = False):
+    config = load_config(CONFIG_FILE).camera("front_left").model_copy(update={"device": str(path), "loop": loop})
     stop = threading.Event()
     if stop_after_s is not None:
         threading.Timer(stop_after_s, stop.set).start()
@@ -124,3 +124,31 @@ def test_a_missing_log_is_a_config_error(tmp_path):
         play(tmp_path / "nope.mcap", None)
     with pytest.raises(ConfigError, match="needs `device`"):
         play("", None)
+
+
+def test_a_looping_camera_plays_its_drive_again_with_its_times_carried_on(tmp_path):
+    path = tmp_path / "looped.mcap"
+    write_drive(path, metadata={"seconds": str(N * PERIOD_NS / 1e9)})  # what `roadlog simulate` records
+    start = time.monotonic_ns() - 1_200_000_000  # frames 0..9 of the first pass already late: dropped
+    published, health = play(path, start, stop_after_s=1.6, loop=True)
+    frames = [m for t, m, _ in published if t == camera_topic("front_left")]
+    shown = [column(cv2.imdecode(np.frombuffer(f.data, np.uint8), cv2.IMREAD_COLOR)) for f in frames]
+    assert shown[:3] == [10, 11, 12] or shown[:3] == [11, 12, 13]  # (a frame more dropped on a slow machine)
+    wrap = shown.index(0)
+    assert shown[wrap - 1] == N - 1 and shown[wrap:wrap + 5] == [0, 1, 2, 3, 4]  # the second pass, from its start
+    times = [f.sensor_time_ns for f in frames]
+    assert np.all(np.diff(times) == PERIOD_NS)  # one camera's rhythm across the end of a pass
+    assert times[wrap] == start + N * PERIOD_NS
+    assert health.dropped == 2 * 10 or health.dropped == 2 * 11
+
+
+def test_looping_a_log_that_is_not_a_simulated_drive_is_a_config_error(drive):
+    with pytest.raises(ConfigError, match="cannot be looped"):
+        play(drive, None, loop=True)
+
+
+def test_only_a_sim_camera_loops():
+    data = load_config(CONFIG_FILE).camera("front_left").model_dump()
+    data.update(backend="opencv", loop=True)
+    with pytest.raises(ValueError, match="only a sim camera"):
+        type(load_config(CONFIG_FILE).camera("front_left")).model_validate(data)

@@ -33,6 +33,9 @@ from daemon.spine.topics import (
 )
 from drivers.gnss.gnss_messages import GnssDecoder
 from drivers.gnss.stream_framer import StreamFramer
+from drivers.lidar.ouster_encoder import packet_frame_id
+from drivers.lidar.ouster_metadata import parse_metadata
+from drivers.lidar.ouster_packet_layout import packet_layout
 from sim.drive_log import main as simulate_main
 from sim.live_drive import open_gnss_pty, run_live_drive
 
@@ -179,3 +182,54 @@ def test_a_drive_without_masks_has_the_same_frames_and_no_mask_topic(city_drive,
     assert not any(r.topic.startswith("mask/") for r in records)
     assert {r.topic for r in records if not r.topic.startswith("camera/")} == \
         {r.topic for r in read_log([city_drive]) if not r.topic.startswith(("camera/", "mask/"))}
+
+
+def test_a_looped_live_drive_carries_the_sensors_numbering_and_clocks_on(drive):
+    """Two passes: every Lidar frame id once (the second pass's numbered on from the first's), the packets' column
+    times and the GNSS epochs one drive length later, so a driver sees one endless drive."""
+    layout = packet_layout(parse_metadata(CONFIGS / CONFIG.sensors.lidar.metadata_file))
+    receiver = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    receiver.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 32 * 1024 * 1024)
+    receiver.bind(("127.0.0.1", 0))
+    pty = open_gnss_pty()
+    reader = os.open(pty.path, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK)
+    result, packets, serial = {}, [], bytearray()
+
+    def play():
+        result["stats"] = run_live_drive(drive, lidar_address=receiver.getsockname(), gnss_fd=pty.master_fd,
+                                         passes=2, lidar_layout=layout)
+
+    player = threading.Thread(target=play)
+    player.start()
+    try:
+        while player.is_alive() or select.select([receiver, reader], [], [], 0.3)[0]:
+            ready, _, _ = select.select([receiver, reader], [], [], 0.05)
+            if receiver in ready:
+                packets.append(receiver.recv(65536))
+            if reader in ready:
+                serial += os.read(reader, 65536)
+        player.join(10)
+    finally:
+        os.close(reader)
+        pty.close()
+        receiver.close()
+    stats = result["stats"]
+    logged = [r.message for r in read_log([drive], topics=[LIDAR_PACKETS])]
+    assert stats.passes == 2 and stats.errors == 0 and stats.lidar_packets == 2 * len(logged)
+    frames_per_pass = len({packet_frame_id(bytes(p.data), layout) for p in logged})
+    ids = Counter(packet_frame_id(p, layout) for p in packets)
+    first = packet_frame_id(bytes(logged[0].data), layout)
+    assert set(ids) <= set(range(first, first + 2 * frames_per_pass)) and max(ids.values()) <= len(logged) // \
+        frames_per_pass  # no frame id twice: the second pass numbered on
+    assert len(packets) > 0.95 * 2 * len(logged) and first + 2 * frames_per_pass - 1 in ids
+    column_time = {(packet_frame_id(p, layout), int.from_bytes(p[8:10], "little")): int.from_bytes(p[:8], "little")
+                   for p in packets}  # (frame, first measurement id) -> its first column's time
+    period_ns = int(SECONDS * 1e9)
+    shifted = [(column_time[(f + frames_per_pass, m)] - t) for (f, m), t in column_time.items()
+               if (f + frames_per_pass, m) in column_time]
+    assert shifted and set(shifted) == {period_ns}
+    fixes = [m for f in StreamFramer().feed(bytes(serial)) for m in GnssDecoder("nmea+ubx").decode(f, 0)
+             if isinstance(m, GnssFix)]
+    times = [f.sensor_time_ns for f in fixes]
+    logged_fixes = sum(1 for _ in read_log([drive], topics=[GNSS_FIX]))
+    assert len(fixes) >= 2 * logged_fixes - 2 and np.all(np.diff(times) > 0)  # (the receiver's first may be cut)
