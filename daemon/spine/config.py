@@ -289,9 +289,12 @@ def resolve_path(config_file: str | Path, value: str) -> Path:
     return p if p.is_absolute() else (Path(config_file).resolve().parent / p)
 
 
-def data_dir(config: CarConfig, config_file: str | Path, override: str | Path | None = None) -> Path:
-    """The folder for log segments and maps: the override, else recorder.output_dir (relative to the config)."""
-    return Path(override) if override else resolve_path(config_file, config.recorder.output_dir)
+def data_dir(config: CarConfig, override: str | Path | None = None) -> Path:
+    """The folder for log segments and maps, absolute: the override, else recorder.output_dir. A relative one is taken
+    from the current working directory (systemd's WorkingDirectory), as a replay's `--output-dir` is: an output
+    never lands beside the config (configs/logs for configs/sim.yaml); the files a config names as inputs
+    (calibrations, the DBC) are the ones taken from its folder (`resolve_path`)."""
+    return (Path(override) if override else Path(config.recorder.output_dir)).expanduser().absolute()
 
 
 def load_config(path: str | Path) -> CarConfig:

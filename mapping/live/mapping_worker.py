@@ -126,7 +126,7 @@ class MappingWorker:
         self.config_sha256 = hashlib.sha256(Path(config_path).read_bytes()).hexdigest()
         self.mapper = config.mapper
         resolve_device(self.mapper.device, f"{config_path}: mapper.device")  # cuda without a GPU: exit 2
-        self.folder = data_dir(config, config_path, output_dir) / "map"
+        self.folder = data_dir(config, output_dir) / "map"
         self._archive_finished_map()
         self.tiles_dir = self.folder / "tiles"
         self.previews = preview_dir(self.folder.parent)
