@@ -241,6 +241,12 @@ class RecorderConfig(StrictModel):
     compression: Literal["zstd", "lz4", "none"] = "lz4"
     # longest a message is held to be written in log-time order (a ring the recorder is behind on); 0: as read
     reorder_window_s: float = Field(5.0, ge=0, le=60)
+    # for viewing (Foxglove's 3D panel), beside the lossless record: a Lidar scan decoded into points at most this
+    # often (`lidar/view`, foxglove.PointCloud; never read by the mapper); at most the Lidar's rate_hz; 0: none
+    point_cloud_view_hz: float = Field(2.0, ge=0, le=20, allow_inf_nan=False)
+    # the vehicle pose fused live from GNSS, IMU and wheel speeds this often (`vehicle/pose` as foxglove.PoseInFrame
+    # and `tf` as foxglove.FrameTransform, map -> vehicle); 0: none
+    pose_hz: float = Field(10.0, ge=0, le=50, allow_inf_nan=False)
 
 
 class StatusConfig(StrictModel):
@@ -255,6 +261,14 @@ class CarConfig(StrictModel):
     recorder: RecorderConfig = RecorderConfig()
     mapper: MapperConfig = MapperConfig()
     status: StatusConfig = StatusConfig()
+
+    @model_validator(mode="after")
+    def _view_within_the_lidar_rate(self) -> CarConfig:
+        lidar, view_hz = self.sensors.lidar, self.recorder.point_cloud_view_hz
+        if lidar is not None and not lidar.point_clouds and view_hz > lidar.rate_hz:
+            raise ValueError(f"recorder.point_cloud_view_hz {view_hz:g} is above sensors.lidar.rate_hz "
+                             f"{lidar.rate_hz}: the Lidar gives only that many scans a second")
+        return self
 
     def camera(self, name: str) -> CameraConfig:
         for cam in self.sensors.cameras:

@@ -39,6 +39,7 @@ from daemon.spine.topics import (
     IMU,
     LIDAR_PACKETS,
     LIDAR_POINTS,
+    LIDAR_VIEW,
     POSE,
     TIME_ANCHOR,
     WHEEL_SPEEDS,
@@ -49,7 +50,7 @@ from mapping.inputs.lidar_ground import GroundFilter, configured_decoding, lidar
 from mapping.inputs.segmentation import OnnxSegmenter
 from mapping.localization import pose_fusion
 from mapping.localization.keyframe_spacing import spaced_preferring
-from mapping.localization.sensor_time import ClockMap, fit_clock
+from mapping.localization.sensor_time import ClockMap, fit_clock, span_clock
 from mapping.localization.trajectory import HorizontalTrack, Trajectory
 from mapping.method.scene_data import CameraModel, Keyframe, StandingPoints
 
@@ -174,6 +175,15 @@ def fuse_log_trajectory(gnss: list[GnssFix], imu: list[ImuSample], wheels: list[
     return pose_fusion.fuse_trajectory(fixes, samples, speeds, mounting, origin=origin).trajectory
 
 
+def fuse_bus_trajectory(held: dict[str, list], config: CarConfig, origin: LocalFrame) -> Trajectory:
+    """The trajectory from the GNSS fixes, IMU samples, wheel speeds and time anchors a live consumer holds as they
+    came off the bus (by topic; its last seconds or minutes: each sensor's clock by `span_clock`)."""
+    anchors = [(m.host_mono_ns, m.utc_ns) for m in held[TIME_ANCHOR]]
+    clocks = {t: span_clock([m.sensor_time_ns for m in held[t]], [m.host_mono_ns for m in held[t]], anchors)
+              for t in (GNSS_FIX, IMU, WHEEL_SPEEDS)}
+    return fuse_log_trajectory(held[GNSS_FIX], held[IMU], held[WHEEL_SPEEDS], config, origin, clocks)
+
+
 def _pose_trajectory(poses: list[VehiclePose], clock: ClockMap, origin: LocalFrame | None) -> Trajectory:
     o = origin or LocalFrame(0.0, 0.0, 0.0)
     return Trajectory(
@@ -217,12 +227,13 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
     cams = [c.name for c in config.sensors.cameras]
     frames: dict[str, list[CameraFrame]] = defaultdict(list)
     masks: dict[str, dict[int, SemanticMask]] = defaultdict(dict)
-    gnss, imu, wheels, poses, packets, clouds = [], [], [], [], [], []
+    gnss, imu, wheels, poses, packets, clouds, view_clouds = [], [], [], [], [], [], []
     wanted = {camera_topic(c) for c in cams} | ({mask_topic(c) for c in cams} if segmenter is None else set())
     wanted |= {GNSS_FIX, IMU, WHEEL_SPEEDS, POSE, TIME_ANCHOR}
     anchors: list[tuple[int, int]] = []
     if use_lidar and config.sensors.lidar is not None:
-        wanted |= {LIDAR_PACKETS, LIDAR_POINTS}  # a log of a point-cloud Lidar (or an imported one) has points
+        # a log of a point-cloud Lidar (or an imported one) has points; one without either, its viewing clouds
+        wanted |= {LIDAR_PACKETS, LIDAR_POINTS, LIDAR_VIEW}
     host_sensor: dict[str, list[tuple[int, int]]] = defaultdict(list)
     for rec in read_log(paths, topics=wanted, report=report):
         m = rec.message
@@ -245,7 +256,7 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
         elif isinstance(m, LidarPacket):
             packets.append(m)
         elif isinstance(m, PointCloud):
-            clouds.append(m)
+            (view_clouds if rec.topic == LIDAR_VIEW else clouds).append(m)
     clocks = {t: fit_clock([s for _, s in v], [h for h, _ in v], anchors) for t, v in host_sensor.items()}
     if poses:
         trajectory = _pose_trajectory(poses, clocks[POSE], origin or recorded_pose_origin(paths[0]))
@@ -260,7 +271,7 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
 
     # a bad metadata or calibration file fails here, before the background work
     scans = lidar_scans(packets, clouds, lambda: configured_decoding(lidar, config_path or "."),
-                        config.mapper.inputs.lidar_every_n_scans) if lidar else None
+                        config.mapper.inputs.lidar_every_n_scans, view_clouds) if lidar else None
     ground, standing_points = Future(), Future()
     if scans is not None:
         occlusion = (counts["keyframes_without_mask"] > 0 and config.mapper.maskless.lidar_occlusion

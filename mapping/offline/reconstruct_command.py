@@ -125,6 +125,11 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
     warning = missing_masks_warning(loading.counts["frames"], loading.counts["frames_without_mask"])
     if warning is not None:
         print(f"roadlog reconstruct: warning: {warning}", file=sys.stderr, flush=True)
+    views = loading.counts.get("lidar_view_clouds")
+    if views:
+        print(f"roadlog reconstruct: warning: the logs hold no Lidar packets, only {views} viewing clouds "
+              f"(lidar/view, recorder.point_cloud_view_hz): the Lidar ground is taken from those",
+              file=sys.stderr, flush=True)
     result = reconstruct(loading.keyframes, loading.cameras, loading.path, loading.lidar_ground_points,
                          config.mapper, config.vehicle.reference_height_m, out_dir=out, ablation=ablation,
                          gt=truth.elevation if truth else None, faithful=faithful, progress=progress,
