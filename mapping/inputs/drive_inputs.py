@@ -17,9 +17,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
+from tqdm import tqdm
 
 from daemon.log_format.metadata_records import METADATA_NAME, POSE_ENU_ORIGIN_KEY
-from daemon.log_format.reader import ReadReport, read_log, read_metadata
+from daemon.log_format.reader import ReadReport, read_log, read_metadata, summary_message_count
 from daemon.spine.config import CarConfig
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.messages import (
@@ -217,11 +218,12 @@ def load_drive(paths: list[str | Path], config: CarConfig, config_path: str | Pa
 
 def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path: str | Path | None = None, *,
                         origin: LocalFrame | None = None, use_lidar: bool = True,
-                        standing: bool | None = None) -> LoadingDrive:
+                        standing: bool | None = None, progress: bool = False) -> LoadingDrive:
     """Read the log segments and fuse the trajectory; start extracting the Lidar ground (every
     `mapper.inputs.lidar_every_n_scans`-th scan) and decoding the keyframes (every
     `mapper.inputs.keyframe_spacing_m`) in the background. The Lidar's standing points come too when a keyframe
-    has no mask and `mapper.maskless.lidar_occlusion` is on (`standing` True / False: always / never)."""
+    has no mask and `mapper.maskless.lidar_occlusion` is on (`standing` True / False: always / never). `progress`:
+    a bar with its ETA on stderr for each of the three (the messages read, the scans, the keyframes decoded)."""
     report = ReadReport()
     segmenter = segmenter_for(config, config_path)  # a bad model fails here, before the log is read
     cams = [c.name for c in config.sensors.cameras]
@@ -235,7 +237,9 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
         # a log of a point-cloud Lidar (or an imported one) has points; one without either, its viewing clouds
         wanted |= {LIDAR_PACKETS, LIDAR_POINTS, LIDAR_VIEW}
     host_sensor: dict[str, list[tuple[int, int]]] = defaultdict(list)
-    for rec in read_log(paths, topics=wanted, report=report):
+    reading = tqdm(read_log(paths, topics=wanted, report=report), desc="read logs", unit="msg", mininterval=0.5,
+                   total=summary_message_count(paths, wanted) if progress else None, disable=not progress)
+    for rec in reading:
         m = rec.message
         if isinstance(m, TimeAnchor):
             anchors.append((m.host_mono_ns, m.utc_ns))
@@ -278,13 +282,13 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
                      if standing is None else standing)
         points = pool.submit(scans_ground, scans, clocks[scans.topic], config, trajectory,
                              GroundFilter(corridor_half_width_m=config.mapper.mesh.corridor_half_width_m),
-                             int(trajectory.times_ns[0]) if occlusion else None)
+                             int(trajectory.times_ns[0]) if occlusion else None, progress)
         points.add_done_callback(lambda done: _split(done, ground, standing_points))
         counts.update(scans.counts)
     else:
         ground.set_result(None)
         standing_points.set_result(None)
-    keyframes = pool.submit(_decode_keyframes, chosen, segmenter)
+    keyframes = pool.submit(_decode_keyframes, chosen, segmenter, progress)
     pool.shutdown(wait=False)
     return LoadingDrive(camera_models(config), keyframes, trajectory, ground, clocks, counts, report,
                         standing_points)
@@ -401,9 +405,10 @@ def segmenter_for(config: CarConfig, config_path: str | Path | None) -> OnnxSegm
     return OnnxSegmenter.load(seg, config_path) if seg.provider == "onnx" else None
 
 
-def _decode_keyframes(chosen: list[_KeyframeMessages], segmenter: OnnxSegmenter | None) -> list[Keyframe]:
+def _decode_keyframes(chosen: list[_KeyframeMessages], segmenter: OnnxSegmenter | None,
+                      progress: bool = False) -> list[Keyframe]:
     keyframes = []
-    for k in chosen:
+    for k in tqdm(chosen, desc="keyframes", unit="frame", disable=not progress, mininterval=0.5):
         image = decode_image(k.frame)
         keyframes.append(Keyframe(k.camera, k.timestamp, k.T_world_camera, image,
                                   keyframe_semantics(image, k.mask, segmenter)))

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
+from tqdm import tqdm
 
 from daemon.spine.config import CarConfig, LidarConfig
 from daemon.spine.messages import LidarPacket, PointCloud
@@ -381,18 +382,22 @@ def lidar_scans(packets: list[LidarPacket], clouds: list[PointCloud],
 
 
 def scans_ground(scans: LidarScans, clock: ClockMap, config: CarConfig, trajectory: Trajectory,
-                 settings: GroundFilter, standing_t0_ns: int | None = None
+                 settings: GroundFilter, standing_t0_ns: int | None = None, progress: bool = False
                  ) -> tuple[np.ndarray, StandingPoints | None]:
     """Ground points of the scans, in scan order, and with `standing_t0_ns` the points standing on the road scan by
     scan (heights: `mapper.maskless`), each scan at the host time of its middle firing in seconds from
     standing_t0_ns (the keyframes' clock), else None. The scans are shared out over
-    `mapper.runtime.lidar_ground_threads` threads (numpy releases the GIL in its array work)."""
+    `mapper.runtime.lidar_ground_threads` threads (numpy releases the GIL in its array work); `progress`: a bar of
+    the scans with its ETA on stderr."""
     T_vl = config.sensors.lidar.extrinsics.matrix()
     road = TrajectoryGround.of(trajectory, config.vehicle.reference_height_m, settings.corridor_half_width_m,
                                settings.ground_cell_m)
     heights = config.mapper.maskless
 
+    bar = tqdm(total=len(scans.scans), desc="lidar ground", unit="scan", disable=not progress, mininterval=0.5)
+
     def scan_points(scan: object) -> tuple[np.ndarray, tuple[float, np.ndarray] | None]:
+        bar.update()
         points = scans.decode(scan)
         world = lidar_world_points(points, clock, T_vl, trajectory, settings)
         if standing_t0_ns is None or len(points.times_ns) == 0:
@@ -403,6 +408,7 @@ def scans_ground(scans: LidarScans, clock: ClockMap, config: CarConfig, trajecto
 
     with ThreadPoolExecutor(config.mapper.runtime.lidar_ground_threads, thread_name_prefix="lidar-ground") as pool:
         out = list(pool.map(scan_points, scans.scans))
+    bar.close()
     ground = np.concatenate([g for g, _ in out]) if out else np.zeros((0, 3))
     if standing_t0_ns is None:
         return ground, None
