@@ -55,7 +55,7 @@ def test_the_replayed_log_holds_viewing_clouds_and_the_live_pose(replayed):
     clouds, poses = back[LIDAR_VIEW], back[VEHICLE_POSE]
     assert abs(len(clouds) - drive_s * config.recorder.point_cloud_view_hz) <= 2, (len(clouds), drive_s)
     assert all(c.sensor == "lidar" and len(c.data) > 20 * 10_000 for c in clouds)
-    assert len(poses) >= 0.6 * drive_s * config.recorder.pose_hz  # the last fusion's span comes too late for the log
+    assert len(poses) >= 0.8 * drive_s * config.recorder.pose_hz  # from the first fix to the end (the last at the stop)
     assert all(p.frame_id == MAP_FRAME for p in poses)
     assert json.loads(read_metadata(segment)["roadlog.counts"]["lost_per_topic"]) == {}
     with open(segment, "rb") as f:  # each pose again as the transform map -> vehicle, at the same log time
@@ -128,8 +128,8 @@ def test_foxglove_finds_the_frames_chain_at_every_cloud_and_image_and_the_car_mo
         times = [int(m["t"]) for m in messages]
         within = [t for t in times if tf_times[0] <= t <= tf_times[-1]]
         assert all(map(on_the_chain, within)), what
-        # the poses span the drive but its first fix and the last fusion (about a second at either end)
-        assert len(within) >= 0.6 * len(times), (what, len(within), len(times))
+        # the poses span the drive from its first fix to its end (the last fusion at the stop)
+        assert len(within) >= 0.8 * len(times), (what, len(within), len(times))
     # the car moves with the drive: the city drive goes at ~9 m/s
     track = np.array([tf["translation"] for tf in tfs])
     seconds = (tf_times[-1] - tf_times[0]) / 1e9

@@ -4,11 +4,12 @@ recorder's `tf` transform map -> vehicle), so the car moves in Foxglove's 3D pan
 
 It fuses as the live mapping worker does (`drive_inputs.fuse_bus_trajectory`: the ESKF and RTS smoother of
 `pose_fusion`, each sensor's clock spanned onto the host clock), over the last FUSION_WINDOW_S of data, every
-FUSE_EVERY_S of drive; the poses from the last one published up to the newest fused time (less END_MARGIN_S, where
-the smoother has seen little past them) come out on a grid of host times 1/pose_hz apart, each stamped (sensor_time_ns
-and host_mono_ns) at the time it is the pose of: on the host clock, as the camera frames are. The map frame (`map`) is
-local ENU at the first GNSS fix this process received. A fusion that fails (too few fixes, a gap) is counted and
-retried with the next data; nothing is published for the span it could not fuse.
+FUSE_EVERY_S of drive, and once more when it is stopped (the supervisor stops it after the drivers, before the
+recorder); the poses from the last one published up to the newest fused time (less END_MARGIN_S, where the
+smoother has seen little past them, but at the stop) come out on a grid of host times 1/pose_hz apart, each stamped
+(sensor_time_ns and host_mono_ns) at the time it is the pose of: on the host clock, as the camera frames are. The map
+frame (`map`) is local ENU at the first GNSS fix this process received. A fusion that fails (too few fixes, a gap)
+is counted and retried with the next data; nothing is published for the span it could not fuse.
 """
 
 from __future__ import annotations
@@ -72,10 +73,12 @@ class LivePose:
         if topic == GNSS_FIX and self.origin is None:
             self.origin = LocalFrame(msg.latitude_deg, msg.longitude_deg, msg.altitude_m)
 
-    def poses(self) -> list[VehiclePose]:
-        """The poses due, once FUSE_EVERY_S of drive has come since the last fusion (else none)."""
+    def poses(self, final: bool = False) -> list[VehiclePose]:
+        """The poses due, once FUSE_EVERY_S of drive has come since the last fusion (else none); `final` (the data
+        has ended): at once, up to the newest fused time."""
         imu = self.held[IMU]
-        if self.origin is None or not imu or imu[-1].host_mono_ns - self.fused_at_ns < FUSE_EVERY_S * 1e9:
+        if self.origin is None or not imu or (
+                not final and imu[-1].host_mono_ns - self.fused_at_ns < FUSE_EVERY_S * 1e9):
             return []
         newest = int(imu[-1].host_mono_ns)
         self.fused_at_ns = newest
@@ -91,7 +94,8 @@ class LivePose:
             self.last_error = f"fusion over {len(self.held[GNSS_FIX])} fixes: {exc}"
             return []
         self.fusions += 1
-        first, last = int(trajectory.times_ns[0]), int(trajectory.times_ns[-1]) - int(END_MARGIN_S * 1e9)
+        margin_ns = 0 if final else int(END_MARGIN_S * 1e9)
+        first, last = int(trajectory.times_ns[0]), int(trajectory.times_ns[-1]) - margin_ns
         if self.next_ns is None or self.next_ns < first:  # the first poses, or after a span that did not fuse
             self.next_ns = -(-first // self.step_ns) * self.step_ns
         times = np.arange(self.next_ns, last + 1, self.step_ns, dtype=np.int64)
@@ -153,6 +157,13 @@ def run(config: CarConfig, stop: threading.Event) -> LivePose:
                 health.count_published()
             if not got:
                 stop.wait(IDLE_SLEEP_S)
+        # stopped (after the drivers, before the recorder): what the rings still hold, then the poses up to its end
+        for topic, sub in subs.items():
+            while (msg := sub.read(timeout_s=0, copy=True)) is not None:
+                pose.take(topic, msg)
+        for msg in pose.poses(final=True):
+            out.publish(msg)
+            health.count_published()
     finally:
         for closing in (*subs.values(), out, health_pub):
             closing.close()
