@@ -294,6 +294,20 @@ def read_metadata(path: str | Path, until: str | None = None) -> dict[str, dict[
     return out
 
 
+def summary_message_count(paths: Iterable[str | Path], topics: Iterable[str]) -> int | None:
+    """How many messages of `topics` the files' (trusted) summaries count: what read_log will give, for a progress
+    bar; None when a file has none (never closed, damaged: only reading it tells)."""
+    wanted, total = set(topics), 0
+    for path in paths:
+        with open(path, "rb") as f:
+            summary, _ = trusted_summary(f, os.fstat(f.fileno()).st_size)
+        if summary is None or summary.statistics is None:
+            return None
+        counts = summary.statistics.channel_message_counts
+        total += sum(counts.get(cid, 0) for cid, ch in summary.channels.items() if ch.topic in wanted)
+    return total
+
+
 def last_log_time(path: str | Path) -> int | None:
     """The file's last log time from its (trusted) summary, on the host's monotonic clock like every time read_log
     gives; None for a file without one."""

@@ -5,7 +5,8 @@ named in the `roadlog` record and in every channel's metadata) and publish_time 
 round-trips. Each chunk holds its messages in log-time order (a message older than the chunk's last starts a new
 chunk). Each file starts with a `roadlog` metadata record and holds a CameraCalibration channel per camera and the
 car's static transforms (`tf_static`), both written with the first message at its log time, and each mask again in
-colour (`mask_colour/<camera>`, mask_palette); each channel is also described by a `roadlog.channel` metadata record
+colour (`mask_colour/<camera>`, mask_palette), and each live vehicle pose again as a transform (`tf`, the map frame to
+the vehicle); each channel is also described by a `roadlog.channel` metadata record
 outside the chunks (metadata_records)."""
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from pathlib import Path
 
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from mcap.records import Channel, Schema
 from mcap.writer import CompressionType, Writer
@@ -39,8 +41,17 @@ from daemon.log_format.metadata_records import (
 from daemon.log_format.static_transforms import static_transforms
 from daemon.spine import message_codec
 from daemon.spine.config import CarConfig, config_to_yaml, resolve_path
-from daemon.spine.messages import SemanticMask
-from daemon.spine.topics import LOG_ONLY_CHANNELS, TF_STATIC, calibration_topic, mask_colour_topic, topic_table
+from daemon.spine.messages import SemanticMask, VehiclePose
+from daemon.spine.topics import (
+    LOG_ONLY_CHANNELS,
+    TF,
+    TF_STATIC,
+    VEHICLE_FRAME,
+    VEHICLE_POSE,
+    calibration_topic,
+    mask_colour_topic,
+    topic_table,
+)
 
 
 def calibration_json(config: CarConfig) -> str:
@@ -211,6 +222,23 @@ class LogWriter:
         self.bytes_written_estimate += len(data) + 32
         if isinstance(message, SemanticMask):
             self._write_mask_colour(message, log_time)
+        elif topic == VEHICLE_POSE:
+            self._write_frame_transform(message, log_time)
+
+    def _write_frame_transform(self, pose: VehiclePose, log_time: int) -> None:
+        """The live pose again as the transform of its frame (the local map frame) to the vehicle frame on `tf`, so
+        the 3D panel moves the car, and with it every sensor frame of `tf_static`."""
+        proto = FrameTransform(parent_frame_id=pose.frame_id, child_frame_id=VEHICLE_FRAME)
+        proto.timestamp.seconds, proto.timestamp.nanos = divmod(int(pose.sensor_time_ns), 1_000_000_000)
+        proto.translation.x, proto.translation.y, proto.translation.z = pose.position_m
+        q = proto.rotation
+        q.x, q.y, q.z, q.w = pose.orientation_xyzw
+        cid = self._channel_id(TF, "foxglove.FrameTransform",
+                               lambda: file_descriptor_set(FrameTransform.DESCRIPTOR.file), "VehicleFrameTransform")
+        data = proto.SerializeToString()
+        self._add_message(cid, log_time=log_time, data=data, publish_time=int(pose.sensor_time_ns),
+                          sequence=int(pose.seq) & 0xFFFFFFFF)
+        self.bytes_written_estimate += len(data) + 32
 
     def _write_mask_colour(self, mask: SemanticMask, log_time: int) -> None:
         """The mask again as a paletted PNG (its class colours) on `mask_colour/<camera>`; a mask that is not an 8-bit

@@ -81,7 +81,7 @@ def run_main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     config = load_config(args.config)
     table = process_table(config, args.config, "live", record=not args.no_record, output_dir=args.output_dir)
-    return _serve(_supervisor(config, table, args), config, data_dir(config, args.config, args.output_dir))
+    return _serve(_supervisor(config, table, args), config, data_dir(config, args.output_dir))
 
 
 @reports_config_errors
@@ -104,4 +104,4 @@ def replay_main(argv: list[str] | None = None) -> int:
     table = process_table(config, args.config, "replay", replay_logs=tuple(args.logs), replay_rate=args.rate,
                           record=not args.no_record, output_dir=args.output_dir)
     return _serve(_supervisor(config, table, args, exit_when_done=True), config,
-                  data_dir(config, args.config, args.output_dir))
+                  data_dir(config, args.output_dir))

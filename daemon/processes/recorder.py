@@ -142,6 +142,10 @@ class Recorder:
         self._at_last_close = TopicTally()
         self.reorder = ReorderBuffer(int(self.rc.reorder_window_s * 1e9), REORDER_MAX_BYTES)
         self.read_positions: dict[str, int] = {}  # per topic, the host time of the last message read
+        # per topic, how far before the time a ring is read its next message may be stamped (a viewing cloud, a
+        # fused pose: Topic.stamp_lag_s)
+        self.stamp_slack_ns = {name: max(REORDER_SLACK_NS, int(t.stamp_lag_s * 1e9))
+                               for name, t in topic_table(config).items()}
         self._late_at_last_close: dict[str, int] = {}
         self.disk_full = False
         self.disk_free_bytes = 0
@@ -343,8 +347,8 @@ def logged_topics(config: CarConfig) -> list[str]:
 def _read_round(rec: Recorder, subscribers: dict[str, pubsub.Subscriber]) -> int:
     """Take what each subscriber has waiting (at most READ_BURST per topic), write what the reorder buffer then
     releases; the number read. No ring can still give a message older than `safe`: a ring read to its end gives
-    nothing stamped before the time it was read (less REORDER_SLACK_NS) or its last message (a replay's host times
-    may lie ahead), one the recorder is behind on nothing before its last message."""
+    nothing stamped before the time it was read (less REORDER_SLACK_NS, or its topic's stamp lag) or its last message
+    (a replay's host times may lie ahead), one the recorder is behind on nothing before its last message."""
     got = 0
     safe: int | None = None
     for topic, sub in subscribers.items():
@@ -360,7 +364,8 @@ def _read_round(rec: Recorder, subscribers: dict[str, pubsub.Subscriber]) -> int
             got += 1
         rec.set_lost(topic, sub.lost)
         position = rec.read_positions.get(topic)
-        bound = max(read_at - REORDER_SLACK_NS, position or 0) if drained else position
+        slack = rec.stamp_slack_ns.get(topic, REORDER_SLACK_NS)
+        bound = max(read_at - slack, position or 0) if drained else position
         safe = bound if safe is None else min(safe, bound)
     rec.release(safe)
     return got

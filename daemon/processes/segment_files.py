@@ -152,8 +152,11 @@ def quarantine(src: Path, dst: Path) -> Path:
 
 def check_output_dir(config: CarConfig, config_path: str | Path, override: str | Path | None = None) -> Path:
     """The recorder's folder (recorder.output_dir, or the override), once it is sure it can be made and written
-    (the recorder's start-up check, also run by `roadlog check-config`): ConfigError otherwise."""
-    folder = data_dir(config, config_path, override).absolute()
+    (the recorder's start-up check, also run by `roadlog check-config`): ConfigError otherwise. A relative one is
+    taken from the working directory, never from the config's folder (`data_dir`); `config_path` is the check's
+    common signature."""
+    del config_path
+    folder = data_dir(config, override)
     existing = folder
     while not existing.exists() and existing.parent != existing:
         existing = existing.parent

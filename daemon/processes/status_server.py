@@ -469,7 +469,7 @@ def main(argv: list[str] | None = None) -> int:
     board = HealthBoard(config)
     port = config.status.port if args.port is None else args.port
     try:
-        server = make_server(config, board, data_dir(config, args.config, args.output_dir), port)
+        server = make_server(config, board, data_dir(config, args.output_dir), port)
     except OSError as exc:  # the port is taken, the address is not this host's: not retried (exit 2)
         raise ConfigError(f"{args.config}: status endpoint {config.status.bind_address}:{port}: "
                           f"{exc.strerror or exc}") from None

@@ -244,6 +244,12 @@ class RecorderConfig(StrictModel):
     compression: Literal["zstd", "lz4", "none"] = "lz4"
     # longest a message is held to be written in log-time order (a ring the recorder is behind on); 0: as read
     reorder_window_s: float = Field(5.0, ge=0, le=60)
+    # for viewing (Foxglove's 3D panel), beside the lossless record: a Lidar scan decoded into points at most this
+    # often (`lidar/view`, foxglove.PointCloud; never read by the mapper); at most the Lidar's rate_hz; 0: none
+    point_cloud_view_hz: float = Field(2.0, ge=0, le=20, allow_inf_nan=False)
+    # the vehicle pose fused live from GNSS, IMU and wheel speeds this often (`vehicle/pose` as foxglove.PoseInFrame
+    # and `tf` as foxglove.FrameTransform, map -> vehicle); 0: none
+    pose_hz: float = Field(10.0, ge=0, le=50, allow_inf_nan=False)
 
 
 class StatusConfig(StrictModel):
@@ -258,6 +264,14 @@ class CarConfig(StrictModel):
     recorder: RecorderConfig = RecorderConfig()
     mapper: MapperConfig = MapperConfig()
     status: StatusConfig = StatusConfig()
+
+    @model_validator(mode="after")
+    def _view_within_the_lidar_rate(self) -> CarConfig:
+        lidar, view_hz = self.sensors.lidar, self.recorder.point_cloud_view_hz
+        if lidar is not None and not lidar.point_clouds and view_hz > lidar.rate_hz:
+            raise ValueError(f"recorder.point_cloud_view_hz {view_hz:g} is above sensors.lidar.rate_hz "
+                             f"{lidar.rate_hz}: the Lidar gives only that many scans a second")
+        return self
 
     def camera(self, name: str) -> CameraConfig:
         for cam in self.sensors.cameras:
@@ -292,9 +306,12 @@ def resolve_path(config_file: str | Path, value: str) -> Path:
     return p if p.is_absolute() else (Path(config_file).resolve().parent / p)
 
 
-def data_dir(config: CarConfig, config_file: str | Path, override: str | Path | None = None) -> Path:
-    """The folder for log segments and maps: the override, else recorder.output_dir (relative to the config)."""
-    return Path(override) if override else resolve_path(config_file, config.recorder.output_dir)
+def data_dir(config: CarConfig, override: str | Path | None = None) -> Path:
+    """The folder for log segments and maps, absolute: the override, else recorder.output_dir. A relative one is taken
+    from the current working directory (systemd's WorkingDirectory), as a replay's `--output-dir` is: an output
+    never lands beside the config (configs/logs for configs/sim.yaml); the files a config names as inputs
+    (calibrations, the DBC) are the ones taken from its folder (`resolve_path`)."""
+    return (Path(override) if override else Path(config.recorder.output_dir)).expanduser().absolute()
 
 
 def load_config(path: str | Path) -> CarConfig:

@@ -9,10 +9,11 @@ from dataclasses import dataclass
 from typing import Literal
 
 from daemon.spine.config import POINT_CLOUD_LIDAR, CarConfig, ConfigError
-from daemon.spine.topics import camera_process
+from daemon.spine.topics import LIDAR_VIEW_PROCESS, VEHICLE_POSE_PROCESS, camera_process, fuses_pose, views_lidar
 
 Mode = Literal["live", "replay"]
 MAPPER_NICE = 10  # the mapper's CPU priority below the drivers' and the recorder's
+VIEWER_NICE = MAPPER_NICE  # the viewing clouds' and the live pose's: as the mapper, below the drivers and the recorder
 RESTARTS_ENV = "ROADLOG_RESTARTS"  # set by the supervisor: how many times it restarted this process (0: first start)
 # What the daemon itself checks before it starts any process (as ProcessSpec.check): the rings it makes fit
 DAEMON_CHECK = "daemon.bus.ring_space:check_rings"
@@ -71,6 +72,10 @@ def process_table(
     cfg = ("--config", config_path)
     out = ("--output-dir", output_dir) if output_dir else ()
     table: list[ProcessSpec] = []
+    # what the log holds for viewing, made from the drivers' topics (a replay makes it again: the player plays only
+    # the drivers' topics); only when there is a log
+    viewers = (LIDAR_VIEW_PROCESS,) * (record and views_lidar(config)) + \
+        (VEHICLE_POSE_PROCESS,) * (record and fuses_pose(config))
     if mode == "live":
         table += driver_processes(config, config_path)
         if any(not spec.module for spec in table):  # only a point-cloud Lidar has none
@@ -79,7 +84,7 @@ def process_table(
                               f"use this config with `roadlog replay` or `roadlog reconstruct`")
     else:
         # the player starts once the recorder and the mapper listen: nothing is played before they subscribe
-        consumers = ("recorder",) * record + ("mapper",) * config.mapper.enabled
+        consumers = ("recorder",) * record + ("mapper",) * config.mapper.enabled + viewers
         table.append(ProcessSpec("replay", "daemon.processes.replay", cfg + ("--rate", replay_rate) + replay_logs,
                                  restart_on_success=False, heartbeat_s=30.0, start_after=consumers))
     if record:
@@ -89,6 +94,14 @@ def process_table(
         table.append(ProcessSpec("recorder", "daemon.processes.recorder", cfg + out + anchors + lossless,
                                  heartbeat_s=15.0, stop_timeout_s=30.0,
                                  check="daemon.processes.segment_files:check_output_dir"))
+    # they start once the recorder is up (their products are for its log), so that their imports (the mapper's
+    # modules: ~4 s of a core) do not slow the drivers' start; their first health may take as long
+    viewing = {"nice": VIEWER_NICE, "start_after": ("recorder",), "heartbeat_s": 30.0}
+    if LIDAR_VIEW_PROCESS in viewers:
+        table.append(ProcessSpec(LIDAR_VIEW_PROCESS, "mapping.viewing.lidar_view", cfg,
+                                 check="mapping.viewing.lidar_view:check_config", **viewing))
+    if VEHICLE_POSE_PROCESS in viewers:
+        table.append(ProcessSpec(VEHICLE_POSE_PROCESS, "mapping.viewing.vehicle_pose", cfg, **viewing))
     if config.mapper.enabled:
         # the log comes first: on a busy machine the drivers and the recorder get the CPU before the mapper
         table.append(ProcessSpec("mapper", "mapping.live.mapping_worker", cfg + out, heartbeat_s=120.0,

@@ -38,6 +38,9 @@ class Topic:
     logged: bool = True
     source: str = ""  # the process that writes it (a process table name, or "supervisor")
     max_message_bytes: int = SMALL_MESSAGE_BYTES  # the largest payload it carries (a ring must hold a few)
+    # how far before its publish a message's host stamp may lie: a product made from other topics (a viewing cloud,
+    # a fused pose) is stamped at the time it shows, published once made; the recorder waits that long to order it
+    stamp_lag_s: float = 0.0
 
 
 def camera_topic(camera: str) -> str:
@@ -68,6 +71,34 @@ VEHICLE_FRAME = "vehicle"
 # reconstruct` uses a log's poses instead of fusing its GNSS, IMU and wheel speeds.
 POSE = "pose"
 LOG_ONLY_CHANNELS: dict[str, type] = {POSE: VehiclePose}  # channels a log may carry beside the bus topics
+
+
+# For viewing, beside the lossless record (recorder.point_cloud_view_hz, recorder.pose_hz): every few Lidar scans
+# decoded into points by the `lidar_view` process (PointCloud on `lidar/view`, foxglove.PointCloud in the frame of
+# the Lidar, stamped on the host clock as the camera frames are); the mapper never reads it (it decodes the packets).
+# The vehicle pose fused live by the `vehicle_pose` process (VehiclePose in MAP_FRAME on `vehicle/pose`, logged as
+# foxglove.PoseInFrame and again on the log-only `tf` channel as a foxglove.FrameTransform MAP_FRAME -> vehicle).
+LIDAR_VIEW = "lidar/view"
+VEHICLE_POSE = "vehicle/pose"
+TF = "tf"
+MAP_FRAME = "map"  # local ENU at the run's first GNSS fix (east, north, up; metres)
+LIDAR_VIEW_PROCESS = "lidar_view"
+VEHICLE_POSE_PROCESS = "vehicle_pose"
+VIEW_STAMP_LAG_S = 1.0  # a viewing cloud is published once its scan has been received and decoded
+POSE_STAMP_LAG_S = 3.0  # a pose is published once the fusion has run over the data after it (vehicle_pose)
+VIEW_CLOUD_BYTES = 8 * MB  # the largest viewing cloud: 400,000 points with a return (a 128-beam scan of 2048)
+
+
+def views_lidar(config: CarConfig) -> bool:
+    """Whether the car logs viewing clouds: a Lidar that sends packets, and recorder.point_cloud_view_hz > 0 (a
+    point-cloud Lidar's scans are logged decoded already)."""
+    lidar = config.sensors.lidar
+    return lidar is not None and not lidar.point_clouds and config.recorder.point_cloud_view_hz > 0
+
+
+def fuses_pose(config: CarConfig) -> bool:
+    """Whether the car publishes its live pose: GNSS (with its IMU) and recorder.pose_hz > 0."""
+    return config.sensors.gnss is not None and config.recorder.pose_hz > 0
 
 
 def camera_process(camera: str) -> str:
@@ -118,7 +149,16 @@ def topic_table(config: CarConfig) -> dict[str, Topic]:
         topics.append(Topic(CAN_FRAMES, CanFrame, 2000.0, 16 * MB, True, "can"))
         topics.append(Topic(WHEEL_SPEEDS, WheelSpeeds, 50.0, 4 * MB, True, "can"))
     topics.append(Topic(TIME_ANCHOR, TimeAnchor, 1.0, 1 * MB, True, "recorder"))
-    for process in HEALTH_PROCESSES:
+    viewers = []
+    if views_lidar(config):
+        topics.append(Topic(LIDAR_VIEW, PointCloud, config.recorder.point_cloud_view_hz, 4 * VIEW_CLOUD_BYTES, True,
+                            LIDAR_VIEW_PROCESS, VIEW_CLOUD_BYTES, VIEW_STAMP_LAG_S))
+        viewers.append(LIDAR_VIEW_PROCESS)
+    if fuses_pose(config):
+        topics.append(Topic(VEHICLE_POSE, VehiclePose, config.recorder.pose_hz, 1 * MB, True, VEHICLE_POSE_PROCESS,
+                            stamp_lag_s=POSE_STAMP_LAG_S))
+        viewers.append(VEHICLE_POSE_PROCESS)
+    for process in (*HEALTH_PROCESSES, *viewers):
         topics.append(Topic(health_topic(process), DriverHealth, 1.0, 1 * MB, True, process))
     table = {t.name: t for t in topics}
     unknown = sorted(set(config.bus.ring_bytes) - set(table))

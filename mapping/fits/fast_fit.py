@@ -28,39 +28,41 @@ from mapping.method.scene_data import CameraModel, Keyframe
 
 
 def fit_surface(road_map: RoadMap, supervision: np.ndarray | None, lidar_at: Located | None, config: MapperConfig,
-                rng: np.random.Generator, timings: dict[str, float]) -> tuple[float, float]:
+                rng: np.random.Generator, timings: dict[str, float], progress: bool = False) -> tuple[float, float]:
     """The elevation: the residual MLP fitted to the Lidar lattice (mapping.fits.observation_fit), then the Lidar
     detail; the weighted loss of the elevation fit's first and last step. `supervision`: the Lidar ground points
     (None: none, or an ablation without them), `lidar_at`: the ground points placed on the mesh."""
     fast = config.fast_fit
     started = time.perf_counter()
-    elevation_first_last = _fit_elevation(road_map, supervision, lidar_at, fast, rng, resolve_device(config.device))
+    elevation_first_last = _fit_elevation(road_map, supervision, lidar_at, fast, rng, resolve_device(config.device),
+                                          progress)
     timings["elevation_fit_wall_s"] = time.perf_counter() - started
     if road_map.elevation is not None and supervision is not None and len(supervision) and fast.lidar_detail_passes:
         started = time.perf_counter()
         detail = fit_lidar_detail(road_map.z_now, lidar_at, supervision[:, 2], fast.lidar_detail_passes,
-                                  fast.lidar_detail_prior, config.runtime.lidar_detail_threads)
+                                  fast.lidar_detail_prior, config.runtime.lidar_detail_threads, progress)
         timings["lidar_detail_wall_s"] = time.perf_counter() - started
         timings["lidar_detail_mean_cm"] = 100.0 * float(np.abs(detail).mean())
     return elevation_first_last
 
 
 def _fit_elevation(road_map: RoadMap, lidar: np.ndarray | None, located: Located | None, fast: FastFitConfig,
-                   rng: np.random.Generator, device: torch.device) -> tuple[float, float]:
+                   rng: np.random.Generator, device: torch.device, progress: bool) -> tuple[float, float]:
     """The fast path's elevation: the residual MLP fitted to the Lidar lattice (mapping.fits.observation_fit);
     the weighted loss of its first and last step."""
     if road_map.elevation is None or lidar is None or not len(lidar):
         return 0.0, 0.0
     first_last = fit_elevation(road_map, lidar, located, fast.elevation_lattice_m, fast.elevation_epochs,
                                fast.elevation_min_steps, fast.elevation_batch, fast.elevation_smooth_pairs,
-                               fast.elevation_lr, fast.elevation_loss_weight, fast.smoothness_loss_weight, rng, device)
+                               fast.elevation_lr, fast.elevation_loss_weight, fast.smoothness_loss_weight, rng, device,
+                               progress)
     road_map.refresh_elevation()
     return first_last
 
 
 def fit_surface_from_images(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraModel],
                             trajectory: HorizontalTrack, config: MapperConfig, rng: np.random.Generator,
-                            timings: dict[str, float]) -> tuple[float, float]:
+                            timings: dict[str, float], progress: bool = False) -> tuple[float, float]:
     """Camera-only elevation (no Lidar ground): the plane sweep's heights at the lattice nodes
     (mapping.fits.photometric_elevation), the residual MLP fitted to them weighted by their confidence with the
     same loss as the Lidar's; the weighted loss of the fit's first and last step."""
@@ -82,7 +84,7 @@ def fit_surface_from_images(road_map: RoadMap, train: list[Keyframe], cameras: d
                              fast.elevation_lattice_m, fast.elevation_epochs, fast.elevation_min_steps,
                              fast.elevation_batch, fast.elevation_smooth_pairs, fast.elevation_lr,
                              fast.elevation_loss_weight, fast.smoothness_loss_weight, rng,
-                             resolve_device(config.device))
+                             resolve_device(config.device), progress)
     road_map.refresh_elevation()
     timings["elevation_fit_wall_s"] = time.perf_counter() - started
     return first_last
@@ -131,7 +133,7 @@ def observe(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraM
 
 
 def fit_colour(road_map: RoadMap, obs: VertexObservations, config: MapperConfig, rng: np.random.Generator,
-               timings: dict[str, float]) -> tuple[float, float]:
+               timings: dict[str, float], progress: bool = False) -> tuple[float, float]:
     """Colour codes and decoders fitted to the observations; the colour loss of the first and the last step."""
     seen = obs.seen
     if not len(seen):
@@ -139,7 +141,8 @@ def fit_colour(road_map: RoadMap, obs: VertexObservations, config: MapperConfig,
     fast = config.fast_fit
     started = time.perf_counter()
     losses_first_last = fit_colours(road_map, obs, seen, fast.colour_encoder_steps, fast.colour_batch,
-                                    fast.colour_decoder_lr, fast.colour_encoder_lr, rng, resolve_device(config.device))
+                                    fast.colour_decoder_lr, fast.colour_encoder_lr, rng, resolve_device(config.device),
+                                    progress)
     timings["colour_fit_wall_s"] = time.perf_counter() - started
     return losses_first_last
 

@@ -15,15 +15,17 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+from tqdm import tqdm
 
 from mapping.method.mesh_location import Located
 
 
 def fit_lidar_detail(z: np.ndarray, located: Located, heights: np.ndarray, passes: int, prior: float,
-                     threads: int) -> np.ndarray:
+                     threads: int, progress: bool = False) -> np.ndarray:
     """Add the detail to the vertex elevations `z` (N,) in place, for the Lidar ground points placed by
     `located` with heights `heights` (M,); returns the detail (N,). Each pass's sums are split over the points
-    into `threads` parts (numpy's gathers and bincount run partly without the GIL), added in a fixed order."""
+    into `threads` parts (numpy's gathers and bincount run partly without the GIL), added in a fixed order.
+    `progress`: a bar of the passes with its ETA on stderr."""
     n = len(z)
     inside = np.flatnonzero(located.inside)
     parts = [(located.ids[part], located.weights[part], heights[part].astype(np.float32))
@@ -41,7 +43,7 @@ def fit_lidar_detail(z: np.ndarray, located: Located, heights: np.ndarray, passe
     detail = np.zeros(n, np.float32)
     with ThreadPoolExecutor(threads, thread_name_prefix="lidar-detail") as pool:
         total = (sum(pool.map(support, parts)) + prior).astype(np.float32)
-        for _ in range(passes):
+        for _ in tqdm(range(passes), desc="lidar detail", unit="pass", disable=not progress, mininterval=0.5):
             step = ((sum(pool.map(pull, parts)) - prior * detail) / total).astype(np.float32)
             detail += step
             z += step

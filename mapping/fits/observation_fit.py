@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 from torch import nn
+from tqdm import tqdm
 
 from mapping.fits.vertex_observations import VertexObservations
 from mapping.method.compute_device import optimisation_loop
@@ -67,26 +68,34 @@ def _lattice_edges(nodes: np.ndarray) -> np.ndarray:
     return np.concatenate(out)
 
 
+def step_bar(steps: int, what: str, shown: bool) -> tqdm:
+    """A fit's progress bar (steps, rate, ETA) on stderr, or a silent one."""
+    return tqdm(total=steps, desc=what, unit="step", disable=not shown, mininterval=0.5)
+
+
 def fit_elevation(road_map: RoadMap, points: np.ndarray, located: Located, lattice_m: float, epochs: float,
                   min_steps: int, batch: int, smooth_pairs: int, lr: float, w_elevation: float, w_smooth: float,
-                  rng: np.random.Generator, device: torch.device = _CPU) -> tuple[float, float]:
+                  rng: np.random.Generator, device: torch.device = _CPU, progress: bool = False
+                  ) -> tuple[float, float]:
     """Fit the residual MLP to the Lidar ground points (L1; `located`: the points placed on the mesh) with
     lattice smoothness (fit_lattice, on `device`); returns the weighted loss of the first and the last step."""
     nodes, target, z0, _ = lidar_lattice_targets(road_map, points, located, lattice_m)
     return fit_lattice(road_map, nodes, target, z0, None, lattice_m, epochs, min_steps, batch, smooth_pairs, lr,
-                       w_elevation, w_smooth, rng, device)
+                       w_elevation, w_smooth, rng, device, progress)
 
 
 def fit_lattice(road_map: RoadMap, nodes: np.ndarray, target: np.ndarray, z0: np.ndarray,
                 weight: np.ndarray | None, lattice_m: float, epochs: float, min_steps: int, batch: int,
                 smooth_pairs: int, lr: float, w_elevation: float, w_smooth: float,
-                rng: np.random.Generator, device: torch.device = _CPU) -> tuple[float, float]:
+                rng: np.random.Generator, device: torch.device = _CPU, progress: bool = False
+                ) -> tuple[float, float]:
     """Fit the residual MLP to residual targets `target` at lattice nodes `nodes` (K, 2) (their z0 `z0`) by L1,
     weighted per node by `weight` (None: all alike; a node of weight 0 takes part in the smoothness only), with
     lattice smoothness, `epochs` passes over the nodes in minibatches of `batch` nodes and `smooth_pairs`
     neighbour pairs (at least `min_steps` steps), the learning rate decaying from `lr` to 5 % of it along a
     cosine; returns the weighted loss of the first and the last step. The MLP and the lattice go to `device` once
-    (every step's draws too, drawn before the loop in the order the steps take them), the MLP comes back after."""
+    (every step's draws too, drawn before the loop in the order the steps take them), the MLP comes back after.
+    `progress`: a bar of the steps with its ETA on stderr."""
     steps = max(min_steps, int(np.ceil(epochs * len(nodes) / batch)))
     edges = _lattice_edges(nodes)
     draws = [(rng.choice(len(nodes), batch, replace=False) if len(nodes) > batch else np.arange(len(nodes)),
@@ -101,8 +110,9 @@ def fit_lattice(road_map: RoadMap, nodes: np.ndarray, target: np.ndarray, z0: np
     opt = torch.optim.Adam(elevation.parameters(), lr=lr)
     decay = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=FINAL_LR_FRACTION * lr)
     first = last = None
-    with optimisation_loop("fast elevation"):
+    with optimisation_loop("fast elevation"), step_bar(steps, "elevation", progress) as bar:
         for step in range(steps):
+            bar.update()
             pick, pair = picks[step], pairs[step]
             r = elevation(torch.cat([xy[pick], xy[pair[:, 0]], xy[pair[:, 1]]]))  # one MLP pass
             r_nodes, r_a, r_b = torch.split(r, [len(pick), len(pair), len(pair)])
@@ -140,7 +150,7 @@ def _colour_l1(road_map: RoadMap, codes: torch.Tensor, target: torch.Tensor, pre
 
 def fit_colours(road_map: RoadMap, obs: VertexObservations, ids: np.ndarray, encoder_steps: int, batch: int,
                 lr_decoder: float, lr_encoder: float, rng: np.random.Generator,
-                device: torch.device = _CPU) -> tuple[float, float]:
+                device: torch.device = _CPU, progress: bool = False) -> tuple[float, float]:
     """Fit the colour codes of vertices `ids` and the decoders (see module docstring); returns the L1
     colour loss of the first and the last step. The observations, the encoder and the decoders go to `device`
     once (every step's draw too, drawn before the loop), the codes and the decoders come back after."""
@@ -159,8 +169,9 @@ def fit_colours(road_map: RoadMap, obs: VertexObservations, ids: np.ndarray, enc
     picks = torch.from_numpy(np.stack([rng.choice(len(ids), size, replace=False) for _ in range(encoder_steps)]
                                       ).reshape(encoder_steps, size)).to(device)
     first = last = None
-    with optimisation_loop("fast colour"):
+    with optimisation_loop("fast colour"), step_bar(encoder_steps, "colour", progress) as bar:
         for step in range(encoder_steps):
+            bar.update()
             pick = picks[step]
             loss = _colour_l1(road_map, encoder(features[pick]), target[pick], present[pick], names)
             for o in opts:

@@ -154,7 +154,8 @@ def reconstruct(
         have_lidar = lidar_ground_points is not None and len(lidar_ground_points) > 0
         lidar_at = Located.of(mesh, lidar_ground_points[:, :2]) if have_lidar else None
         if not faithful:  # the elevation needs the Lidar only: it is fitted while the images may still be decoding
-            elevation_first_last = fast_fit.fit_surface(road_map, supervision, lidar_at, config, rng, timings)
+            elevation_first_last = fast_fit.fit_surface(road_map, supervision, lidar_at, config, rng, timings,
+                                                        progress)
             phase("elevation fitted")
         selected = select_keyframes(_waited_for(keyframes, timings, "keyframes_wait_s"), trajectory,
                                     config.inputs.keyframe_spacing_m)
@@ -166,7 +167,7 @@ def reconstruct(
             raise ValueError(f"no training keyframes after selection (of {len(selected)} keyframes selected)")
         if not faithful and supervision is None and not variant.flat_init:  # camera-only: from the images
             elevation_first_last = fast_fit.fit_surface_from_images(road_map, train, cameras, trajectory, config,
-                                                                    rng, timings)
+                                                                    rng, timings, progress)
         semantics = semantics_status(train, road_map, config)
         if semantics.startswith("unavailable"):  # nothing to train them on: no semantics, not untrained logits
             road_map.semantic_logits = None
@@ -186,7 +187,7 @@ def reconstruct(
             phase("keyframes observed")
             # surface and semantics are final: the evaluation renders its views beside the colour fit
             evaluation = start_evaluation(road_map, *evaluation_args, metric_points)
-            colour_first, colour_last = fast_fit.fit_colour(road_map, obs, config, rng, timings)
+            colour_first, colour_last = fast_fit.fit_colour(road_map, obs, config, rng, timings, progress)
             history = [elevation_first_last[0] + colour_first, elevation_first_last[1] + colour_last]
             phase("colour fitted")
             last_epoch_steps = 1

@@ -17,9 +17,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
+from tqdm import tqdm
 
 from daemon.log_format.metadata_records import METADATA_NAME, POSE_ENU_ORIGIN_KEY
-from daemon.log_format.reader import ReadReport, read_log, read_metadata
+from daemon.log_format.reader import ReadReport, read_log, read_metadata, summary_message_count
 from daemon.spine.config import CarConfig
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.messages import (
@@ -39,6 +40,7 @@ from daemon.spine.topics import (
     IMU,
     LIDAR_PACKETS,
     LIDAR_POINTS,
+    LIDAR_VIEW,
     POSE,
     TIME_ANCHOR,
     WHEEL_SPEEDS,
@@ -49,7 +51,7 @@ from mapping.inputs.lidar_ground import GroundFilter, configured_decoding, lidar
 from mapping.inputs.segmentation import OnnxSegmenter
 from mapping.localization import pose_fusion
 from mapping.localization.keyframe_spacing import spaced_preferring
-from mapping.localization.sensor_time import ClockMap, fit_clock
+from mapping.localization.sensor_time import ClockMap, fit_clock, span_clock
 from mapping.localization.trajectory import HorizontalTrack, Trajectory
 from mapping.method.scene_data import CameraModel, Keyframe, StandingPoints
 
@@ -174,6 +176,15 @@ def fuse_log_trajectory(gnss: list[GnssFix], imu: list[ImuSample], wheels: list[
     return pose_fusion.fuse_trajectory(fixes, samples, speeds, mounting, origin=origin).trajectory
 
 
+def fuse_bus_trajectory(held: dict[str, list], config: CarConfig, origin: LocalFrame) -> Trajectory:
+    """The trajectory from the GNSS fixes, IMU samples, wheel speeds and time anchors a live consumer holds as they
+    came off the bus (by topic; its last seconds or minutes: each sensor's clock by `span_clock`)."""
+    anchors = [(m.host_mono_ns, m.utc_ns) for m in held[TIME_ANCHOR]]
+    clocks = {t: span_clock([m.sensor_time_ns for m in held[t]], [m.host_mono_ns for m in held[t]], anchors)
+              for t in (GNSS_FIX, IMU, WHEEL_SPEEDS)}
+    return fuse_log_trajectory(held[GNSS_FIX], held[IMU], held[WHEEL_SPEEDS], config, origin, clocks)
+
+
 def _pose_trajectory(poses: list[VehiclePose], clock: ClockMap, origin: LocalFrame | None) -> Trajectory:
     o = origin or LocalFrame(0.0, 0.0, 0.0)
     return Trajectory(
@@ -207,24 +218,28 @@ def load_drive(paths: list[str | Path], config: CarConfig, config_path: str | Pa
 
 def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path: str | Path | None = None, *,
                         origin: LocalFrame | None = None, use_lidar: bool = True,
-                        standing: bool | None = None) -> LoadingDrive:
+                        standing: bool | None = None, progress: bool = False) -> LoadingDrive:
     """Read the log segments and fuse the trajectory; start extracting the Lidar ground (every
     `mapper.inputs.lidar_every_n_scans`-th scan) and decoding the keyframes (every
     `mapper.inputs.keyframe_spacing_m`) in the background. The Lidar's standing points come too when a keyframe
-    has no mask and `mapper.maskless.lidar_occlusion` is on (`standing` True / False: always / never)."""
+    has no mask and `mapper.maskless.lidar_occlusion` is on (`standing` True / False: always / never). `progress`:
+    a bar with its ETA on stderr for each of the three (the messages read, the scans, the keyframes decoded)."""
     report = ReadReport()
     segmenter = segmenter_for(config, config_path)  # a bad model fails here, before the log is read
     cams = [c.name for c in config.sensors.cameras]
     frames: dict[str, list[CameraFrame]] = defaultdict(list)
     masks: dict[str, dict[int, SemanticMask]] = defaultdict(dict)
-    gnss, imu, wheels, poses, packets, clouds = [], [], [], [], [], []
+    gnss, imu, wheels, poses, packets, clouds, view_clouds = [], [], [], [], [], [], []
     wanted = {camera_topic(c) for c in cams} | ({mask_topic(c) for c in cams} if segmenter is None else set())
     wanted |= {GNSS_FIX, IMU, WHEEL_SPEEDS, POSE, TIME_ANCHOR}
     anchors: list[tuple[int, int]] = []
     if use_lidar and config.sensors.lidar is not None:
-        wanted |= {LIDAR_PACKETS, LIDAR_POINTS}  # a log of a point-cloud Lidar (or an imported one) has points
+        # a log of a point-cloud Lidar (or an imported one) has points; one without either, its viewing clouds
+        wanted |= {LIDAR_PACKETS, LIDAR_POINTS, LIDAR_VIEW}
     host_sensor: dict[str, list[tuple[int, int]]] = defaultdict(list)
-    for rec in read_log(paths, topics=wanted, report=report):
+    reading = tqdm(read_log(paths, topics=wanted, report=report), desc="read logs", unit="msg", mininterval=0.5,
+                   total=summary_message_count(paths, wanted) if progress else None, disable=not progress)
+    for rec in reading:
         m = rec.message
         if isinstance(m, TimeAnchor):
             anchors.append((m.host_mono_ns, m.utc_ns))
@@ -245,7 +260,7 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
         elif isinstance(m, LidarPacket):
             packets.append(m)
         elif isinstance(m, PointCloud):
-            clouds.append(m)
+            (view_clouds if rec.topic == LIDAR_VIEW else clouds).append(m)
     clocks = {t: fit_clock([s for _, s in v], [h for h, _ in v], anchors) for t, v in host_sensor.items()}
     if poses:
         trajectory = _pose_trajectory(poses, clocks[POSE], origin or recorded_pose_origin(paths[0]))
@@ -260,20 +275,20 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
 
     # a bad metadata or calibration file fails here, before the background work
     scans = lidar_scans(packets, clouds, lambda: configured_decoding(lidar, config_path or "."),
-                        config.mapper.inputs.lidar_every_n_scans) if lidar else None
+                        config.mapper.inputs.lidar_every_n_scans, view_clouds) if lidar else None
     ground, standing_points = Future(), Future()
     if scans is not None:
         occlusion = (counts["keyframes_without_mask"] > 0 and config.mapper.maskless.lidar_occlusion
                      if standing is None else standing)
         points = pool.submit(scans_ground, scans, clocks[scans.topic], config, trajectory,
                              GroundFilter(corridor_half_width_m=config.mapper.mesh.corridor_half_width_m),
-                             int(trajectory.times_ns[0]) if occlusion else None)
+                             int(trajectory.times_ns[0]) if occlusion else None, progress)
         points.add_done_callback(lambda done: _split(done, ground, standing_points))
         counts.update(scans.counts)
     else:
         ground.set_result(None)
         standing_points.set_result(None)
-    keyframes = pool.submit(_decode_keyframes, chosen, segmenter)
+    keyframes = pool.submit(_decode_keyframes, chosen, segmenter, progress)
     pool.shutdown(wait=False)
     return LoadingDrive(camera_models(config), keyframes, trajectory, ground, clocks, counts, report,
                         standing_points)
@@ -390,9 +405,10 @@ def segmenter_for(config: CarConfig, config_path: str | Path | None) -> OnnxSegm
     return OnnxSegmenter.load(seg, config_path) if seg.provider == "onnx" else None
 
 
-def _decode_keyframes(chosen: list[_KeyframeMessages], segmenter: OnnxSegmenter | None) -> list[Keyframe]:
+def _decode_keyframes(chosen: list[_KeyframeMessages], segmenter: OnnxSegmenter | None,
+                      progress: bool = False) -> list[Keyframe]:
     keyframes = []
-    for k in chosen:
+    for k in tqdm(chosen, desc="keyframes", unit="frame", disable=not progress, mininterval=0.5):
         image = decode_image(k.frame)
         keyframes.append(Keyframe(k.camera, k.timestamp, k.T_world_camera, image,
                                   keyframe_semantics(image, k.mask, segmenter)))

@@ -24,11 +24,12 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
+from tqdm import tqdm
 
 from daemon.spine.config import CarConfig, LidarConfig
 from daemon.spine.messages import LidarPacket, PointCloud
 from daemon.spine.point_cloud_codec import point_array
-from daemon.spine.topics import LIDAR_PACKETS, LIDAR_POINTS
+from daemon.spine.topics import LIDAR_PACKETS, LIDAR_POINTS, LIDAR_VIEW
 from drivers.lidar.lidar_models import configured_decoder
 from drivers.lidar.lidar_points import XYZLut, batch_xyz
 from drivers.lidar.ouster_decoder import decode_packets
@@ -165,6 +166,16 @@ def vendor_packet_scans(packets: list[LidarPacket], decoding: VendorDecoding, ev
     scans = [(packets[a - 1] if a > 0 else None, packets[a:b]) for k, (a, b) in enumerate(zip(starts[:-1],
              starts[1:], strict=True)) if keeps_scan(k, 1, every_n_scans)]
     return LidarScans(LIDAR_PACKETS, scans, lambda scan: vendor_scan_points(*scan, decoding), len(packets))
+
+
+def scan_decoder(decoding: OusterMetadata | VendorDecoding) -> Callable[[LidarPacket | None, list[LidarPacket]],
+                                                                         ScanPoints]:
+    """How one scan's packets (and the packet before them, which a vendor decoder is primed with) become ScanPoints,
+    for any Lidar that sends packets: one scan at a time, as a live consumer gets them (the viewing clouds)."""
+    if isinstance(decoding, VendorDecoding):
+        return lambda lead, packets: vendor_scan_points(lead, packets, decoding)
+    ouster = LidarDecoding.of(decoding)
+    return lambda _lead, packets: packet_scan_points([bytes(p.data) for p in packets], ouster)
 
 
 def cloud_scan_points(cloud: PointCloud) -> ScanPoints:
@@ -332,7 +343,8 @@ class LidarScans:
     @property
     def counts(self) -> dict[str, int]:
         """Those messages as the drive's input counts and the worker's journal name them."""
-        return {"lidar_point_clouds" if self.topic == LIDAR_POINTS else "lidar_packets": self.messages}
+        name = {LIDAR_POINTS: "lidar_point_clouds", LIDAR_VIEW: "lidar_view_clouds"}.get(self.topic, "lidar_packets")
+        return {name: self.messages}
 
 
 def packet_scans(packets: list[LidarPacket], metadata: OusterMetadata, every_n_scans: int) -> LidarScans:
@@ -344,39 +356,46 @@ def packet_scans(packets: list[LidarPacket], metadata: OusterMetadata, every_n_s
                                                                                 decoding), len(packets))
 
 
-def point_cloud_scans(clouds: list[PointCloud], every_n_scans: int) -> LidarScans:
+def point_cloud_scans(clouds: list[PointCloud], every_n_scans: int, topic: str = LIDAR_POINTS) -> LidarScans:
     """Every n-th of a Lidar's decoded scans."""
     kept = [cloud for k, cloud in enumerate(clouds) if keeps_scan(k, 1, every_n_scans)]
-    return LidarScans(LIDAR_POINTS, kept, cloud_scan_points, len(clouds))
+    return LidarScans(topic, kept, cloud_scan_points, len(clouds))
 
 
 def lidar_scans(packets: list[LidarPacket], clouds: list[PointCloud],
                 decoding: Callable[[], OusterMetadata | VendorDecoding | None],
-                every_n_scans: int) -> LidarScans | None:
+                every_n_scans: int, view_clouds: list[PointCloud] | None = None) -> LidarScans | None:
     """The scans the Lidar ground is taken from: the point clouds when there are any, else the packets decoded as
     `decoding()` says (asked for only then: the Ouster's metadata or a vendor decoding; None: packets that cannot
-    be decoded, no scans)."""
+    be decoded, no scans). The viewing clouds (`lidar/view`, decoded from the same packets) only when the log holds
+    neither, each of them (they are already a few scans a second): never both, so no scan counts twice."""
     if clouds:
         return point_cloud_scans(clouds, every_n_scans)
     how = decoding() if packets else None
     if isinstance(how, VendorDecoding):
         return vendor_packet_scans(packets, how, every_n_scans)
-    return packet_scans(packets, how, every_n_scans) if how is not None else None
+    if how is not None:
+        return packet_scans(packets, how, every_n_scans)
+    return point_cloud_scans(view_clouds, 1, LIDAR_VIEW) if view_clouds and not packets else None
 
 
 def scans_ground(scans: LidarScans, clock: ClockMap, config: CarConfig, trajectory: Trajectory,
-                 settings: GroundFilter, standing_t0_ns: int | None = None
+                 settings: GroundFilter, standing_t0_ns: int | None = None, progress: bool = False
                  ) -> tuple[np.ndarray, StandingPoints | None]:
     """Ground points of the scans, in scan order, and with `standing_t0_ns` the points standing on the road scan by
     scan (heights: `mapper.maskless`), each scan at the host time of its middle firing in seconds from
     standing_t0_ns (the keyframes' clock), else None. The scans are shared out over
-    `mapper.runtime.lidar_ground_threads` threads (numpy releases the GIL in its array work)."""
+    `mapper.runtime.lidar_ground_threads` threads (numpy releases the GIL in its array work); `progress`: a bar of
+    the scans with its ETA on stderr."""
     T_vl = config.sensors.lidar.extrinsics.matrix()
     road = TrajectoryGround.of(trajectory, config.vehicle.reference_height_m, settings.corridor_half_width_m,
                                settings.ground_cell_m)
     heights = config.mapper.maskless
 
+    bar = tqdm(total=len(scans.scans), desc="lidar ground", unit="scan", disable=not progress, mininterval=0.5)
+
     def scan_points(scan: object) -> tuple[np.ndarray, tuple[float, np.ndarray] | None]:
+        bar.update()
         points = scans.decode(scan)
         world = lidar_world_points(points, clock, T_vl, trajectory, settings)
         if standing_t0_ns is None or len(points.times_ns) == 0:
@@ -387,6 +406,7 @@ def scans_ground(scans: LidarScans, clock: ClockMap, config: CarConfig, trajecto
 
     with ThreadPoolExecutor(config.mapper.runtime.lidar_ground_threads, thread_name_prefix="lidar-ground") as pool:
         out = list(pool.map(scan_points, scans.scans))
+    bar.close()
     ground = np.concatenate([g for g, _ in out]) if out else np.zeros((0, 3))
     if standing_t0_ns is None:
         return ground, None

@@ -7,7 +7,7 @@ integrates the wheel speeds into the distance travelled (`Odometry`), and as soo
 road lie beyond a window centre and every topic has delivered its data that far (plus the 2 s the
 window's inputs reach beyond), it optimises that window ([centre - windows.before_m, centre +
 windows.after_m]; centres every half window, so the windows overlap by half) with
-`reconstruction.reconstruct` on the window's keyframes, fused trajectory (`drive_inputs.fuse_log_trajectory`)
+`reconstruction.reconstruct` on the window's keyframes, fused trajectory (`drive_inputs.fuse_bus_trajectory`)
 and Lidar ground points (frames without a mask are keyframes without semantics, warned about once). What a
 window sees depends on the log's content only, never on arrival timing, so replaying a log twice gives the
 same map (tests/test_replay_determinism.py).
@@ -64,7 +64,7 @@ from mapping.inputs.drive_inputs import (
     camera_models,
     camera_pose,
     decode_image,
-    fuse_log_trajectory,
+    fuse_bus_trajectory,
     keyframe_semantics,
     missing_masks_warning,
     segmenter_for,
@@ -126,7 +126,7 @@ class MappingWorker:
         self.config_sha256 = hashlib.sha256(Path(config_path).read_bytes()).hexdigest()
         self.mapper = config.mapper
         resolve_device(self.mapper.device, f"{config_path}: mapper.device")  # cuda without a GPU: exit 2
-        self.folder = data_dir(config, config_path, output_dir) / "map"
+        self.folder = data_dir(config, output_dir) / "map"
         self._archive_finished_map()
         self.tiles_dir = self.folder / "tiles"
         self.previews = preview_dir(self.folder.parent)
@@ -205,13 +205,10 @@ class MappingWorker:
         gnss, imu, wheels = held[GNSS_FIX], held[IMU], held[WHEEL_SPEEDS]
         if len(gnss) < 5 or len(imu) < 20 or len(wheels) < 10:
             return None
-        anchors = [(m.host_mono_ns, m.utc_ns) for m in held[TIME_ANCHOR]]
-        clocks = {t: span_clock([m.sensor_time_ns for m in held[t]], [m.host_mono_ns for m in held[t]], anchors)
-                  for t in (GNSS_FIX, IMU, WHEEL_SPEEDS)}
         if self.origin is None:
             g = min(gnss, key=lambda m: m.sensor_time_ns)
             self.origin = LocalFrame(g.latitude_deg, g.longitude_deg, g.altitude_m)
-        return fuse_log_trajectory(gnss, imu, wheels, self.config, self.origin, clocks)
+        return fuse_bus_trajectory(held, self.config, self.origin)
 
     def update_distance(self) -> None:
         """Integrate the wheel speeds that arrived since the last call into the odometry."""

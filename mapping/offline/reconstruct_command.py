@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from daemon.log_format.reader import not_a_log, read_metadata
 from daemon.spine.config import (
@@ -74,6 +75,13 @@ class DriveTruth:
                           gt["lidar_points_enu"])
 
 
+def say(line: str) -> None:
+    """One `roadlog reconstruct: ...` line on stderr, on a line of its own even while progress bars run (the Lidar
+    ground's and the keyframes' run in the background, beside the fit's)."""
+    tqdm.write(f"roadlog reconstruct: {line}", file=sys.stderr)
+    sys.stderr.flush()
+
+
 class PhaseLines:
     """One stderr line as each phase of a reconstruction ends: `roadlog reconstruct: [  12.3 s] PHASE (+4.1 s)`,
     the time since the start and the phase's own."""
@@ -85,8 +93,7 @@ class PhaseLines:
     def __call__(self, what: str) -> None:
         now = time.perf_counter()
         if self.enabled:
-            print(f"roadlog reconstruct: [{now - self.started:7.1f} s] {what} (+{now - self.last:.1f} s)",
-                  file=sys.stderr, flush=True)
+            say(f"[{now - self.started:7.1f} s] {what} (+{now - self.last:.1f} s)")
         self.last = now
 
 
@@ -120,11 +127,15 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
     phase = PhaseLines(progress)
     phase(f"reading {len(logs)} log(s) in the background, writing to {out}")
     loading = start_loading_drive(logs, config, config_path, origin=truth.origin if truth else None,
-                                  use_lidar=use_lidar)
+                                  use_lidar=use_lidar, progress=progress)
     phase("drive path read")
     warning = missing_masks_warning(loading.counts["frames"], loading.counts["frames_without_mask"])
     if warning is not None:
-        print(f"roadlog reconstruct: warning: {warning}", file=sys.stderr, flush=True)
+        say(f"warning: {warning}")
+    views = loading.counts.get("lidar_view_clouds")
+    if views:
+        say(f"warning: the logs hold no Lidar packets, only {views} viewing clouds (lidar/view, "
+            f"recorder.point_cloud_view_hz): the Lidar ground is taken from those")
     result = reconstruct(loading.keyframes, loading.cameras, loading.path, loading.lidar_ground_points,
                          config.mapper, config.vehicle.reference_height_m, out_dir=out, ablation=ablation,
                          gt=truth.elevation if truth else None, faithful=faithful, progress=progress,

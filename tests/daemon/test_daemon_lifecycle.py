@@ -53,9 +53,9 @@ class Daemon:
         self.port = load_config(config_path).status.port
         self.proc: subprocess.Popen | None = None
 
-    def start(self, **kw) -> subprocess.Popen:
+    def start(self, cwd: Path = REPO, **kw) -> subprocess.Popen:
         self.proc = subprocess.Popen([sys.executable, "-m", "daemon.commands.cli", "run", "--config",
-                                      str(self.config_path)], cwd=REPO, start_new_session=True, **kw)
+                                      str(self.config_path)], cwd=cwd, start_new_session=True, **kw)
         return self.proc
 
     def processes(self) -> dict:
@@ -230,3 +230,23 @@ def test_instance_locks_refuse_at_once_and_a_clean_release_frees_them(tmp_path):
         first.release()
     assert not bus_lock_path(config).exists() and not (folder / DATA_LOCK).exists()
     hold_instance_locks(config, folder).release()
+
+
+def test_a_relative_output_dir_is_taken_from_the_working_directory_never_beside_the_config(daemons):
+    """`recorder.output_dir: logs` in configs/car.yaml, the daemon started in work/: its segments go to work/logs
+    (as systemd's WorkingDirectory=/var/lib/roadlog gives /var/lib/roadlog/logs), nothing into configs/."""
+    make, tmp_path, prefix = daemons
+    (tmp_path / "configs").mkdir()
+    path = _write_config(tmp_path / "configs", prefix, _free_port())
+    data = yaml.safe_load(path.read_text())
+    data["recorder"]["output_dir"] = "logs"
+    path.write_text(yaml.safe_dump(data))
+    work = tmp_path / "work"
+    work.mkdir()
+    daemon = make(path)
+    daemon.start(cwd=work)
+    _wait(lambda: list((work / "logs").glob("*.mcap.open")), 60, "the segment in the working directory's logs/")
+    os.killpg(daemon.proc.pid, signal.SIGTERM)
+    assert daemon.proc.wait(60) == 0
+    assert len(list((work / "logs").glob("roadlog_*.mcap"))) == 1
+    assert sorted(p.name for p in (tmp_path / "configs").iterdir()) == ["car.yaml"]

@@ -16,7 +16,7 @@ from daemon.processes.status_server import HealthBoard, make_server
 from daemon.spine.data_layout import preview_dir
 from daemon.spine.health import HealthCounters
 from daemon.spine.process_table import required_drivers
-from daemon.spine.topics import health_topic, topic_table
+from daemon.spine.topics import LIDAR_VIEW, health_topic, topic_table
 from tests.daemon_fixtures import private_config
 
 
@@ -60,9 +60,12 @@ def test_readiness_waits_for_one_driver_per_configured_sensor(tmp_path):
     data = full.model_dump(mode="json")
     data["sensors"].update(lidar=None, can=None, cameras=data["sensors"]["cameras"][:1])
     assert required_drivers(type(full).model_validate(data)) == ["camera_front_wide", "gnss"]
-    # every sensor topic comes from a driver readiness waits for, and no driver goes without one
+    # every sensor topic comes from a driver readiness waits for, and no driver goes without one (the viewing clouds
+    # are made from the Lidar's packets, not a sensor's topic: readiness does not wait for them)
     assert required_drivers(full) == sorted({t.source for t in topic_table(full).values()
-                                             if t.name.startswith(("camera/", "lidar/", "gnss/", "can/"))})
+                                             if t.name.startswith(("camera/", "lidar/", "gnss/", "can/"))
+                                             and t.name != LIDAR_VIEW})
+    assert topic_table(full)[LIDAR_VIEW].source == "lidar_view"
 
 
 def test_livez_and_readiness_follow_the_drivers(served):

@@ -271,7 +271,8 @@ def test_process_table_live_and_replay(config):
                      for rate in ("max", "1.0")}
     assert "--lossless" in recorder_args["max"] and "--lossless" not in recorder_args["1.0"]
     assert "--lossless" not in next(p for p in live if p.name == "recorder").args
-    assert {p.name: p.nice for p in live if p.nice} == {"mapper": 10}  # the log before the map
+    # the log before the map and what shows it (viewing clouds, the live pose)
+    assert {p.name: p.nice for p in live if p.nice} == {"lidar_view": 10, "vehicle_pose": 10, "mapper": 10}
 
 
 def test_every_topic_has_a_process_that_publishes_it(config):

@@ -23,8 +23,10 @@ def test_reconstruct_a_recorded_drive_against_its_truth(city_drive, tmp_path):
                           "--gt", str(city_drive.with_name("city.gt.npz"))],
                          cwd=REPO, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
-    # every phase is reported as it ends, with the time since the start and its own: never silent for long
-    phases = re.findall(r"^roadlog reconstruct: \[ *([0-9.]+) s\] (.+) \(\+([0-9.]+) s\)$", run.stderr, re.MULTILINE)
+    # every phase is reported as it ends, with the time since the start and its own: never silent for long (on a line
+    # of its own: a progress bar redraws itself after a carriage return)
+    shown = run.stderr.replace("\r", "\n")
+    phases = re.findall(r"^roadlog reconstruct: \[ *([0-9.]+) s\] (.+) \(\+([0-9.]+) s\)$", shown, re.MULTILINE)
     names = [name for _, name, _ in phases]
     for expected in ("reading 1 log(s)", "drive path read", "mesh and model built", "Lidar ground points read",
                      "elevation fitted", "camera frames read", "keyframes observed", "colour fitted",
@@ -33,6 +35,16 @@ def test_reconstruct_a_recorded_drive_against_its_truth(city_drive, tmp_path):
     elapsed = [float(t) for t, _, _ in phases]
     own = sum(float(d) for _, _, d in phases)
     assert elapsed == sorted(elapsed) and own == pytest.approx(elapsed[-1], abs=0.1 * len(phases))
+    # each long phase has a progress bar with its total and ETA while it runs (tqdm: "desc: 42%| ... | 21/50
+    # [00:03<00:04, 6.1unit/s]"), which ends at its total
+    bars: dict[str, list[tuple[int, int]]] = {}
+    for desc, done, total, eta in re.findall(r"^([a-z ]+): +\d+%\|[^|]*\| *(\d+)/(\d+) \[[0-9:]+<([0-9:?]+)", shown,
+                                             re.MULTILINE):
+        bars.setdefault(desc, []).append((int(done), int(total)))
+        assert eta != "?" or int(done) == 0, (desc, done, total)
+    assert {"read logs", "lidar ground", "keyframes", "elevation", "lidar detail", "observe", "colour"} <= set(bars)
+    for desc, seen in bars.items():
+        assert seen[-1][0] == seen[-1][1] > 0 and len({total for _, total in seen}) == 1, (desc, seen[-3:])
     printed = json.loads(run.stdout.strip().splitlines()[-1])
     metrics = json.loads((out / "metrics.json").read_text())
     assert printed["miou_pct"] == metrics["miou_pct"]
