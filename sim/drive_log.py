@@ -72,6 +72,7 @@ from sim.sensors.sensor_clocks import (
 )
 from sim.sensors.velodyne_sim import velodyne_rig
 from sim.world.random_world import scenario_for
+from sim.world.revisit import visit
 from sim.world.road_world import ground_truth_grids, is_road_surface
 from sim.world.scenarios import Scenario, scenario_names
 from sim.world.scene import Scene, build_scene
@@ -261,11 +262,13 @@ def _gt_path(out: Path) -> Path:
 
 
 def simulate_drive(scenario: str, seconds: float | None, out: Path, config: CarConfig, seed: int | None = None,
-                   config_dir: Path | None = None, workers: int = 2, masks: bool = True) -> SimulationSummary:
+                   config_dir: Path | None = None, workers: int = 2, masks: bool = True,
+                   visit_number: int = 0) -> SimulationSummary:
     """Simulate a drive and write `out` (MCAP) and its ground truth beside it; relative sensor files of the
     config (Lidar metadata, DBC) are taken from config_dir (default: the repository's configs/). `masks`
     False leaves the mask topics out (the frames are the same). `scenario` `random` draws the world of `seed`
-    (sim/world/random_world.py)."""
+    (sim/world/random_world.py). `visit_number` > 0 drives the same world again on another day (sim/world/revisit.py:
+    other traffic, light, noise and GNSS offset); the truth is the same world's."""
     global _SCENE, _CLOCKS, _LIDAR_METADATA, _MASKS
     started = time.monotonic()
     cv2.setNumThreads(1)  # OpenCV's thread pool does not survive fork(): the workers would hang
@@ -273,10 +276,12 @@ def simulate_drive(scenario: str, seconds: float | None, out: Path, config: CarC
     seconds = sc.drive.default_seconds if seconds is None else float(seconds)
     if not 0 < seconds <= sc.max_seconds():
         raise ValueError(f"scenario {sc.name}: seconds must be in (0, {sc.max_seconds():.1f}], got {seconds}")
-    seed = sc.seed if seed is None else seed
+    world_seed = sc.seed if seed is None else seed
+    trip = visit(sc, world_seed, visit_number)
+    sc, seed = trip.scenario, trip.drive_seed
     config_file = (config_dir or DEFAULT_CONFIG.parent) / "car.yaml"
     out = Path(out)
-    scene = build_scene(sc, config, seconds, seed)
+    scene = build_scene(sc, config, seconds, seed, world_seed)
     config = scene.config  # with the scenario's camera responses
     rng = np.random.default_rng([seed, 4])
     clocks = drive_clocks(config, sc, rng)
@@ -291,7 +296,9 @@ def simulate_drive(scenario: str, seconds: float | None, out: Path, config: CarC
 
     sensors = config.sensors
     if sensors.gnss is not None:
-        for item in _gnss_imu_messages(scene, clocks, frame, np.random.default_rng([seed, 5])):
+        fixes_frame = (LocalFrame(*map(float, frame.enu_to_geodetic(np.array(trip.gnss_offset_enu_m))))
+                       if visit_number else frame)  # the fixes reported around the offset origin
+        for item in _gnss_imu_messages(scene, clocks, fixes_frame, np.random.default_rng([seed, 5])):
             push(*item)
     if sensors.can is not None:
         dbc = resolve_path(config_file, sensors.can.dbc_file)
@@ -309,11 +316,14 @@ def simulate_drive(scenario: str, seconds: float | None, out: Path, config: CarC
     gt_points: list[np.ndarray] = []
     gt_classes: list[np.ndarray] = []
     seq: dict[str, int] = {}
-    summary = SimulationSummary(sc.name, seconds, seed, out, _gt_path(out))
+    summary = SimulationSummary(sc.name, seconds, world_seed, out, _gt_path(out))
     metadata = {"start_time_utc_ns": str(utc0), "start_mono_ns": str(HOST_MONO_AT_START_NS),
-                "simulator": "sim", "scenario": sc.name, "seed": str(seed), "seconds": str(seconds),
+                "simulator": "sim", "scenario": sc.name, "seed": str(world_seed), "seconds": str(seconds),
                 "ground_truth": summary.ground_truth.name, "host": "simulated"}
-    if sc.name not in scenario_names():  # a named scenario is its file in configs/scenarios/
+    if visit_number:
+        metadata.update(visit=str(visit_number), drive_seed=str(seed),
+                        gnss_offset_enu_m=json.dumps(trip.gnss_offset_enu_m))
+    if sc.name not in scenario_names() or visit_number:  # a named scenario is its file in configs/scenarios/
         summary.world = sc.model_dump(mode="json")
         metadata["scenario_yaml"] = scenario_yaml(sc)
     tasks = _tasks(scene, np.random.default_rng([seed, 7]))
@@ -427,6 +437,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="the simulated car's config")
     parser.add_argument("--seed", type=int, default=None,
                         help="override the scenario's seed; with `random`, the world's (default 0)")
+    parser.add_argument("--visit", type=int, default=0,
+                        help="drive the same world again: visit N > 0 has its own traffic, light, sensor noise and "
+                             "GNSS offset (sim/world/revisit.py); 0: the scenario's own drive")
     parser.add_argument("--workers", type=int, default=2, help="rendering processes")
     parser.add_argument("--no-masks", action="store_true",
                         help="leave the segmentation masks out of the log (a car without a segmenter)")
@@ -435,7 +448,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     for flag, value, ok, want in (("--seconds", args.seconds, args.seconds is None or args.seconds > 0, "> 0"),
                                   ("--seed", args.seed, args.seed is None or args.seed >= 0, ">= 0"),
-                                  ("--workers", args.workers, args.workers >= 1, ">= 1")):
+                                  ("--workers", args.workers, args.workers >= 1, ">= 1"),
+                                  ("--visit", args.visit, args.visit >= 0, ">= 0")):
         if not ok:
             raise ConfigError(f"{flag} {value}: must be {want}")
     config = load_config(args.config)
@@ -453,7 +467,7 @@ def main(argv: list[str] | None = None) -> int:
     scenario_for(args.scenario, args.seed, [cam.name for cam in config.sensors.cameras])  # an unknown one: exit 2
     summary = simulate_drive(args.scenario, args.seconds, args.out, config, args.seed,
                              config_dir=args.config.resolve().parent, workers=args.workers,
-                             masks=not args.no_masks)
+                             masks=not args.no_masks, visit_number=args.visit)
     print(summary.as_json())
     return 0
 

@@ -19,6 +19,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("daemon.processes.daemon_main:replay_main", "run the daemon with a log player instead of the drivers"),
     "simulate": ("sim.drive_log", "simulate a drive (city, ramp, night) into a log with ground truth"),
     "reconstruct": ("mapping.offline.reconstruct_command", "EMIE-MAP road map of drive logs, with the paper's metrics"),
+    "fleet": ("mapping.fleet.fleet_command", "`fleet reconstruct`: many drives mapped on Ray into one merged map"),
     "import": ("importers.import_command", "a dataset (KITTI raw, KITTI odometry) as a roadlog log"),
     "export": ("exporters.export_command", "roadlog logs as another system's recording (a ROS 2 bag)"),
     "status-server": ("daemon.processes.status_server",

@@ -33,9 +33,13 @@ def vertex_labels(road_map: RoadMap) -> np.ndarray:
     return np.where(road_map.labelled, road_map.semantic_logits.argmax(1).numpy(), NO_LABEL).astype(np.uint8)
 
 
-def bev_rasters(road_map: RoadMap, cameras: list[str], resolution_m: float, threads: int) -> dict:
+def bev_rasters(road_map: RoadMap, cameras: list[str], resolution_m: float, threads: int,
+                confidence: bool = False) -> dict:
     """Rasters over the observed area; cell (i, j) is centred at (x0 + j*res, y0 + i*res). Blocks of rows are
-    filled on `threads` threads (numpy and torch release the GIL in the blocks' array work)."""
+    filled on `threads` threads (numpy and torch release the GIL in the blocks' array work). `confidence` adds
+    what a fusion of maps weighs them by: `weight` (H, W) float32, log(1 + the training steps that supervised the
+    cell's vertices), 0 where unobserved, and `class_prob` (H, W, classes) float32, the softmax of the interpolated
+    semantic logits where the cell is labelled, 0 elsewhere (None when the map has no semantics)."""
     seen = road_map.observed > 0
     xy = road_map.mesh.xy[seen] if seen.any() else road_map.mesh.xy
     lo, hi = np.floor(xy.min(0) / resolution_m) * resolution_m, xy.max(0)
@@ -44,6 +48,11 @@ def bev_rasters(road_map: RoadMap, cameras: list[str], resolution_m: float, thre
     elevation = np.full((h, w), np.nan, np.float32)
     labels = np.full((h, w), NO_LABEL, np.uint8)
     rgb = {c: np.zeros((h, w, 3), np.uint8) for c in cameras}
+    semantics = road_map.semantic_logits is not None
+    weight = np.zeros((h, w), np.float32) if confidence else None
+    class_prob = (np.zeros((h, w, road_map.semantic_logits.shape[1]), np.float32)
+                  if confidence and semantics else None)
+    support = np.log1p(road_map.observed.astype(np.float32))
 
     def fill(r0: int) -> None:  # one block of rows: the blocks write disjoint rows
         rows = np.arange(r0, min(h, r0 + _ROWS_PER_CHUNK))
@@ -56,10 +65,18 @@ def bev_rasters(road_map: RoadMap, cameras: list[str], resolution_m: float, thre
         labels[flat] = road_map.labels_at(ids, torch.from_numpy(wt).float())
         for c in cameras:
             rgb[c][flat] = np.clip((colours[c][ids] * wt[..., None]).sum(1) * 255 + 0.5, 0, 255).astype(np.uint8)
+        if weight is not None:
+            weight[flat] = (support[ids] * wt).sum(1)
+        if class_prob is not None:
+            logits = (road_map.semantic_logits[ids] * torch.from_numpy(wt).to(road_map.semantic_logits.dtype)[..., None]
+                      ).sum(1)
+            prob = torch.softmax(logits.float(), 1).numpy()
+            class_prob[flat] = np.where(road_map.labelled[ids].all(1)[:, None], prob, 0.0)
 
     with ThreadPoolExecutor(threads, thread_name_prefix="export-raster") as pool:
         list(pool.map(fill, range(0, h, _ROWS_PER_CHUNK)))
-    return {"origin_xy": (float(lo[0]), float(lo[1])), "elevation": elevation, "labels": labels, "rgb": rgb}
+    out = {"origin_xy": (float(lo[0]), float(lo[1])), "elevation": elevation, "labels": labels, "rgb": rgb}
+    return out | ({"weight": weight, "class_prob": class_prob} if confidence else {})
 
 
 def export_map(road_map: RoadMap, out_dir: Path, cameras: list[str], raster_threads: int,

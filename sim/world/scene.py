@@ -65,14 +65,17 @@ def _daylight_atlas(world: RoadWorld, sun: np.ndarray, shadow: np.ndarray | None
     return cv2.multiply(atlas.albedo, cv2.merge([shade, shade, shade]), scale=1.0 / 128)
 
 
-def build_scene(scenario: Scenario, config: CarConfig, seconds: float, seed: int | None = None) -> Scene:
+def build_scene(scenario: Scenario, config: CarConfig, seconds: float, seed: int | None = None,
+                world_seed: int | None = None) -> Scene:
+    """`seed` draws the drive (ego, traffic, noise); `world_seed` the road and its trees (default: `seed`)."""
     seed = scenario.seed if seed is None else seed
+    world_seed = seed if world_seed is None else world_seed
     config = with_camera_response(config, scenario)
-    world = build_world(scenario, seed)
+    world = build_world(scenario, world_seed)
     ego = drive_trajectory(world, config.vehicle, seconds, np.random.default_rng([seed, 2]))
     traffic = place_traffic(world, ego, seconds, np.random.default_rng([seed, 3]))
     sun = sun_direction(scenario)
     lit = None
     if scenario.lighting.mode == "day":
-        lit = _daylight_atlas(world, sun, tree_shadow(world, sun, np.random.default_rng([seed, 11])))
+        lit = _daylight_atlas(world, sun, tree_shadow(world, sun, np.random.default_rng([world_seed, 11])))
     return Scene(scenario, config, seconds, seed, world, ego, traffic, sun, lit)

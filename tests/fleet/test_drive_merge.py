@@ -1,0 +1,97 @@
+"""Two drives of one road merged (mapping.fleet.drive_merge) from real tile-store files: the second drive's map
+shifted by a few cells, 5 cm higher and with another colour response, each with a hole (a parked car) where the
+other saw the road. The merge finds the shift and the height offset from the overlap, puts both in their
+consensus frame, maps the second drive's colours onto the first's and fills each hole from the other drive."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import rasterio
+
+from daemon.spine.semantic_classes import CLASS_COLOURS, NUM_MAP_CLASSES, SemanticClass
+from mapping.fleet.drive_merge import drive_layers, fuse, merge_drives, shifted
+from mapping.fleet.geodetic_grid import GridSpec, TileId
+from mapping.fleet.tile_store import Contribution, TileStore
+
+GRID = GridSpec(0.1)
+TILE = TileId(32, False, 17291, 133368)
+N = GRID.cells
+SHIFT = (2, -3)  # drive b's map moved by (rows north, columns east)
+
+
+def _road() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Classes, heights and colours of a road across the tile: curbs, a dashed centre line, a stop line."""
+    rows, cols = np.mgrid[0:N, 0:N]
+    cls = np.full((N, N), int(SemanticClass.BACKGROUND))
+    cls[(rows >= 60) & (rows < 340)] = SemanticClass.ROAD
+    cls[((rows >= 55) & (rows < 60)) | ((rows >= 340) & (rows < 345))] = SemanticClass.CURB
+    cls[(rows >= 197) & (rows < 202) & ((cols // 45) % 2 == 0)] = SemanticClass.LANE_MARKING
+    cls[(rows >= 60) & (rows < 197) & (cols >= 230) & (cols < 235)] = SemanticClass.LANE_MARKING
+    height = (520.0 + 0.002 * cols + np.where(cls == SemanticClass.CURB, 0.15, 0.0)).astype(np.float32)
+    texture = np.random.default_rng(1).normal(0, 6, (N, N, 3))
+    rgb = np.clip(CLASS_COLOURS[cls] * 0.5 + 40 + texture, 0, 255)
+    return cls, height, rgb
+
+
+def _contribution(drive: str, cls, height, rgb, hole, mapped) -> Contribution:
+    seen = mapped & ~hole
+    prob = np.zeros((N, N, NUM_MAP_CLASSES), np.uint8)
+    prob[seen, np.minimum(cls[seen], NUM_MAP_CLASSES - 1)] = 255
+    return Contribution(drive, 0, np.where(seen, height, np.nan).astype(np.float32),
+                        np.where(seen, 2.0, 0.0).astype(np.float32), prob,
+                        {"cam": np.where(seen[..., None], rgb, 0).astype(np.uint8)})
+
+
+@pytest.fixture
+def store(tmp_path):
+    cls, height, rgb = _road()
+    rows, cols = np.mgrid[0:N, 0:N]
+    mapped = (rows >= 40) & (rows < 360) & (cols >= 20) & (cols < 380)
+    hole_a = (rows >= 70) & (rows < 130) & (cols >= 100) & (cols < 160)
+    hole_b = (rows >= 240) & (rows < 300) & (cols >= 260) & (cols < 320)
+    store = TileStore(tmp_path)
+    store.write(TILE, _contribution("a", cls, height, rgb, hole_a, mapped))
+    di, dj = SHIFT
+    b_rgb = np.clip(rgb * np.array([0.8, 0.9, 1.1]) + 10, 0, 255)  # another exposure and white balance
+    b = [shifted(x, di, dj, fill) for x, fill in ((cls, 4), (height + np.float32(0.05), np.nan), (b_rgb, 0))]
+    store.write(TILE, _contribution("b", *b, shifted(hole_b, di, dj, False), shifted(mapped, di, dj, False)))
+    return store
+
+
+def test_the_second_drive_is_found_shifted_lifted_and_recoloured(store):
+    (mosaic,) = drive_layers(store)
+    merged = fuse(mosaic)
+    report = {r["drive"]: r for r in merged.alignment}
+    assert report["a"]["reference"] != report["b"]["reference"]
+    east = report["b"]["shift_m"][0] - report["a"]["shift_m"][0]
+    north = report["b"]["shift_m"][1] - report["a"]["shift_m"][1]
+    # b is moved back onto a: by -SHIFT
+    assert (round(north / 0.1), round(east / 0.1)) == (-SHIFT[0], -SHIFT[1])
+    assert report["b"]["dz_m"] - report["a"]["dz_m"] == pytest.approx(-0.05, abs=0.005)
+    colour = report["b"]["colour"]["cam"] if "colour" in report["b"] else report["a"]["colour"]["cam"]
+    assert colour["rms_after"] < 0.5 * colour["rms_before"]
+
+
+def test_each_hole_is_filled_by_the_other_drive(store, tmp_path):
+    (mosaic,) = drive_layers(store)
+    a, b = mosaic.layers["a"], mosaic.layers["b"]
+    merged = fuse(mosaic)
+    mapped = np.isfinite(merged.height)
+    assert mapped.sum() > max(a.mapped.sum(), b.mapped.sum())
+    assert mapped[70:130, 100:160].all() and mapped[245:295, 265:315].all()  # both parked cars' holes
+    # the merged labels are the road's (where both agree after alignment the classes are crisp)
+    cls, _, _ = _road()
+    inner = (slice(80, 320), slice(40, 360))
+    assert (merged.labels[inner] == cls[inner]).mean() > 0.97  # within a cell of the consensus frame
+    report = merge_drives(store, tmp_path / "map")
+    (zone,) = report["zones"]
+    assert zone["drives"] == ["a", "b"] and zone["crs"] == "EPSG:32632"
+    assert json.loads((tmp_path / "map" / "metadata.json").read_text())["zones"][0]["tiles"] == [str(TILE)]
+    with rasterio.open(tmp_path / "map" / "bev_elevation.tif") as tif:
+        assert tif.crs.to_epsg() == 32632
+        assert tif.bounds.left == pytest.approx(TILE.col * 40.0) and tif.bounds.bottom == pytest.approx(TILE.row * 40.0)
+    with np.load(store.merged_path(TILE)) as z:
+        assert np.array_equal(z["labels"], merged.labels)
