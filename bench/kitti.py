@@ -21,8 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 ROADLOG = str(ROOT / ".venv" / "bin" / "roadlog")
 DATA = ROOT.parent / "shared" / "data"
 KEYS = ("psnr_db", "psnr_train_db", "psnr_pixels", "psnr_by_distance_db", "saturation_rendered_pct",
-        "saturation_observed_pct", "saturation_ratio", "elev_error_cm", "maskless_hidden_pct", "semantics", "wall_s",
-        "rtf", "vertices")
+        "saturation_observed_pct", "saturation_ratio", "edge_sawtooth_cm", "smear_pct", "elev_error_cm",
+        "maskless_hidden_pct", "semantics", "wall_s", "rtf", "vertices")
 
 
 def imported(fmt: str, folder: Path, out: Path, *extra: str) -> dict:

@@ -1,7 +1,8 @@
 """Map quality figures: PSNR on road pixels (held-out and training views, valid pixels only), mIoU of the
 rendered semantics (against the masks, or the true semantic grid), Elev-error (mean distance from Lidar
-ground points to the surface, as the paper defines it) and the mean absolute elevation error against a
-true elevation raster."""
+ground points to the surface, as the paper defines it), the mean absolute elevation error against a
+true elevation raster, and two checks of artefacts: the saw tooth of the mapped area's edges and the share
+of the map whose colour the views that see it contradict (smears)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import binary_closing, binary_erosion, binary_opening
 
 from daemon.spine.semantic_classes import NUM_MAP_CLASSES, ROAD_SURFACE_CLASSES, SemanticClass
 from mapping.localization.trajectory import HorizontalTrack
@@ -211,6 +213,8 @@ class _ViewScore:
     band_values: np.ndarray  # (bands,) pixel channels summed over
     saturation: np.ndarray  # (2,) sums over the road pixels of the rendered and the observed HSV saturation
     pixels: int
+    vertices: np.ndarray  # (V,) the vertices the view's road pixels see (each pixel: its triangle's nearest)
+    vertex_residual: np.ndarray  # (V,) their pixels' mean absolute colour difference, rendered - observed
 
 
 def _saturation(rgb: np.ndarray) -> np.ndarray:
@@ -225,8 +229,68 @@ def _view_score(road_map: RoadMap, seen: _ViewSeen) -> _ViewScore:
     squared = ((rendered - seen.observed) ** 2).sum(-1)
     bands = [road & (seen.distance_m >= lo) & (seen.distance_m < hi) for lo, hi in DISTANCE_BANDS_M]
     saturation = np.array([_saturation(rendered[road]).sum(), _saturation(seen.observed[road]).sum()])
+    hit, geometry = seen.geometry.hit, seen.geometry
+    on_road = road.ravel()[hit]
+    nearest = geometry.tri[np.arange(len(geometry.tri)), geometry.weights.numpy().argmax(1)][on_road]
+    residual = np.abs(rendered.reshape(-1, 3)[hit][on_road] - seen.observed.reshape(-1, 3)[hit][on_road]).mean(1)
+    vertices, inverse, count = np.unique(nearest, return_inverse=True, return_counts=True)
     return _ViewScore(psnr_db(rendered, seen.observed, road), np.array([squared[b].sum() for b in bands]),
-                      np.array([3 * b.sum() for b in bands], np.float64), saturation, int(road.sum()))
+                      np.array([3 * b.sum() for b in bands], np.float64), saturation, int(road.sum()), vertices,
+                      np.bincount(inverse, weights=residual, minlength=len(vertices)) / np.maximum(count, 1))
+
+
+SMEAR_RESIDUAL = 0.1  # a view contradicts the map at a vertex where its pixels there differ by more (mean |RGB|)
+SMEAR_MIN_VIEWS = 3  # vertices seen by fewer evaluated views are not judged
+
+
+def smear_pct(scores: list[_ViewScore]) -> float | None:
+    """Of the mapped vertices that at least SMEAR_MIN_VIEWS evaluated views see (on their PSNR pixels), the share
+    (%) whose map colour at least half of those views contradict (their pixels there differ from the rendering by
+    more than SMEAR_RESIDUAL, mean absolute RGB in [0, 1]). Something standing above the road (a car, a cyclist, a
+    wall) lands on different ground from each view, radially away from each camera: where a map holds it, the
+    views disagree with the map there; a thing in front of the road in one view contradicts one view only."""
+    if not scores:
+        return None
+    ids = np.concatenate([v.vertices for v in scores])
+    contradicted = np.concatenate([v.vertex_residual > SMEAR_RESIDUAL for v in scores])
+    if not len(ids):
+        return None
+    views = np.bincount(ids)
+    against = np.bincount(ids, weights=contradicted.astype(np.float64), minlength=len(views))
+    judged = views >= SMEAR_MIN_VIEWS
+    return float(100.0 * np.mean(2 * against[judged] >= views[judged])) if judged.any() else None
+
+
+EDGE_CELL_M = 0.2  # the mapped area is rasterised on cells this size ...
+EDGE_SMOOTH_M = 1.0  # ... and smoothed by a closing and an opening with a disc of this radius
+EDGE_MAX_CELLS = 25_000_000  # a larger raster (a drive's bounding box of more than 1 km^2) is not measured
+
+
+def edge_sawtooth_cm(road_map: RoadMap) -> float | None:
+    """How jagged the mapped area's edge is (cm): the mapped area (the observed vertices on EDGE_CELL_M cells) and
+    its smoothing (closed, then opened, by a disc of EDGE_SMOOTH_M) differ by an area; that area over the smoothed
+    edge's length is the mean depth of the notches and teeth narrower than the disc. A straight or smoothly
+    curving edge gives about 7 cm (the cells), a saw tooth of 0.8 m teeth 1 m apart on one of the two edges (each
+    view's reach a wedge cut off at its far end, one per keyframe) 25 cm (tests/mapping/test_map_metrics.py)."""
+    xy = road_map.mesh.xy[road_map.observed > 0]
+    if len(xy) < 3:
+        return None
+    pad = int(np.ceil(EDGE_SMOOTH_M / EDGE_CELL_M)) + 2
+    cell = np.floor((xy - xy.min(0)) / EDGE_CELL_M).astype(np.int64) + pad
+    shape = cell.max(0) + pad + 1
+    if shape[0] * shape[1] > EDGE_MAX_CELLS:
+        return None
+    mapped = np.zeros(tuple(shape), bool)
+    mapped[cell[:, 0], cell[:, 1]] = True
+    mapped = binary_closing(mapped, np.ones((3, 3), bool))  # solid between the lattice's nodes
+    r = pad - 2
+    yy, xx = np.mgrid[-r: r + 1, -r: r + 1]
+    disc = yy * yy + xx * xx <= r * r
+    smooth = binary_opening(binary_closing(mapped, disc), disc)
+    edge_cells = (smooth & ~binary_erosion(smooth)).sum()
+    if not edge_cells:
+        return None
+    return float(100.0 * (smooth ^ mapped).sum() / edge_cells)
 
 
 def _pooled(scores: list[_ViewScore]) -> dict:
@@ -261,6 +325,7 @@ class PendingEvaluation:
     elev_error: Future
     elev_mae: Future
     bev_confusion: Future
+    edge_sawtooth: Future
     held: list[Future]  # of _ViewSeen, held-out views
     trained: list[Future]  # of _ViewSeen, training views
 
@@ -290,12 +355,13 @@ def start_evaluation(
     elev_error = pool.submit(elev_error_cm, road_map, lidar_points, lidar_at)
     elev_mae = pool.submit(elev_mae_gt_cm, road_map, gt, truth_at)
     bev = pool.submit(bev_confusion, road_map, gt, truth_at)
+    edge = pool.submit(edge_sawtooth_cm, road_map)
 
     def views(keyframes: list[Keyframe], count: int) -> list[Future]:
         return [pool.submit(_view_seen, road_map, cameras, kf, trajectory, window_before_m, window_after_m, windows,
                             mapped) for kf in _evenly(keyframes, count)]
 
-    return PendingEvaluation(road_map, pool, elev_error, elev_mae, bev,
+    return PendingEvaluation(road_map, pool, elev_error, elev_mae, bev, edge,
                              views(holdout, HOLDOUT_VIEWS_EVALUATED), views(train, TRAIN_VIEWS_EVALUATED))
 
 
@@ -342,4 +408,6 @@ def finish_evaluation(pending: PendingEvaluation) -> dict:
             "miou_mask_pct": miou_pct(conf) if labelled else None,
             "elev_error_cm": pending.elev_error.result(),
             "elev_mae_gt_cm": pending.elev_mae.result(),
+            "edge_sawtooth_cm": pending.edge_sawtooth.result(),
+            "smear_pct": smear_pct(held + trained),
         }
