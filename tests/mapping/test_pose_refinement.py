@@ -2,7 +2,11 @@
 by the fast fit; off, the fit is what it was; the injected noise of the benches (mapping.localization.pose_noise)
 has the RMS asked for."""
 
+import json
+import subprocess
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +16,8 @@ from mapping.fits.reconstruction import reconstruct
 from mapping.localization.pose_noise import PoseNoise, perturbed, residual_error
 from mapping.localization.trajectory import Trajectory
 from tests.mapping.synthetic_road_scene import make_scene
+
+REPO = Path(__file__).resolve().parents[2]
 
 CONFIG = MapperConfig(mesh=MeshConfig(side_m=0.1, corridor_half_width_m=5.0),
                       inputs=InputsConfig(keyframe_spacing_m=0.0), windows=WindowsConfig(before_m=20.0, after_m=20.0))
@@ -91,3 +97,28 @@ def test_injected_pose_noise_has_the_rms_asked_and_a_correction_of_its_opposite_
     after = residual_error(noise, noisy, seconds, -position, -rotation)
     assert after["position_rms_cm"] < 1e-9 and after["rotation_rms_deg"] < 1e-9
     assert PoseNoise(0.15, 0.2, 0.5, seed=5).error_at(noisy, seconds)[0][0, 0] != position[0, 0]
+
+
+def _reconstruct(*args):
+    return subprocess.run([sys.executable, "-m", "daemon.commands.cli", "reconstruct", *map(str, args)], cwd=REPO,
+                          capture_output=True, text=True, timeout=1500)
+
+
+def test_bad_pose_noise_is_one_error_line_and_exit_2(tmp_path):
+    done = _reconstruct(tmp_path / "drive.mcap", "--out", tmp_path / "map", "--pose-noise-m", "-0.1")
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines() == ["error: --pose-noise-m and --pose-noise-deg must be >= 0, "
+                                                "--pose-noise-every-s > 0"]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+def test_reconstruct_with_injected_noise_reports_the_error_the_refinement_leaves(city_drive, tmp_path):
+    noise = ("--pose-noise-m", "0.2", "--pose-noise-deg", "0.05", "--gt", city_drive.with_suffix(".gt.npz"))
+    done = _reconstruct(city_drive, "--out", tmp_path / "refined", *noise, "--pose-refinement", "on")
+    assert done.returncode == 0, done.stderr[-2000:]
+    m = json.loads((tmp_path / "refined" / "metrics.json").read_text())
+    before, after = m["pose_noise"]["keyframes_before"], m["pose_noise"]["keyframes_after"]
+    assert 15.0 < before["position_rms_cm"] < 25.0  # the RMS over the trajectory's poses is 20 cm
+    assert after["position_rms_cm"] < 0.9 * before["position_rms_cm"]
+    assert m["pose_refinement"]["knots"] > 2 and m["pose_refinement_wall_s"] > 0
