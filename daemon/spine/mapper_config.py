@@ -146,6 +146,30 @@ class FastFitConfig(StrictModel):
     colour_encoder_lr: float = Field(0.01, gt=0)  # Adam learning rate of the colour encoder (the codes' source)
 
 
+class PoseRefinementConfig(StrictModel):
+    """Corrections of the trajectory's poses fitted to the map before the fast fit observes the keyframes
+    (mapping.fits.pose_refinement): knots along the track, fitted coarse to fine to the photometric agreement of
+    the training keyframes, with a prior towards zero and smoothness between knots."""
+
+    enabled: bool = False  # off: the poses as given (`roadlog reconstruct --pose-refinement on|off` overrides)
+    knot_spacing_m: float = Field(2.0, gt=0)  # the corrections' knots this far apart along the track, linear between
+    blur_px: tuple[float, ...] = Field((4.0, 2.0, 1.0), min_length=1)  # one round per entry: the grey images
+    # blurred by this Gaussian sigma (px; 0: sharp), coarse to fine
+    steps: int = Field(60, ge=1)  # Adam steps per round
+    samples_per_m: int = Field(300, ge=1)  # the most textured vertices per metre of track the views are compared at
+    min_views: int = Field(3, ge=1)  # a vertex takes part when at least this many views see it
+    lr: float = Field(0.05, gt=0)  # Adam learning rate of the knots (in 10 cm and 1 degree units; cosine decay)
+    photometric_lr: float = Field(0.01, gt=0)  # Adam learning rate of each view's gain and offset
+    photometric_sigma: float = Field(0.03, gt=0)  # grey error (0-1) of one unit of loss; the Huber loss is
+    # quadratic below it, linear above
+    prior_m: float = Field(0.2, gt=0)  # the prior's standard deviation of a knot's translation (m) ...
+    prior_deg: float = Field(0.5, gt=0)  # ... and rotation (degrees)
+    prior_weight: float = Field(0.05, ge=0)  # weight of the prior (mean over knots of the squared ratios)
+    smooth_m: float = Field(0.1, gt=0)  # the smoothness's standard deviation of the change between knots (m) ...
+    smooth_deg: float = Field(0.2, gt=0)  # ... and (degrees)
+    smooth_weight: float = Field(0.05, ge=0)  # weight of the smoothness (mean over neighbouring knots)
+
+
 class MasklessConfig(StrictModel):
     """Keyframes without semantics (no mask, no segmentation model; mapping.fits.lidar_occlusion): a view's pixel
     is not used where the Lidar scan nearest in time saw something standing on the road (a car, a person, a wall)
@@ -204,6 +228,7 @@ class MapperConfig(StrictModel):
     inputs: InputsConfig = InputsConfig()
     fast_fit: FastFitConfig = FastFitConfig()
     faithful_fit: FaithfulFitConfig = FaithfulFitConfig()
+    pose_refinement: PoseRefinementConfig = PoseRefinementConfig()
     maskless: MasklessConfig = MasklessConfig()
     runtime: RuntimeConfig = RuntimeConfig()
     live_view: LiveViewConfig = LiveViewConfig()

@@ -24,6 +24,7 @@ from daemon.spine.local_frame import LocalFrame
 from daemon.spine.mapper_config import MapperConfig
 from mapping.fits import faithful_fit, fast_fit
 from mapping.fits.lidar_occlusion import OcclusionTest
+from mapping.fits.pose_refinement import PoseCorrections, refine_poses
 from mapping.localization.keyframe_spacing import spaced_by_distance
 from mapping.localization.trajectory import HorizontalTrack
 from mapping.method.mesh_location import Located
@@ -45,6 +46,7 @@ class ReconstructionResult:
     metrics: dict
     road_map: RoadMap
     files: dict[str, Path] = field(default_factory=dict)
+    pose_corrections: PoseCorrections | None = None  # mapper.pose_refinement on (the fast path): what was fitted
 
 
 def select_keyframes(keyframes: list[Keyframe], trajectory: HorizontalTrack, spacing_m: float) -> list[Keyframe]:
@@ -168,6 +170,12 @@ def reconstruct(
         if not faithful and supervision is None and not variant.flat_init:  # camera-only: from the images
             elevation_first_last = fast_fit.fit_surface_from_images(road_map, train, cameras, trajectory, config,
                                                                     rng, timings, progress)
+        corrections, pose_figures = None, None
+        if not faithful and config.pose_refinement.enabled:  # the corrected poses observe and are evaluated
+            train, holdout, corrections, pose_figures = refine_poses(
+                road_map, train, holdout, cameras, trajectory, config.pose_refinement, config.fast_fit.behind_m,
+                config.fast_fit.ahead_m, timings)
+            phase(f"poses refined ({pose_figures['position_rms_cm']:.1f} cm RMS correction)")
         semantics = semantics_status(train, road_map, config)
         if semantics.startswith("unavailable"):  # nothing to train them on: no semantics, not untrained logits
             road_map.semantic_logits = None
@@ -226,10 +234,11 @@ def reconstruct(
         step_mean_s=(train_s - timings["setup_wall_s"]) / max(1, len(history)),
         drive_s=drive_s,
         **(maskless_figures(*tested, occlusion) if maskless else {}),
+        **({"pose_refinement": pose_figures} if pose_figures is not None else {}),
     )
     if out_dir is not None:
         path = Path(out_dir) / "metrics.json"
         path.write_text(json.dumps(metrics, indent=2))
         files["metrics"] = path
-    return ReconstructionResult(metrics, road_map, files)
+    return ReconstructionResult(metrics, road_map, files, corrections)
 

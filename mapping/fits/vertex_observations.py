@@ -132,7 +132,8 @@ class MeshFootprint:
                              np.zeros(len(neighbours), np.int64))
 
 
-def _label_at(keyframe: Keyframe, uv: np.ndarray) -> np.ndarray:
+def label_at(keyframe: Keyframe, uv: np.ndarray) -> np.ndarray:
+    """(M,) the keyframe's mask labels at the pixels nearest `uv`."""
     h, w = keyframe.semantics.shape
     pixel = np.rint(uv[:, 1]).astype(np.int64) * w + np.rint(uv[:, 0]).astype(np.int64)
     return keyframe.semantics.reshape(-1)[pixel]
@@ -173,7 +174,7 @@ def _label_half_edges(obs: VertexObservations, seen: np.ndarray, uv: np.ndarray,
         k = np.where(k < len(seen), k, 0)
         both = np.flatnonzero(seen[k] == j)
         k = k[both]
-        label = _label_at(keyframe, 0.5 * (uv[both] + uv[k]))
+        label = label_at(keyframe, 0.5 * (uv[both] + uv[k]))
         good = label < NUM_MAP_CLASSES
         label = label[good].astype(np.int64)
         w = HALF_EDGE_WEIGHT * weight[both[good]]
@@ -203,7 +204,7 @@ def observe_keyframe(obs: VertexObservations, ids: np.ndarray, points_world: np.
     weight = label_weights(points_world[ok], camera, keyframe.T_world_camera, label_sharp_m)
     if footprint is not None:
         _label_half_edges(obs, ids, uv, weight, keyframe, footprint)
-    label = _label_at(keyframe, uv)
+    label = label_at(keyframe, uv)
     good = label < NUM_MAP_CLASSES
     ids, uv, label, weight = ids[good], uv[good], label[good].astype(np.int64), weight[good]
     if len(ids) == 0:

@@ -51,6 +51,7 @@ from mapping.inputs.lidar_ground import GroundFilter, configured_decoding, lidar
 from mapping.inputs.segmentation import OnnxSegmenter
 from mapping.localization import pose_fusion
 from mapping.localization.keyframe_spacing import spaced_preferring
+from mapping.localization.pose_noise import PoseNoise, perturbed
 from mapping.localization.sensor_time import ClockMap, fit_clock, span_clock
 from mapping.localization.trajectory import HorizontalTrack, Trajectory
 from mapping.method.scene_data import CameraModel, Keyframe, StandingPoints
@@ -218,12 +219,15 @@ def load_drive(paths: list[str | Path], config: CarConfig, config_path: str | Pa
 
 def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path: str | Path | None = None, *,
                         origin: LocalFrame | None = None, use_lidar: bool = True,
-                        standing: bool | None = None, progress: bool = False) -> LoadingDrive:
+                        standing: bool | None = None, progress: bool = False,
+                        pose_noise: PoseNoise | None = None) -> LoadingDrive:
     """Read the log segments and fuse the trajectory; start extracting the Lidar ground (every
     `mapper.inputs.lidar_every_n_scans`-th scan) and decoding the keyframes (every
     `mapper.inputs.keyframe_spacing_m`) in the background. The Lidar's standing points come too when a keyframe
     has no mask and `mapper.maskless.lidar_occlusion` is on (`standing` True / False: always / never). `progress`:
-    a bar with its ETA on stderr for each of the three (the messages read, the scans, the keyframes decoded)."""
+    a bar with its ETA on stderr for each of the three (the messages read, the scans, the keyframes decoded).
+    `pose_noise`: an error injected into the trajectory before anything is placed with it (benches:
+    mapping.localization.pose_noise)."""
     report = ReadReport()
     segmenter = segmenter_for(config, config_path)  # a bad model fails here, before the log is read
     cams = [c.name for c in config.sensors.cameras]
@@ -266,6 +270,8 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
         trajectory = _pose_trajectory(poses, clocks[POSE], origin or recorded_pose_origin(paths[0]))
     else:
         trajectory = fuse_log_trajectory(gnss, imu, wheels, config, origin, clocks)
+    if pose_noise is not None:
+        trajectory = perturbed(trajectory, pose_noise)
     chosen, counts = _keyframe_messages(config, frames, masks if segmenter is None else None, clocks, trajectory,
                                         config.mapper.inputs.keyframe_spacing_m)
     # one background thread, the Lidar first: the reconstruction needs it first (its elevation fit), and the

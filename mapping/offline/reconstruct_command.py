@@ -8,6 +8,10 @@ without it `miou_pct` compares rendered semantics with the segmentation masks of
 A log without masks (and no segmentation model configured) still maps: colour and elevation from every frame,
 no semantics (`miou_pct` null, `semantics` says why, no bev_semantics.* files), and a warning on stderr naming
 the frames without a mask. When only some frames have masks, the semantics come from those.
+
+`--pose-refinement on|off` switches the fast fit's pose corrections (mapper.pose_refinement). `--pose-noise-m` /
+`--pose-noise-deg` (benches) inject a smooth random error into the trajectory before anything is placed with it
+(mapping.localization.pose_noise); metrics `pose_noise` then give it and what the corrections left of it.
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ from daemon.spine.recorded_config import sectioned_recorded_config
 from daemon.spine.yaml_document import UnusableYaml, load_yaml
 from mapping.fits.reconstruction import ReconstructionResult, reconstruct
 from mapping.inputs.drive_inputs import DriveInputs, missing_masks_warning, start_loading_drive
+from mapping.localization.pose_noise import PoseNoise, residual_error
 from mapping.method.compute_device import DEVICES, resolve_device, with_device
 from mapping.method.road_map import ABLATIONS, variant_for
 from mapping.method.scene_data import GroundTruth
@@ -122,12 +127,14 @@ def config_from_logs(paths: list[str]) -> tuple[CarConfig, Path]:
 
 def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_path: Path, *,
                        truth: DriveTruth | None = None, use_lidar: bool = True, ablation: str | None = None,
-                       faithful: bool = False, progress: bool = True) -> tuple[ReconstructionResult, DriveInputs]:
+                       faithful: bool = False, progress: bool = True,
+                       pose_noise: PoseNoise | None = None) -> tuple[ReconstructionResult, DriveInputs]:
     started = time.perf_counter()
     phase = PhaseLines(progress)
     phase(f"reading {len(logs)} log(s) in the background, writing to {out}")
     loading = start_loading_drive(logs, config, config_path, origin=truth.origin if truth else None,
-                                  use_lidar=use_lidar, progress=progress)
+                                  use_lidar=use_lidar, progress=progress,
+                                  pose_noise=pose_noise)
     phase("drive path read")
     warning = missing_masks_warning(loading.counts["frames"], loading.counts["frames_without_mask"])
     if warning is not None:
@@ -149,6 +156,8 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
             from mapping.outputs.map_metrics import elev_error_cm
 
             metrics["elev_error_cm"] = elev_error_cm(result.road_map, truth.lidar_points)
+    if pose_noise is not None:
+        metrics["pose_noise"] = pose_noise_figures(pose_noise, result, drive)
     wall = time.perf_counter() - started
     # the one real-time factor (docs/map-outputs.md): drive seconds over this wall time
     metrics.update(drive_s=drive.drive_s, wall_s=wall, rtf=drive.drive_s / wall if wall > 0 else None,
@@ -160,6 +169,27 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
     (out / "config.yaml").write_text(config_to_yaml(config))
     phase("metrics.json and config.yaml written")
     return result, drive
+
+
+def pose_noise_figures(noise: PoseNoise, result: ReconstructionResult, drive: DriveInputs) -> dict:
+    """The injected pose error (metrics `pose_noise`) and the RMS error of the vehicle pose at the keyframes'
+    times as the map was made: `keyframes_before` as injected, `keyframes_after` once the pose refinement's
+    corrections are applied (None without refinement)."""
+    seconds = np.array([kf.timestamp for kf in drive.keyframes])
+    after = None
+    if result.pose_corrections is not None:
+        position, rotation = result.pose_corrections.at(drive.path.horizontal_distance_at(seconds))
+        after = residual_error(noise, drive.trajectory, seconds, position, rotation)
+    return {**noise.figures(), "keyframes_before": residual_error(noise, drive.trajectory, seconds),
+            "keyframes_after": after}
+
+
+def with_pose_refinement(car: CarConfig, setting: str | None) -> CarConfig:
+    """The car config with mapper.pose_refinement.enabled from `--pose-refinement on|off` (None: as it is)."""
+    if setting is None:
+        return car
+    refinement = car.mapper.pose_refinement.model_copy(update={"enabled": setting == "on"})
+    return car.model_copy(update={"mapper": car.mapper.model_copy(update={"pose_refinement": refinement})})
 
 
 @reports_config_errors
@@ -177,7 +207,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", choices=DEVICES,
                         help="torch device of the fit: auto (cuda when there is a GPU), cpu or cuda (default: the "
                              "config's mapper.device)")
+    parser.add_argument("--pose-refinement", choices=("on", "off"),
+                        help="fit corrections of the poses to the map (fast path; default: the config's "
+                             "mapper.pose_refinement.enabled)")
+    parser.add_argument("--pose-noise-m", type=float, default=0.0,
+                        help="benches: inject a smooth random pose error of this 3-D RMS (m) into the trajectory")
+    parser.add_argument("--pose-noise-deg", type=float, default=0.0,
+                        help="benches: ... and of this RMS per rotation axis (degrees)")
+    parser.add_argument("--pose-noise-every-s", type=float, default=0.5,
+                        help="benches: the injected error's independent draws this far apart in time (s)")
+    parser.add_argument("--pose-noise-seed", type=int, default=0, help="benches: the injected error's seed")
     args = parser.parse_args(argv)
+    if args.pose_noise_m < 0 or args.pose_noise_deg < 0 or args.pose_noise_every_s <= 0:
+        raise ConfigError("--pose-noise-m and --pose-noise-deg must be >= 0, --pose-noise-every-s > 0")
+    noise = (PoseNoise(args.pose_noise_m, args.pose_noise_deg, args.pose_noise_every_s, args.pose_noise_seed)
+             if args.pose_noise_m > 0 or args.pose_noise_deg > 0 else None)
     given = load_config(args.config) if args.config else None  # the config's own error first, as every process
     problems = [why for why in map(not_a_log, args.logs) if why]
     if problems:
@@ -189,14 +233,15 @@ def main(argv: list[str] | None = None) -> int:
         config, config_path = given, Path(args.config)
     else:
         config, config_path = config_from_logs(args.logs)
-    config = with_device(config, args.device)
+    config = with_pose_refinement(with_device(config, args.device), args.pose_refinement)
     source = "--device" if args.device is not None else f"{args.config or args.logs[0]}: mapper.device"
     resolve_device(config.mapper.device, source)  # cuda without a GPU: one error line, exit 2
     if args.epochs is not None:
         faithful_fit = config.mapper.faithful_fit.model_copy(update={"epochs": args.epochs})
         config = config.model_copy(update={"mapper": config.mapper.model_copy(update={"faithful_fit": faithful_fit})})
     result, _ = run_reconstruction(args.logs, args.out, config, config_path, truth=truth,  # ConfigError: exit 2
-                                   use_lidar=not args.no_lidar, ablation=args.ablation, faithful=args.faithful)
+                                   use_lidar=not args.no_lidar, ablation=args.ablation, faithful=args.faithful,
+                                   pose_noise=noise)
     keys = ("psnr_db", "psnr_train_db", "miou_pct", "iou_pct", "semantics", "elev_error_cm", "elev_mae_gt_cm",
             "drive_s", "wall_s", "rtf", "peak_rss_mb", "vertices")
     print(json.dumps({k: result.metrics.get(k) for k in keys}))

@@ -1,0 +1,139 @@
+"""Pose-noise bench (issue 17 item 5): what injected pose error costs the map, with and without pose refinement.
+
+On N random worlds (`roadlog simulate --scenario random --seed S`, as bench/worlds.py) each drive is mapped by
+`roadlog reconstruct --gt`, with Lidar and with `--no-lidar`, three times: with the poses as fused (`exact`), with
+a smooth random pose error injected into the trajectory (`--pose-noise-m`, `--pose-noise-deg`: independent draws
+every `--every-s`, linear between; mapping/localization/pose_noise.py) without refinement (`noisy`), and the same
+with `--pose-refinement on` (`refined`). Reported per run and as median / worst over the worlds: held-out PSNR,
+bird's-eye mIoU, lane-marking IoU, the costs against `exact` (dB, points), the vehicle pose's RMS error at the
+keyframes before and after refinement, and the wall times. The target (issue 17): 10-20 cm RMS pose noise costs at
+most 3 points of mIoU and 1 dB of PSNR. The last line is one JSON object.
+
+    .venv/bin/python bench/pose_noise.py [--quick] [--worlds 3] [--seconds 6] [--noise-m 0.2] [--noise-deg 0.1]
+        [--every-s 0.5] [--modes lidar no_lidar] [--drives DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+_spec = importlib.util.spec_from_file_location("worlds_bench", Path(__file__).with_name("worlds.py"))
+worlds_bench = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(worlds_bench)
+
+MODES = {"lidar": (), "no_lidar": ("--no-lidar",)}
+FIGURES = ("psnr_db", "miou_pct", "lane_marking_iou_pct", "wall_s")
+
+
+def run(log: Path, out: Path, noise: tuple[str, ...], *extra: str) -> dict:
+    figures = worlds_bench.reconstruct(log, out, *noise, *extra)
+    m = json.loads((out / "metrics.json").read_text())
+    pose = m.get("pose_noise") or {}
+    return {**{k: figures[k] for k in FIGURES},
+            "pose_error_before_cm": (pose.get("keyframes_before") or {}).get("position_rms_cm"),
+            "pose_error_after_cm": (pose.get("keyframes_after") or {}).get("position_rms_cm"),
+            "rotation_error_before_deg": (pose.get("keyframes_before") or {}).get("rotation_rms_deg"),
+            "rotation_error_after_deg": (pose.get("keyframes_after") or {}).get("rotation_rms_deg"),
+            "pose_refinement_wall_s": m.get("pose_refinement_wall_s")}
+
+
+def world(seed: int, seconds: float, folder: Path, drives: Path, noise: tuple[str, ...], modes: dict) -> dict:
+    log = drives / f"random_{seed}_{seconds:g}s.mcap"
+    if not log.exists():
+        worlds_bench.simulate("random", seed, seconds, log)
+    result = {"seed": seed}
+    for mode, extra in modes.items():
+        exact = run(log, folder / f"{seed}_{mode}_exact", (), *extra)
+        noisy = run(log, folder / f"{seed}_{mode}_noisy", noise, *extra, "--pose-refinement", "off")
+        refined = run(log, folder / f"{seed}_{mode}_refined", noise, *extra, "--pose-refinement", "on")
+        costs = {f"{name}_{k}": (exact[figure] - r[figure]) if None not in (exact[figure], r[figure]) else None
+                 for name, r in (("noisy", noisy), ("refined", refined))
+                 for k, figure in (("psnr_cost_db", "psnr_db"), ("miou_cost_pts", "miou_pct"))}
+        result[mode] = {"exact": exact, "noisy": noisy, "refined": refined, **costs}
+        print(json.dumps({"seed": seed, "mode": mode, **result[mode]}), flush=True)
+    return result
+
+
+def summary(values: list, better: str) -> dict:
+    present = [v for v in values if v is not None]
+    if not present:
+        return {"median": None, "worst": None}
+    return {"median": statistics.median(present), "worst": max(present) if better == "low" else min(present)}
+
+
+def fmt(v) -> str:
+    return "-" if v is None else f"{v:.2f}"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="one world of 3 s, with Lidar only")
+    parser.add_argument("--worlds", type=int, default=3)
+    parser.add_argument("--first-seed", type=int, default=1)
+    parser.add_argument("--seconds", type=float, default=6.0)
+    parser.add_argument("--noise-m", type=float, default=0.2, help="RMS of the injected 3-D position error (m)")
+    parser.add_argument("--noise-deg", type=float, default=0.1, help="RMS per rotation axis (degrees)")
+    parser.add_argument("--every-s", type=float, default=0.5, help="the error's independent draws this far apart")
+    parser.add_argument("--modes", nargs="+", choices=sorted(MODES), default=sorted(MODES),
+                        help="with Lidar, camera-only (--no-lidar) or both")
+    parser.add_argument("--drives", type=Path, default=Path("/tmp/maplab/pose_noise"),
+                        help="the simulated drives are kept here and reused")
+    args = parser.parse_args()
+    count, seconds = (1, 3.0) if args.quick else (args.worlds, args.seconds)
+    modes = {"lidar": MODES["lidar"]} if args.quick else {mode: MODES[mode] for mode in args.modes}
+    noise = ("--pose-noise-m", str(args.noise_m), "--pose-noise-deg", str(args.noise_deg),
+             "--pose-noise-every-s", str(args.every_s))
+    args.drives.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        results = [world(args.first_seed + i, seconds, Path(tmp), args.drives, noise, modes) for i in range(count)]
+    stats = {}
+    for mode in modes:
+        stats[mode] = {
+            **{f"{kind}_{k}": summary([r[mode][f"{kind}_{k}"] for r in results], "low")
+               for kind in ("noisy", "refined") for k in ("psnr_cost_db", "miou_cost_pts")},
+            **{f"{run_name}_{k}": summary([r[mode][run_name][k] for r in results], "low" if "error" in k or "wall" in k
+                                          else "high")
+               for run_name in ("exact", "noisy", "refined") for k in (*FIGURES, "pose_error_after_cm",
+                                                                       "pose_refinement_wall_s")
+               if not (run_name != "refined" and k in ("pose_error_after_cm", "pose_refinement_wall_s"))},
+            "pose_error_before_cm": summary([r[mode]["noisy"]["pose_error_before_cm"] for r in results], "low"),
+        }
+        s = stats[mode]
+        stats[mode]["target_met"] = all(s[f"refined_{k}"]["worst"] is not None and s[f"refined_{k}"]["worst"] <= bound
+                                        for k, bound in (("psnr_cost_db", 1.0), ("miou_cost_pts", 3.0)))
+    print("| world | mode | run | PSNR dB | mIoU % | lane marking IoU % | pose error cm | wall s |")
+    print("|---|---|---|---|---|---|---|---|")
+    for r in results:
+        for mode in modes:
+            for name in ("exact", "noisy", "refined"):
+                f = r[mode][name]
+                error = f["pose_error_after_cm"] if name == "refined" else f["pose_error_before_cm"]
+                print(f"| {r['seed']} | {mode} | {name} | {fmt(f['psnr_db'])} | {fmt(f['miou_pct'])} | "
+                      f"{fmt(f['lane_marking_iou_pct'])} | {fmt(error if name != 'exact' else 0.0)} | "
+                      f"{fmt(f['wall_s'])} |")
+    for mode in modes:
+        s = stats[mode]
+        print(f"{mode}: PSNR cost noisy median {fmt(s['noisy_psnr_cost_db']['median'])} worst "
+              f"{fmt(s['noisy_psnr_cost_db']['worst'])} dB, refined median {fmt(s['refined_psnr_cost_db']['median'])} "
+              f"worst {fmt(s['refined_psnr_cost_db']['worst'])} dB; mIoU cost noisy median "
+              f"{fmt(s['noisy_miou_cost_pts']['median'])} worst {fmt(s['noisy_miou_cost_pts']['worst'])}, refined "
+              f"median {fmt(s['refined_miou_cost_pts']['median'])} worst {fmt(s['refined_miou_cost_pts']['worst'])} "
+              f"points: target {'met' if s['target_met'] else 'not met'}")
+    print(json.dumps({"bench": "pose_noise", "worlds": count, "seconds": seconds, "noise_m": args.noise_m,
+                      "noise_deg": args.noise_deg, "every_s": args.every_s,
+                      "cpus_available": len(os.sched_getaffinity(0)), "load_average_1min": os.getloadavg()[0],
+                      "wall_s": round(time.perf_counter() - started, 1), "median_worst": stats, "runs": results}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,73 @@
+"""Injected pose error, for measuring what pose error costs the map (`roadlog reconstruct --pose-noise-m`, the
+benches): a trajectory perturbed by smooth random noise, and what is left of that error after a correction.
+
+The error is drawn at knots `knot_every_s` apart in time (independent Gaussian per axis), linear in between, then
+scaled so that over the trajectory's poses the 3-D position error has exactly the RMS asked for and each rotation
+axis (a rotation vector in ENU, applied on the left about the vehicle's reference point) the per-axis RMS asked
+for. Lidar scans and camera frames are then placed with the perturbed poses, as with a real pose error.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from mapping.localization.trajectory import Trajectory
+
+
+@dataclass(frozen=True)
+class PoseNoise:
+    position_rms_m: float  # RMS of the 3-D position error over the trajectory's poses
+    rotation_rms_deg: float = 0.0  # RMS of each axis of the rotation error (roll, pitch, yaw in ENU)
+    knot_every_s: float = 0.5  # the error's independent draws this far apart in time, linear in between
+    seed: int = 0
+
+    def error_at(self, trajectory: Trajectory, seconds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The error (position (M, 3) m, rotation vector (M, 3) rad) at `seconds` from the trajectory's start."""
+        knots, position, rotation = self._knots(trajectory)
+        return _interpolated(knots, position, seconds), _interpolated(knots, rotation, seconds)
+
+    def _knots(self, trajectory: Trajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        seconds = (trajectory.times_ns - trajectory.times_ns[0]) / 1e9
+        knots = np.arange(0.0, seconds[-1] + self.knot_every_s, self.knot_every_s)
+        rng = np.random.default_rng(self.seed)
+        position, rotation = rng.standard_normal((len(knots), 3)), rng.standard_normal((len(knots), 3))
+        at_poses = _interpolated(knots, position, seconds)
+        position *= self.position_rms_m / max(float(np.sqrt((at_poses ** 2).sum(1).mean())), 1e-12)
+        at_poses = _interpolated(knots, rotation, seconds)
+        rotation *= np.deg2rad(self.rotation_rms_deg) / np.maximum(np.sqrt((at_poses ** 2).mean(0)), 1e-12)
+        return knots, position, rotation
+
+    def figures(self) -> dict:
+        return {"position_rms_cm": 100.0 * self.position_rms_m, "rotation_rms_deg": self.rotation_rms_deg,
+                "knot_every_s": self.knot_every_s, "seed": self.seed}
+
+
+def _interpolated(knots: np.ndarray, values: np.ndarray, seconds: np.ndarray) -> np.ndarray:
+    return np.stack([np.interp(seconds, knots, values[:, k]) for k in range(values.shape[1])], 1)
+
+
+def perturbed(trajectory: Trajectory, noise: PoseNoise) -> Trajectory:
+    """The trajectory with the noise's error added to every pose."""
+    seconds = (trajectory.times_ns - trajectory.times_ns[0]) / 1e9
+    position, rotation = noise.error_at(trajectory, seconds)
+    rotations = Rotation.from_rotvec(rotation) * trajectory.rotations
+    return Trajectory(trajectory.times_ns, trajectory.positions + position, rotations.as_quat(),
+                      trajectory.origin_lat_deg, trajectory.origin_lon_deg, trajectory.origin_alt_m)
+
+
+def residual_error(noise: PoseNoise, trajectory: Trajectory, seconds: np.ndarray,
+                   correction_position: np.ndarray | None = None,
+                   correction_rotation: np.ndarray | None = None) -> dict:
+    """RMS of the vehicle pose's error left at `seconds` (the keyframes' times) once a correction (position (M, 3)
+    m, rotation vector (M, 3) rad, applied as the noise is: on the left, about the reference point) is applied
+    to the perturbed `trajectory`'s (None: none): position in cm (3-D and horizontal), rotation in degrees."""
+    position, rotation = noise.error_at(trajectory, seconds)
+    if correction_position is not None:
+        position = position + correction_position
+        rotation = (Rotation.from_rotvec(correction_rotation) * Rotation.from_rotvec(rotation)).as_rotvec()
+    return {"position_rms_cm": 100.0 * float(np.sqrt((position ** 2).sum(1).mean())),
+            "horizontal_rms_cm": 100.0 * float(np.sqrt((position[:, :2] ** 2).sum(1).mean())),
+            "rotation_rms_deg": float(np.rad2deg(np.sqrt((rotation ** 2).sum(1).mean())))}
