@@ -135,8 +135,7 @@ class FastFitConfig(StrictModel):
     photometric_ahead_m: float = Field(12.0, gt=0)  # ... to this far ahead
     behind_m: float = Field(3.0, ge=0)  # a keyframe observes the vertices from this far (m) behind its
     # trajectory point ...
-    ahead_m: float = Field(12.0, gt=0)  # ... to this far (m) ahead: farther views blur; on each side of the track
-    # no farther out than it sees two keyframe spacings short of this (fast_fit.flat_topped_reach: no saw-tooth edge)
+    ahead_m: float = Field(12.0, gt=0)  # ... to this far (m) ahead: farther views blur
     label_sharp_m: float | None = Field(0.01, gt=0)  # a pixel's label counts fully where the pixel covers at
     # most this much ground (m) along the line of sight, in proportion beyond (far views count less;
     # mapping.fits.vertex_observations.label_weights); None: every label counts 1

@@ -19,12 +19,11 @@ from mapping.fits.lidar_detail import fit_lidar_detail
 from mapping.fits.lidar_occlusion import OcclusionTest
 from mapping.fits.observation_fit import fit_colours, fit_elevation, fit_lattice, semantic_logits_from_counts
 from mapping.fits.photometric_elevation import SweepSettings, lattice_nodes, sweep_heights
-from mapping.fits.vertex_observations import MeshFootprint, VertexObservations, observe_keyframe, project_points
+from mapping.fits.vertex_observations import MeshFootprint, VertexObservations, observe_keyframe
 from mapping.localization.trajectory import HorizontalTrack
 from mapping.method.compute_device import resolve_device
 from mapping.method.mesh_location import Located
 from mapping.method.road_map import RoadMap, WindowIndex
-from mapping.method.road_mesh import track_offsets
 from mapping.method.scene_data import CameraModel, Keyframe
 
 
@@ -91,22 +90,6 @@ def fit_surface_from_images(road_map: RoadMap, train: list[Keyframe], cameras: d
     return first_last
 
 
-def flat_topped_reach(points: np.ndarray, before_cut: np.ndarray, lateral: np.ndarray, keyframe: Keyframe,
-                      camera: CameraModel) -> np.ndarray:
-    """(M,) bool: which of a keyframe's vertices in reach (world `points`, their signed distance from the track
-    `lateral`) it observes: on each side of the track, none farther out than the farthest it sees among those
-    `before_cut` (short of its reach's far end by two keyframe spacings). A camera's view cut off at a distance
-    ahead is a wedge whose widest point is its far corner: the union of such wedges one spacing apart has a saw
-    tooth for an edge, one tooth per keyframe; capped at a lateral reach it keeps for two spacings, each view's
-    reach has a flat top as long as that, and the union a straight edge."""
-    _, visible = project_points(points, camera, keyframe.T_world_camera)
-    keep = np.ones(len(points), bool)
-    for side in (lateral, -lateral):
-        seen = visible & before_cut & (side > 0)
-        keep &= side <= (side[seen].max() if seen.any() else 0.0)
-    return keep
-
-
 def observe(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraModel], trajectory: HorizontalTrack,
             config: MapperConfig, progress: bool, timings: dict[str, float],
             occlusion: OcclusionTest | None = None) -> VertexObservations:
@@ -119,9 +102,6 @@ def observe(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraM
     windows = WindowIndex.of(mesh)
     bar = tqdm(total=len(train), desc="observe", disable=not progress, unit="frame")
 
-    _, lateral = track_offsets(trajectory, mesh.xy)
-    flat_from = fast.ahead_m - 2.0 * config.inputs.keyframe_spacing_m
-
     def observe_part(keyframes: list[Keyframe]) -> VertexObservations:
         part = VertexObservations.empty(mesh.num_vertices, road_map.decoder.camera_names)
         footprint = MeshFootprint.of(mesh.neighbours)
@@ -130,9 +110,7 @@ def observe(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraM
             a, b = np.searchsorted(windows.vertex_s, [s - fast.behind_m, s + fast.ahead_m])
             ids = windows.vertex_order[a:b]
             points = np.concatenate([mesh.xy[ids], road_map.z_now[ids, None].astype(np.float64)], 1)
-            keep = flat_topped_reach(points, mesh.s[ids] <= s + flat_from, lateral[ids], kf, cameras[kf.camera])
-            observe_keyframe(part, ids[keep], points[keep], kf, cameras[kf.camera], footprint, fast.label_sharp_m,
-                             occlusion)
+            observe_keyframe(part, ids, points, kf, cameras[kf.camera], footprint, fast.label_sharp_m, occlusion)
             bar.update()
         return part
 

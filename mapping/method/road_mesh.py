@@ -64,16 +64,6 @@ def _resampled_track(trajectory: HorizontalTrack) -> tuple[np.ndarray, np.ndarra
     return s, xy, tangent
 
 
-def track_offsets(trajectory: HorizontalTrack, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(s, lateral) of points (M, 2): the along-track position of the nearest trajectory point (as the mesh's `s`,
-    unclipped) and the signed distance from the track (m, positive on its left)."""
-    s_dense, xy_dense, tangent = _resampled_track(trajectory)
-    _, k = cKDTree(xy_dense).query(xy)
-    rel = xy - xy_dense[k]
-    s = s_dense[k] + np.einsum("ij,ij->i", rel, tangent[k])
-    return s, tangent[k, 0] * rel[:, 1] - tangent[k, 1] * rel[:, 0]
-
-
 def _blocks_near_track(tree: cKDTree, lo: np.ndarray, hi: np.ndarray, half_width_m: float) -> np.ndarray:
     """(X, Y) bool over _BLOCK_M squares from `lo` covering `hi`: the squares that may hold a point within
     `half_width_m` of the track (their centre within that plus half their diagonal). Only the nodes in them
