@@ -237,7 +237,7 @@ def test_a_relative_output_dir_is_taken_from_the_working_directory_never_beside_
     (as systemd's WorkingDirectory=/var/lib/roadlog gives /var/lib/roadlog/logs), nothing into configs/."""
     make, tmp_path, prefix = daemons
     (tmp_path / "configs").mkdir()
-    path = _write_config(tmp_path / "configs", prefix, _free_port())
+    path = _write_config(tmp_path / "configs", prefix, free_port())
     data = yaml.safe_load(path.read_text())
     data["recorder"]["output_dir"] = "logs"
     path.write_text(yaml.safe_dump(data))
@@ -245,7 +245,7 @@ def test_a_relative_output_dir_is_taken_from_the_working_directory_never_beside_
     work.mkdir()
     daemon = make(path)
     daemon.start(cwd=work)
-    _wait(lambda: list((work / "logs").glob("*.mcap.open")), 60, "the segment in the working directory's logs/")
+    wait_for(lambda: list((work / "logs").glob("*.mcap.open")), 60, "the segment in the working directory's logs/")
     os.killpg(daemon.proc.pid, signal.SIGTERM)
     assert daemon.proc.wait(60) == 0
     assert len(list((work / "logs").glob("roadlog_*.mcap"))) == 1
