@@ -206,6 +206,8 @@ class Supervisor:
                     child.popen.kill()
                     child.popen.wait()
                     child.last_reason = "killed after stop timeout"
+                    log.error("%s did not stop within its stop timeout (%.0f s after SIGTERM): killed",
+                              child.spec.name, child.spec.stop_timeout_s)
                 child.last_exit = child.popen.returncode
             if child.state not in ("finished",):
                 child.state = "stopped"

@@ -107,7 +107,7 @@ def test_hung_process_is_killed_and_restarted(config):
         thread.join(30)
 
 
-def test_sigterm_stops_everything_cleanly_within_bounds(config, tmp_path):
+def test_sigterm_stops_everything_cleanly_within_bounds(config, tmp_path, caplog):
     cfg, path = config
     marker = tmp_path / "stopped.txt"
     table = [_spec("lidar", path, marker=marker), _spec("recorder", path, marker=marker),
@@ -123,6 +123,8 @@ def test_sigterm_stops_everything_cleanly_within_bounds(config, tmp_path):
     lines = marker.read_text().splitlines()
     assert lines == ["lidar stopped cleanly", "recorder stopped cleanly"]  # producers first, recorder after
     assert sup.children["gnss"].last_exit == -9 and "stop timeout" in sup.children["gnss"].last_reason
+    assert [r.getMessage() for r in caplog.records if r.levelname == "ERROR"] == [
+        "gnss did not stop within its stop timeout (1 s after SIGTERM): killed"]
     assert all(c.popen.poll() is not None for c in sup.children.values())
 
 
