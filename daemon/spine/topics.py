@@ -86,6 +86,7 @@ LIDAR_VIEW_PROCESS = "lidar_view"
 VEHICLE_POSE_PROCESS = "vehicle_pose"
 VIEW_STAMP_LAG_S = 1.0  # a viewing cloud is published once its scan has been received and decoded
 POSE_STAMP_LAG_S = 3.0  # a pose is published once the fusion has run over the data after it (vehicle_pose)
+POINT_CLOUD_BYTES = 16 * MB  # the largest input cloud: 128 beams x 2048 columns x 2 returns of 20 B, and room
 VIEW_CLOUD_BYTES = 8 * MB  # the largest viewing cloud: 400,000 points with a return (a 128-beam scan of 2048)
 
 
@@ -136,8 +137,9 @@ def topic_table(config: CarConfig) -> dict[str, Topic]:
         topics.append(Topic(health_topic(process), DriverHealth, 1.0, 1 * MB, True, process))
     if sensors.lidar is not None and sensors.lidar.point_clouds:
         # a 128-beam scan of 1024 columns is ~2.6 MB of points: the ring holds ~5 s of them at 10 Hz, as the packet
-        # ring holds ~4 s of packets
-        topics.append(Topic(LIDAR_POINTS, PointCloud, sensors.lidar.rate_hz, 128 * MB, True, "lidar"))
+        # ring holds ~4 s of packets; the largest, 2048 columns with two returns, is 10.5 MB (20 B a point)
+        topics.append(Topic(LIDAR_POINTS, PointCloud, sensors.lidar.rate_hz, 128 * MB, True, "lidar",
+                            POINT_CLOUD_BYTES))
     elif sensors.lidar is not None:
         packets_per_s = sensors.lidar.columns_per_frame / 16 * sensors.lidar.rate_hz
         topics.append(Topic(LIDAR_PACKETS, LidarPacket, packets_per_s, 128 * MB, True, "lidar", UDP_DATAGRAM_BYTES))

@@ -3,6 +3,7 @@
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -12,6 +13,7 @@ from daemon.processes.replay import replayed_topics
 from daemon.spine.config import ConfigError, load_config, parse_config
 from daemon.spine.mapper_config import MapperConfig
 from daemon.spine.messages import PointCloud
+from daemon.spine.point_cloud_codec import pack_points
 from daemon.spine.process_table import process_table, required_drivers
 from daemon.spine.recorded_config import sectioned_recorded_config
 from daemon.spine.topics import LIDAR_IMU, LIDAR_PACKETS, LIDAR_POINTS, topic_table
@@ -221,3 +223,12 @@ def test_run_and_check_config_refuse_a_point_cloud_lidar_that_replay_plays(tmp_p
     replay = process_table(config, str(path), "replay", replay_logs=("a.mcap",))
     assert [p.name for p in replay][0] == "replay" and "lidar" not in [p.name for p in replay]
     assert "lidar" in required_drivers(config) and LIDAR_POINTS in replayed_topics(config)
+
+
+def test_the_point_cloud_topic_declares_room_for_the_largest_scan(tmp_path):
+    """The ring check sizes `lidar/points` by its largest message: a 128-beam, 2048-column, dual-return scan (it
+    declared the 64 KB of the small messages, so the check could never catch a ring too small for it)."""
+    config, _ = private_config(tmp_path, point_clouds=True)
+    topic = next(t for t in topic_table(config) if t.name == LIDAR_POINTS)
+    largest = len(pack_points(np.zeros((128 * 2048 * 2, 3), np.float32)))
+    assert largest <= topic.max_message_bytes <= topic.ring_bytes // 2
