@@ -229,6 +229,6 @@ def test_the_point_cloud_topic_declares_room_for_the_largest_scan(tmp_path):
     """The ring check sizes `lidar/points` by its largest message: a 128-beam, 2048-column, dual-return scan (it
     declared the 64 KB of the small messages, so the check could never catch a ring too small for it)."""
     config, _ = private_config(tmp_path, point_clouds=True)
-    topic = next(t for t in topic_table(config) if t.name == LIDAR_POINTS)
+    topic = topic_table(config)[LIDAR_POINTS]
     largest = len(pack_points(np.zeros((128 * 2048 * 2, 3), np.float32)))
     assert largest <= topic.max_message_bytes <= topic.ring_bytes // 2
