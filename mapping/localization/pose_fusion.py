@@ -183,8 +183,7 @@ def _interpolate_with_gaps(times: np.ndarray, sample_t: np.ndarray, values: np.n
 def _initial_heading(gnss_enu, gnss_t, imu_t, yaw_rate, mounting, baseline_m) -> float:
     """Heading at the first fix from the rear axle's chord over the first `baseline_m`: the axle moves along the
     car's heading, and over an arc its chord points half the angle turned (the gyro's) ahead of the start's."""
-    horizontal = np.linalg.norm(gnss_enu[:, :2] - gnss_enu[0, :2], axis=1)
-    far = np.flatnonzero(horizontal > baseline_m)
+    far = np.flatnonzero(np.linalg.norm(gnss_enu[:, :2] - gnss_enu[0, :2], axis=1) > baseline_m)
     if not len(far):
         return 0.0
     end = far[0]
@@ -200,8 +199,7 @@ def _initial_heading(gnss_enu, gnss_t, imu_t, yaw_rate, mounting, baseline_m) ->
 
 
 def _rotate(xy: np.ndarray, angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([c * xy[0] - s * xy[1], s * xy[0] + c * xy[1]])
+    return np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]) @ xy
 
 
 def _initial_state(gnss_enu, gnss_cov0, gnss_t, imu_t, force_ref, gyro, wheel_t, rear_speed, mounting, settings):
@@ -210,8 +208,7 @@ def _initial_state(gnss_enu, gnss_cov0, gnss_t, imu_t, force_ref, gyro, wheel_t,
     start = gnss_t[0]
     first = (imu_t >= start) & (imu_t <= start + 0.5)
     if not np.any(first):
-        first = np.zeros(len(imu_t), bool)
-        first[min(np.searchsorted(imu_t, start), len(imu_t) - 1)] = True
+        first = np.arange(len(imu_t)) == min(np.searchsorted(imu_t, start), len(imu_t) - 1)
     force, rate = force_ref[first].mean(axis=0), gyro[first].mean(axis=0)
     if len(wheel_t):
         near = (wheel_t >= start) & (wheel_t <= start + 1.0)
@@ -224,8 +221,7 @@ def _initial_state(gnss_enu, gnss_cov0, gnss_t, imu_t, force_ref, gyro, wheel_t,
         accel_forward = 0.0
     r_iv = np.asarray(mounting.imu_to_vehicle, dtype=np.float64).T
     forward_i = r_iv[:, 0]
-    # a car that starts in a bend feels v * yaw rate sideways (0.44 m/s^2 at 9 m/s on a 200 m radius): taken
-    # for gravity it tilts the start by 2.5 deg, which a drive at constant speed and curvature never corrects
+    # a car starting in a bend feels v x yaw rate sideways: taken for gravity it tilts the start (0.44 m/s^2: 2.5 deg)
     up_i = force - accel_forward * forward_i - np.cross(rate, speed0 * forward_i)
     up_i /= np.linalg.norm(up_i)
     yaw = _initial_heading(gnss_enu, gnss_t, imu_t, gyro @ up_i, mounting, settings.heading_baseline_m)
