@@ -18,7 +18,11 @@ for lack of disk go per topic into each segment's closing metadata and, as JSON,
 recorder's health. Once a second it publishes a TimeAnchor (host monotonic + UTC), which it logs like any
 topic. What it reads goes through a reorder buffer (reorder_buffer.py): held until no ring can still give an older
 message, at most `recorder.reorder_window_s`, then written oldest first, so each segment's chunks are in log-time
-order; a message older than one already written is written at once and counted as late (`late_per_topic`).
+order; a message older than one already written is written at once and counted as late (`late_per_topic`). The
+derived topics published seconds after the time they are stamped at (viewing clouds, fused poses: a Topic's
+`stamp_lag_s`) go through a reorder buffer of their own, written in batches of LAGGING_BATCH_S in chunks of their own,
+so they never hold the sensors' messages back: a power cut loses at most REORDER_SLACK_NS plus a sync period of
+what the sensors sent, and the last few seconds of the derived topics (which `reconstruct` derives again).
 
 The recorder is a normal (non-lossless) bus reader: one thread polls every subscriber in turn, so it
 can never slow a driver down; if it falls behind a ring, it loses (and counts) the oldest messages.
@@ -30,6 +34,7 @@ for the mapper, and the re-recorded log is complete.
 from __future__ import annotations
 
 import argparse
+import heapq
 import json
 import logging
 import os
@@ -75,6 +80,7 @@ DRAIN_LIMIT_S = 10.0  # at stop: longest time spent writing what is still waitin
 READ_BURST = 256  # most messages taken from one topic before the next topic gets its turn
 REORDER_MAX_BYTES = 1024**3  # the reorder buffer never holds more (it releases its oldest early)
 REORDER_SLACK_NS = 500_000_000  # how far a driver's host stamp may precede its publish (a ring read to its end)
+LAGGING_BATCH_S = 2.0  # the derived topics stamped before they are published are written this much at a time
 log = logging.getLogger(__name__)
 
 
@@ -146,6 +152,11 @@ class Recorder:
         # fused pose: Topic.stamp_lag_s)
         self.stamp_slack_ns = {name: max(REORDER_SLACK_NS, int(t.stamp_lag_s * 1e9))
                                for name, t in topic_table(config).items()}
+        # the topics stamped longer before they are published than a driver's message: ordered on their own
+        self.lagging = {name for name, slack in self.stamp_slack_ns.items() if slack > REORDER_SLACK_NS}
+        self.reorder_lagging = ReorderBuffer(int(self.rc.reorder_window_s * 1e9) + max(self.stamp_slack_ns.values(),
+                                             default=0), REORDER_MAX_BYTES // 4)
+        self._lagging_released_ns: int | None = None  # the safe bound the last batch of them was written up to
         self._late_at_last_close: dict[str, int] = {}
         self.disk_full = False
         self.disk_free_bytes = 0
@@ -191,8 +202,8 @@ class Recorder:
         lost_bus = _delta(self.tally.lost_bus, self._at_last_close.lost_bus)
         dropped = _delta(self.tally.dropped_disk_full, self._at_last_close.dropped_disk_full)
         lost = {t: lost_bus.get(t, 0) + dropped.get(t, 0) for t in sorted(set(lost_bus) | set(dropped))}
-        late = _delta(self.reorder.late, self._late_at_last_close)
-        self._late_at_last_close = dict(self.reorder.late)
+        late = _delta(self.late(), self._late_at_last_close)
+        self._late_at_last_close = self.late()
         self._at_last_close = TopicTally(dict(self.tally.written), dict(self.tally.lost_bus),
                                          dict(self.tally.dropped_disk_full))
         try:
@@ -272,14 +283,37 @@ class Recorder:
     # --- messages ------------------------------------------------------------------------------
 
     def accept(self, topic: str, message: object) -> None:
-        """Take one message read from the bus: into the reorder buffer, or written at once when it is late."""
-        if self.reorder.window_ns <= 0 or not self.reorder.push(topic, message):
+        """Take one message read from the bus: into its reorder buffer, or written at once when it is late."""
+        buffer = self.reorder_lagging if topic in self.lagging else self.reorder
+        if self.rc.reorder_window_s <= 0 or not buffer.push(topic, message):
             self.write(topic, message)
 
-    def release(self, safe_ns: int | None = None, everything: bool = False) -> None:
-        """Write what the reorder buffer may give (all of it at stop)."""
-        for topic, message in (self.reorder.drain() if everything else self.reorder.pop_ready(safe_ns)):
+    def release(self, safe_ns: int | None = None, lagging_safe_ns: int | None = None) -> None:
+        """Write what the reorder buffers may give: the sensors' messages up to `safe_ns`, the lagging topics' up to
+        `lagging_safe_ns` once it is LAGGING_BATCH_S past their last batch."""
+        for topic, message in self.reorder.pop_ready(safe_ns):
             self.write(topic, message)
+        if not len(self.reorder_lagging):
+            return
+        batch_due = lagging_safe_ns is not None and (
+            self._lagging_released_ns is None or lagging_safe_ns - self._lagging_released_ns >= LAGGING_BATCH_S * 1e9)
+        if batch_due or self.reorder_lagging.bytes_held > self.reorder_lagging.max_bytes:
+            self._lagging_released_ns = lagging_safe_ns
+            for topic, message in self.reorder_lagging.pop_ready(lagging_safe_ns):
+                self.write(topic, message)
+
+    def release_everything(self) -> None:
+        """Write all that both reorder buffers hold, oldest first (at stop)."""
+        for topic, message in heapq.merge(self.reorder.drain(), self.reorder_lagging.drain(),
+                                          key=lambda held: int(held[1].host_mono_ns)):
+            self.write(topic, message)
+
+    def late(self) -> dict[str, int]:
+        """Per topic, the messages written older than one of their own order written before them."""
+        late = dict(self.reorder.late)
+        for topic, n in self.reorder_lagging.late.items():
+            late[topic] = late.get(topic, 0) + n
+        return dict(sorted(late.items()))
 
     def write(self, topic: str, message: object) -> None:
         """Write one message to the open segment (opening one if needed), or count it as dropped."""
@@ -331,8 +365,8 @@ class Recorder:
             "lost": lost,
             "lost_bus": dict(sorted(self.tally.lost_bus.items())),
             "dropped_disk_full": dict(sorted(self.tally.dropped_disk_full.items())),
-            "late": dict(sorted(self.reorder.late.items())),
-            "reorder_held": len(self.reorder),
+            "late": self.late(),
+            "reorder_held": len(self.reorder) + len(self.reorder_lagging),
             "recovered": self.recovered,
             "segments_quarantined": sum(1 for r in self.recovered if r["quarantined"]),
             "last_error": self.health.last_error,
@@ -345,12 +379,13 @@ def logged_topics(config: CarConfig) -> list[str]:
 
 
 def _read_round(rec: Recorder, subscribers: dict[str, pubsub.Subscriber]) -> int:
-    """Take what each subscriber has waiting (at most READ_BURST per topic), write what the reorder buffer then
-    releases; the number read. No ring can still give a message older than `safe`: a ring read to its end gives
+    """Take what each subscriber has waiting (at most READ_BURST per topic), write what the reorder buffers then
+    release; the number read. No ring can still give a message older than its bound: a ring read to its end gives
     nothing stamped before the time it was read (less REORDER_SLACK_NS, or its topic's stamp lag) or its last message
-    (a replay's host times may lie ahead), one the recorder is behind on nothing before its last message."""
+    (a replay's host times may lie ahead), one the recorder is behind on nothing before its last message. The
+    sensors' messages are released up to the lowest bound of their rings, the lagging topics' up to theirs."""
     got = 0
-    safe: int | None = None
+    safe: dict[bool, int] = {}  # is the topic lagging -> the lowest bound of those rings
     for topic, sub in subscribers.items():
         read_at = time.monotonic_ns()
         drained = False
@@ -366,8 +401,10 @@ def _read_round(rec: Recorder, subscribers: dict[str, pubsub.Subscriber]) -> int
         position = rec.read_positions.get(topic)
         slack = rec.stamp_slack_ns.get(topic, REORDER_SLACK_NS)
         bound = max(read_at - slack, position or 0) if drained else position
-        safe = bound if safe is None else min(safe, bound)
-    rec.release(safe)
+        if bound is not None:
+            lagging = topic in rec.lagging
+            safe[lagging] = min(safe.get(lagging, bound), bound)
+    rec.release(safe.get(False), safe.get(True))
     return got
 
 
@@ -416,7 +453,7 @@ def run(config: CarConfig, output_dir: Path, stop: threading.Event, config_path:
         while _read_round(rec, subscribers) and time.monotonic() < drain_until:
             rec.rotate_if_due()
     finally:
-        rec.release(everything=True)
+        rec.release_everything()
         rec.close_segment()
         health_pub.publish(rec.health_message())
         for sub in subscribers.values():

@@ -22,8 +22,8 @@ from daemon.log_format.metadata_records import LOG_TIME_OFFSET_KEY
 from daemon.log_format.reader import read_log, read_metadata
 from daemon.processes.reorder_buffer import ReorderBuffer
 from daemon.spine.config import load_config
-from daemon.spine.messages import CameraFrame, ImuSample, LidarPacket
-from daemon.spine.topics import IMU, LIDAR_PACKETS, camera_topic
+from daemon.spine.messages import CameraFrame, ImuSample, LidarPacket, VehiclePose
+from daemon.spine.topics import IMU, LIDAR_PACKETS, POSE_STAMP_LAG_S, VEHICLE_POSE, camera_topic
 from tests.daemon.test_recorder import RecorderProcess, write_config
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -189,3 +189,49 @@ def test_the_typescript_mcap_reader_sees_every_chunk_in_log_time_order(recorded_
         assert (int(chunk["start"]), int(chunk["end"])) == (times[0], times[-1])
         total += len(times)
     assert total == len(list(read_log([segment]))) + 4  # and the three camera calibrations, the static transforms
+
+
+def test_a_topic_published_seconds_after_its_stamps_holds_no_sensor_message_back(tmp_path):
+    """Fused poses come out ~2.5 s after the time they are the pose of (vehicle_pose): the recorder writes them in
+    chunks of their own, so the IMU samples around them are written at once, not held back with them (a power cut
+    would lose them), and every chunk stays in log-time order with nothing counted late."""
+    config_path = write_config(tmp_path)
+    config = load_config(config_path)
+    out = tmp_path / "logs"
+    imu_pub, pose_pub = pubsub.open_publisher(config, IMU), pubsub.open_publisher(config, VEHICLE_POSE)
+    lag_ns = int((POSE_STAMP_LAG_S - 0.5) * S)
+    try:
+        rec = RecorderProcess(config_path, out)
+        n_imu = n_pose = 0
+        end = time.monotonic() + 6.0
+        while time.monotonic() < end:
+            imu_pub.publish(ImuSample(sensor_time_ns=n_imu, accel_mps2=(0.0, 0.0, 9.81)))
+            n_imu += 1
+            if n_imu % 20 == 0:
+                stamp = time.monotonic_ns() - lag_ns
+                pose_pub.publish(VehiclePose(sensor_time_ns=stamp, host_mono_ns=stamp, frame_id="map"))
+                n_pose += 1
+            time.sleep(0.005)
+        detail = rec.wait_written({IMU: n_imu, VEHICLE_POSE: n_pose})
+        assert rec.stop() == 0, rec.stderr
+    finally:
+        for closing in (imu_pub, pose_pub):
+            closing.close()
+        while RecorderProcess.started:
+            proc = RecorderProcess.started.pop()
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        pubsub.unlink_all(config)
+    assert detail["late"] == {}
+    [segment] = sorted(out.glob("*.mcap"))
+    topics = [rec.topic for rec in read_log([segment])]
+    assert topics.count(IMU) == n_imu and topics.count(VEHICLE_POSE) == n_pose
+    chunks = chunks_in_file_order(segment)
+    for chunk, times in chunks:
+        assert times == sorted(times) and (chunk.message_start_time, chunk.message_end_time) == (times[0], times[-1])
+    # in file order, the poses (and their transforms) come after IMU samples up to ~2.5 s newer: they were not waited
+    # for; those still held when the recorder stopped are merged in order (the last ~2-4 s of the drive's poses)
+    stored = [t for _, times in chunks for t in times]
+    written_after_newer = sum(1 for i, t in enumerate(stored) if i and t < max(stored[:i]))
+    assert written_after_newer >= n_pose, (written_after_newer, n_pose)
