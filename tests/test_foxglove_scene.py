@@ -104,6 +104,7 @@ def test_foxglove_finds_the_frames_chain_at_every_cloud_and_image_and_the_car_mo
     sensors = {tf["child"] for tf in static["transforms"] if tf["parent"] == VEHICLE_FRAME}
     cameras = [cam.name for cam in config.sensors.cameras]
     assert {"lidar", *cameras} <= sensors
+    static_t = max(int(tf["t"]) for tf in static["transforms"])  # Foxglove looks up the newest at or before a stamp
     # the moving one: map -> vehicle, every pose once
     tfs = topics[TF]["messages"]
     assert {(tf["parent"], tf["child"]) for tf in tfs} == {(MAP_FRAME, VEHICLE_FRAME)}
@@ -128,6 +129,7 @@ def test_foxglove_finds_the_frames_chain_at_every_cloud_and_image_and_the_car_mo
         times = [int(m["t"]) for m in messages]
         within = [t for t in times if tf_times[0] <= t <= tf_times[-1]]
         assert all(map(on_the_chain, within)), what
+        assert all(static_t <= t for t in times), what  # the sensor frames hold at every payload stamp
         # the poses span the drive from its first fix to its end (the last fusion at the stop)
         assert len(within) >= 0.8 * len(times), (what, len(within), len(times))
     # the car moves with the drive: the city drive goes at ~9 m/s

@@ -1,6 +1,8 @@
 """The car's static transforms as Foxglove sees them: one `foxglove.FrameTransforms` message from the vehicle frame to
 every sensor's frame (each camera's optical frame by its name, the Lidar, the GNSS antenna, the IMU), from the
-config's extrinsics, so the 3D panel places each sensor's data on the car."""
+config's extrinsics, so the 3D panel places each sensor's data on the car. Each transform is stamped at time 0: Foxglove
+looks a frame's transforms up at a message's payload stamp (a host-monotonic time here, a sensor's clock elsewhere)
+and takes one stamped at or before it, so a static transform stamped 0 holds at every time, whatever the clock."""
 
 from __future__ import annotations
 
@@ -36,13 +38,13 @@ def sensor_frames(config: CarConfig) -> dict[str, Extrinsics]:
     return frames
 
 
-def static_transforms(config: CarConfig, timestamp_ns: int) -> FrameTransforms:
+def static_transforms(config: CarConfig) -> FrameTransforms:
     """vehicle -> each sensor frame: the child's pose in the parent (translation, rotation), as ROS tf and Foxglove
-    take a transform."""
+    take a transform, stamped 0 (valid at every time)."""
     out = FrameTransforms()
     for name, extrinsics in sensor_frames(config).items():
         tf = out.transforms.add(parent_frame_id=VEHICLE_FRAME, child_frame_id=name)
-        tf.timestamp.seconds, tf.timestamp.nanos = divmod(int(timestamp_ns), 1_000_000_000)
+        tf.timestamp.SetInParent()  # written, as 0 (a reader that requires the field finds it)
         tf.translation.x, tf.translation.y, tf.translation.z = extrinsics.translation_m
         q = tf.rotation
         q.x, q.y, q.z, q.w = rpy_quaternion(*extrinsics.rotation_rpy_deg)

@@ -178,7 +178,7 @@ class LogWriter:
         self._calibrations_written = True
         cid = self._channel_id(TF_STATIC, "foxglove.FrameTransforms",
                                lambda: file_descriptor_set(FrameTransforms.DESCRIPTOR.file), "FrameTransforms")
-        self._add_message(cid, log_time=log_time, data=static_transforms(self.config, log_time).SerializeToString(),
+        self._add_message(cid, log_time=log_time, data=static_transforms(self.config).SerializeToString(),
                           publish_time=log_time)
         for cam in self.config.sensors.cameras:
             proto = CameraCalibration(frame_id=cam.name, width=cam.width, height=cam.height,

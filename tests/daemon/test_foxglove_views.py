@@ -96,6 +96,8 @@ def test_every_sensor_has_a_static_transform_from_the_vehicle_frame(segment):
     for name, extrinsics in expected.items():
         tf = by_child[name]
         assert tf.parent_frame_id == "vehicle"
+        # stamped 0: Foxglove takes a frame's transform stamped at or before a payload's stamp, whatever its clock
+        assert (tf.timestamp.seconds, tf.timestamp.nanos) == (0, 0), name
         assert (tf.translation.x, tf.translation.y, tf.translation.z) == pytest.approx(extrinsics.translation_m)
         q = tf.rotation
         rotation = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()  # the child's axes in the parent
