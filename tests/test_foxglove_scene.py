@@ -20,7 +20,18 @@ from mcap.reader import make_reader
 from daemon.bus.pubsub import unlink_all
 from daemon.log_format.metadata_records import LOG_TIME_OFFSET_KEY
 from daemon.log_format.reader import read_log, read_metadata
-from daemon.spine.topics import LIDAR_VIEW, MAP_FRAME, TF, TF_STATIC, VEHICLE_FRAME, VEHICLE_POSE, camera_topic
+from daemon.spine.topics import (
+    GNSS_FIX,
+    LIDAR_VIEW,
+    MAP_FRAME,
+    TF,
+    TF_STATIC,
+    VEHICLE_FRAME,
+    VEHICLE_POSE,
+    VEHICLE_POSE_PROCESS,
+    camera_topic,
+    health_topic,
+)
 from tests.daemon_fixtures import REPO, private_config
 from tests.roadlog_cli import roadlog
 
@@ -58,6 +69,12 @@ def test_the_replayed_log_holds_viewing_clouds_and_the_live_pose(replayed):
     assert len(poses) >= 0.8 * drive_s * config.recorder.pose_hz  # from the first fix to the end (the last at the stop)
     assert all(p.frame_id == MAP_FRAME for p in poses)
     assert json.loads(read_metadata(segment)["roadlog.counts"]["lost_per_topic"]) == {}
+    # the map frame's origin (the process's first GNSS fix) is in its health reports the log holds
+    fixes = [rec.message for rec in read_log([segment], topics={GNSS_FIX})]
+    origins = [json.loads(rec.message.detail)["map_origin"]
+               for rec in read_log([segment], topics={health_topic(VEHICLE_POSE_PROCESS)})]
+    assert origins and all(o == origins[-1] for o in origins if o is not None) and origins[-1] is not None
+    assert (origins[-1]["lat_deg"], origins[-1]["lon_deg"]) in {(f.latitude_deg, f.longitude_deg) for f in fixes[:5]}
     with open(segment, "rb") as f:  # each pose again as the transform map -> vehicle, at the same log time
         tfs = [(message.log_time, message.publish_time) for _, _, message in make_reader(f).iter_messages([TF])]
     offset = int(read_metadata(segment)["roadlog"][LOG_TIME_OFFSET_KEY])

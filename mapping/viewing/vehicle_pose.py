@@ -8,7 +8,9 @@ FUSE_EVERY_S of drive, and once more when it is stopped (the supervisor stops it
 recorder); the poses from the last one published up to the newest fused time (less END_MARGIN_S, where the
 smoother has seen little past them, but at the stop) come out on a grid of host times 1/pose_hz apart, each stamped
 (sensor_time_ns and host_mono_ns) at the time it is the pose of: on the host clock, as the camera frames are. The map
-frame (`map`) is local ENU at the first GNSS fix this process received. A fusion that fails (too few fixes, a gap)
+frame (`map`) is local ENU at the first GNSS fix this process received; that origin (latitude, longitude in degrees,
+ellipsoidal height in metres) is in every health report's detail (`map_origin`), which the recorder logs once a second,
+so each segment places its `map` frame on the earth. A fusion that fails (too few fixes, a gap)
 is counted and retried with the next data; nothing is published for the span it could not fuse.
 """
 
@@ -107,9 +109,11 @@ class LivePose:
                             position_m=tuple(map(float, p)), orientation_xyzw=tuple(map(float, q)))
                 for t, p, q in zip(times, positions, quaternions, strict=True)]
 
-    def report(self) -> dict[str, int | str]:
+    def report(self) -> dict[str, object]:
+        origin = None if self.origin is None else {
+            "lat_deg": self.origin.lat_deg, "lon_deg": self.origin.lon_deg, "alt_m": self.origin.alt_m}
         return {"fusions": self.fusions, "failed": self.failed, "lag_s": round(self.lag_s, 3),
-                "max_lag_s": round(self.max_lag_s, 3), "last_error": self.last_error}
+                "max_lag_s": round(self.max_lag_s, 3), "last_error": self.last_error, "map_origin": origin}
 
 
 def run(config: CarConfig, stop: threading.Event) -> LivePose:

@@ -134,10 +134,14 @@ def test_the_live_pose_follows_the_offline_trajectory_at_its_rate(city_drive):
     assert config.recorder.pose_hz == 10.0
     messages = drive_messages(city_drive, {GNSS_FIX, IMU, WHEEL_SPEEDS, TIME_ANCHOR})
     live = LivePose(config)
+    assert live.report()["map_origin"] is None
     poses = []
     for topic, msg in messages:
         live.take(topic, msg)
         poses += live.poses()
+    first_fix = next(m for t, m in messages if t == GNSS_FIX)  # the map frame's origin, in every health report
+    assert live.report()["map_origin"] == {"lat_deg": first_fix.latitude_deg, "lon_deg": first_fix.longitude_deg,
+                                           "alt_m": first_fix.altitude_m}
     assert live.failed == 0 and live.fusions >= 3
     assert (messages[-1][1].host_mono_ns - poses[-1].sensor_time_ns) / 1e9 > 0.2  # the newest wait for more data
     poses += live.poses(final=True)  # at the stop: the rest, to the data's end
