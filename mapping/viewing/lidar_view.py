@@ -14,33 +14,22 @@ reads `lidar/view`; `roadlog reconstruct` takes it only from a log that holds no
 
 from __future__ import annotations
 
-import argparse
-import json
-import logging
-import signal
 import sys
 import threading
-import time
 from collections import deque
 
 import numpy as np
 
-from daemon.bus import pubsub
 from daemon.log_format.static_transforms import LIDAR_FRAME
-from daemon.spine.config import CarConfig, ConfigError, load_config, reports_config_errors
-from daemon.spine.health import HealthCounters
+from daemon.spine.config import CarConfig, reports_config_errors
 from daemon.spine.messages import LidarPacket, PointCloud
 from daemon.spine.point_cloud_codec import pack_points
-from daemon.spine.process_logging import setup_logging
-from daemon.spine.topics import LIDAR_PACKETS, LIDAR_VIEW, LIDAR_VIEW_PROCESS, health_topic, views_lidar
+from daemon.spine.topics import LIDAR_PACKETS, LIDAR_VIEW, LIDAR_VIEW_PROCESS, views_lidar
 from drivers.lidar.ouster_metadata import OusterMetadata
 from mapping.inputs.lidar_ground import VendorDecoding, configured_decoding, scan_decoder, scan_number
+from mapping.viewing.viewing_process import serve, viewing_main
 
-HEALTH_PERIOD_S = 1.0
-SUBSCRIBE_RETRY_S = 0.5
-IDLE_SLEEP_S = 0.005
 LATENCY_SCANS = 100  # the transport latency is the smallest of this many scans' (host - stamp)
-log = logging.getLogger(__name__)
 
 
 class ViewingClouds:
@@ -113,59 +102,25 @@ def run(config: CarConfig, config_path: str, stop: threading.Event) -> ViewingCl
     """Publish viewing clouds until `stop` is set."""
     lidar = config.sensors.lidar
     viewer = ViewingClouds(configured_decoding(lidar, config_path), config.recorder.point_cloud_view_hz, lidar.rate_hz)
-    health = HealthCounters(LIDAR_VIEW_PROCESS)
-    out = pubsub.open_publisher(config, LIDAR_VIEW)
-    health_pub = pubsub.open_publisher(config, health_topic(LIDAR_VIEW_PROCESS))
-    sub: pubsub.Subscriber | None = None
-    last_try = last_health = 0.0
-    try:
-        while not stop.is_set():
-            now = time.monotonic()
-            if sub is None and now - last_try >= SUBSCRIBE_RETRY_S:
-                last_try = now
-                try:
-                    sub = pubsub.open_subscriber(config, LIDAR_PACKETS, start="oldest")
-                except FileNotFoundError:
-                    pass
-            if now - last_health >= HEALTH_PERIOD_S:
-                last_health = now
-                msg = health.snapshot()
-                msg.dropped = sub.lost if sub is not None else 0
-                msg.errors = viewer.undecodable
-                msg.detail = json.dumps(viewer.report())
-                health_pub.publish(msg)
-            packet = sub.read(timeout_s=0, copy=True) if sub is not None else None
-            if packet is None:
-                stop.wait(IDLE_SLEEP_S)
-                continue
-            health.received += 1
-            cloud = viewer.take(packet)
-            if cloud is not None:
-                out.publish(cloud)
-                health.count_published()
-    finally:
-        for closing in (sub, out, health_pub):
-            if closing is not None:
-                closing.close()
+
+    def step(read: list, final: bool) -> list[PointCloud]:
+        return [cloud for _, packet in read if (cloud := viewer.take(packet)) is not None]
+
+    serve(config, LIDAR_VIEW_PROCESS, [LIDAR_PACKETS], LIDAR_VIEW, step,
+          lambda: (viewer.undecodable, viewer.report()), stop)
     return viewer
+
+
+def _run_summary(config: CarConfig, config_path: str, stop: threading.Event) -> str:
+    viewer = run(config, config_path, stop)
+    return f"{viewer.scans} scans, {viewer.viewed} viewed, {viewer.undecodable} undecodable"
 
 
 @reports_config_errors
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="roadlog lidar-view", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--config", required=True, help="car config YAML")
-    args = parser.parse_args(argv)
-    setup_logging(LIDAR_VIEW_PROCESS)
-    config = load_config(args.config)
-    if not views_lidar(config):
-        raise ConfigError(f"{args.config}: no viewing clouds to make (a Lidar that sends packets and "
-                          f"recorder.point_cloud_view_hz > 0)")
-    stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
-    viewer = run(config, args.config, stop)
-    log.info("stopped: %d scans, %d viewed, %d undecodable", viewer.scans, viewer.viewed, viewer.undecodable)
-    return 0
+    return viewing_main(argv, LIDAR_VIEW_PROCESS, "roadlog lidar-view", __doc__.split("\n\n")[0], views_lidar,
+                        "no viewing clouds to make (a Lidar that sends packets and recorder.point_cloud_view_hz > 0)",
+                        _run_summary)
 
 
 if __name__ == "__main__":

@@ -16,22 +16,15 @@ is counted and retried with the next data; nothing is published for the span it 
 
 from __future__ import annotations
 
-import argparse
-import json
-import logging
-import signal
 import sys
 import threading
 import time
 
 import numpy as np
 
-from daemon.bus import pubsub
-from daemon.spine.config import CarConfig, ConfigError, load_config, reports_config_errors
-from daemon.spine.health import HealthCounters
+from daemon.spine.config import CarConfig, reports_config_errors
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.messages import VehiclePose
-from daemon.spine.process_logging import setup_logging
 from daemon.spine.topics import (
     GNSS_FIX,
     IMU,
@@ -41,19 +34,14 @@ from daemon.spine.topics import (
     VEHICLE_POSE_PROCESS,
     WHEEL_SPEEDS,
     fuses_pose,
-    health_topic,
-    topic_table,
 )
 from mapping.inputs.drive_inputs import fuse_bus_trajectory
+from mapping.viewing.viewing_process import serve, viewing_main
 
 FUSION_WINDOW_S = 8.0  # data fused each time (the first GNSS fix of it is where the filter starts)
 FUSE_EVERY_S = 1.0  # of drive (the newest IMU sample's host time) between two fusions: one takes ~0.3 s of a core
 END_MARGIN_S = 0.2  # poses this close to the newest fused time wait for the next fusion
 MIN_FIXES, MIN_IMU = 5, 20
-HEALTH_PERIOD_S = 1.0
-SUBSCRIBE_RETRY_S = 0.5
-IDLE_SLEEP_S = 0.005
-log = logging.getLogger(__name__)
 
 
 class LivePose:
@@ -119,77 +107,30 @@ class LivePose:
 def run(config: CarConfig, stop: threading.Event) -> LivePose:
     """Publish live poses until `stop` is set."""
     pose = LivePose(config)
-    health = HealthCounters(VEHICLE_POSE_PROCESS)
-    out = pubsub.open_publisher(config, VEHICLE_POSE)
-    health_pub = pubsub.open_publisher(config, health_topic(VEHICLE_POSE_PROCESS))
-    wanted = [t for t in (GNSS_FIX, IMU, WHEEL_SPEEDS, TIME_ANCHOR) if t in topic_table(config)]
-    subs: dict[str, pubsub.Subscriber] = {}
-    last_try = last_health = 0.0
-    try:
-        while not stop.is_set():
-            now = time.monotonic()
-            if len(subs) < len(wanted) and now - last_try >= SUBSCRIBE_RETRY_S:
-                last_try = now
-                for topic in wanted:
-                    if topic not in subs:
-                        try:
-                            subs[topic] = pubsub.open_subscriber(config, topic, start="oldest")
-                        except FileNotFoundError:
-                            pass
-            if now - last_health >= HEALTH_PERIOD_S:
-                last_health = now
-                msg = health.snapshot()
-                msg.dropped = sum(s.lost for s in subs.values())
-                msg.errors = pose.failed
-                msg.detail = json.dumps(pose.report())
-                health_pub.publish(msg)
-            got = 0
-            for topic, sub in subs.items():
-                for _ in range(256):
-                    msg = sub.read(timeout_s=0, copy=True)
-                    if msg is None:
-                        break
-                    got += 1
-                    pose.take(topic, msg)
-            health.received += got
-            poses = pose.poses()
-            if poses:
-                pose.lag_s = (time.monotonic_ns() - poses[0].host_mono_ns) / 1e9
-                pose.max_lag_s = max(pose.max_lag_s, pose.lag_s)
-            for msg in poses:
-                out.publish(msg)
-                health.count_published()
-            if not got:
-                stop.wait(IDLE_SLEEP_S)
-        # stopped (after the drivers, before the recorder): what the rings still hold, then the poses up to its end
-        for topic, sub in subs.items():
-            while (msg := sub.read(timeout_s=0, copy=True)) is not None:
-                pose.take(topic, msg)
-        for msg in pose.poses(final=True):
-            out.publish(msg)
-            health.count_published()
-    finally:
-        for closing in (*subs.values(), out, health_pub):
-            closing.close()
+
+    def step(read: list, final: bool) -> list[VehiclePose]:
+        for topic, msg in read:
+            pose.take(topic, msg)
+        poses = pose.poses(final)
+        if poses and not final:
+            pose.lag_s = (time.monotonic_ns() - poses[0].host_mono_ns) / 1e9
+            pose.max_lag_s = max(pose.max_lag_s, pose.lag_s)
+        return poses
+
+    serve(config, VEHICLE_POSE_PROCESS, [GNSS_FIX, IMU, WHEEL_SPEEDS, TIME_ANCHOR], VEHICLE_POSE, step,
+          lambda: (pose.failed, pose.report()), stop)
     return pose
+
+
+def _run_summary(config: CarConfig, _config_path: str, stop: threading.Event) -> str:
+    pose = run(config, stop)
+    return f"{pose.fusions} fusions, {pose.failed} failed, poses out at most {pose.max_lag_s:.2f} s after their time"
 
 
 @reports_config_errors
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="roadlog vehicle-pose", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--config", required=True, help="car config YAML")
-    args = parser.parse_args(argv)
-    setup_logging(VEHICLE_POSE_PROCESS)
-    config = load_config(args.config)
-    if not fuses_pose(config):
-        raise ConfigError(f"{args.config}: no live pose to fuse (sensors.gnss and recorder.pose_hz > 0)")
-    stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
-    pose = run(config, stop)
-    log.info("stopped: %d fusions, %d failed, poses out at most %.2f s after their time", pose.fusions, pose.failed,
-             pose.max_lag_s)
-    return 0
+    return viewing_main(argv, VEHICLE_POSE_PROCESS, "roadlog vehicle-pose", __doc__.split("\n\n")[0], fuses_pose,
+                        "no live pose to fuse (sensors.gnss and recorder.pose_hz > 0)", _run_summary)
 
 
 if __name__ == "__main__":
