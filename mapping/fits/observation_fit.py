@@ -24,6 +24,7 @@ from tqdm import tqdm
 
 from mapping.fits.vertex_observations import VertexObservations
 from mapping.method.compute_device import optimisation_loop
+from mapping.method.descent import Descent
 from mapping.method.mesh_location import Located
 from mapping.method.road_map import RoadMap
 
@@ -108,8 +109,7 @@ def fit_lattice(road_map: RoadMap, nodes: np.ndarray, target: np.ndarray, z0: np
     weight_t = torch.from_numpy(weight.astype(np.float32)).to(device) if weight is not None else None
     elevation = road_map.elevation.to(device)
     opt = torch.optim.Adam(elevation.parameters(), lr=lr)
-    decay = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=FINAL_LR_FRACTION * lr)
-    first = last = None
+    descent = Descent([opt], [torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=FINAL_LR_FRACTION * lr)])
     with optimisation_loop("fast elevation"), step_bar(steps, "elevation", progress) as bar:
         for step in range(steps):
             bar.update()
@@ -122,15 +122,9 @@ def fit_lattice(road_map: RoadMap, nodes: np.ndarray, target: np.ndarray, z0: np
                 w = weight_t[pick]
                 loss_z = (w * (r_nodes - target_t[pick]).abs()).sum() / w.sum().clamp(min=1e-6)
             loss_s = ((z0_t[pair[:, 0]] + r_a - z0_t[pair[:, 1]] - r_b) ** 2).mean()
-            loss = w_elevation * loss_z + w_smooth * loss_s
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            decay.step()
-            last = loss.detach()
-            first = last if first is None else first
+            descent.step(w_elevation * loss_z + w_smooth * loss_s)
     road_map.elevation.to(_CPU)
-    return (float(first), float(last)) if last is not None else (0.0, 0.0)
+    return descent.losses()
 
 
 def _observation_features(obs: VertexObservations, ids: np.ndarray) -> torch.Tensor:
@@ -168,21 +162,14 @@ def fit_colours(road_map: RoadMap, obs: VertexObservations, ids: np.ndarray, enc
     size = min(batch, len(ids))
     picks = torch.from_numpy(np.stack([rng.choice(len(ids), size, replace=False) for _ in range(encoder_steps)]
                                       ).reshape(encoder_steps, size)).to(device)
-    first = last = None
+    descent = Descent(opts)
     with optimisation_loop("fast colour"), step_bar(encoder_steps, "colour", progress) as bar:
         for step in range(encoder_steps):
             bar.update()
             pick = picks[step]
-            loss = _colour_l1(road_map, encoder(features[pick]), target[pick], present[pick], names)
-            for o in opts:
-                o.zero_grad(set_to_none=True)
-            loss.backward()
-            for o in opts:
-                o.step()
-            last = loss.detach()
-            first = last if first is None else first
+            descent.step(_colour_l1(road_map, encoder(features[pick]), target[pick], present[pick], names))
     with torch.no_grad():
         codes = encoder(features).to(road_map.colour_params.device)
     road_map.decoder.to(_CPU)
     road_map.colour_params[torch.from_numpy(ids)] = codes
-    return (float(first), float(last)) if last is not None else (0.0, 0.0)
+    return descent.losses()

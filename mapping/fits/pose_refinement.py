@@ -33,6 +33,7 @@ from mapping.fits.photometric_elevation import grey_image
 from mapping.fits.vertex_observations import bilinear, label_at, project_points
 from mapping.localization.trajectory import HorizontalTrack
 from mapping.method.compute_device import optimisation_loop
+from mapping.method.descent import Descent
 from mapping.method.mesh_renderer import project
 from mapping.method.road_map import RoadMap, WindowIndex
 from mapping.method.scene_data import CameraModel, Keyframe
@@ -204,9 +205,9 @@ def _fit_round(knots: torch.Tensor, knot_s: np.ndarray, views: list[Keyframe], s
     opt = torch.optim.Adam([{"params": [knots], "lr": settings.lr},
                             {"params": [gain, offset], "lr": settings.photometric_lr}])
     decay = torch.optim.lr_scheduler.CosineAnnealingLR(opt, settings.steps, eta_min=0.1 * settings.lr)
+    descent = Descent([opt], [decay])
     sigma = torch.tensor([settings.prior_m / METRE_UNIT] * 3 + [settings.prior_deg] * 3, dtype=torch.float64)
     smooth = torch.tensor([settings.smooth_m / METRE_UNIT] * 3 + [settings.smooth_deg] * 3, dtype=torch.float64)
-    first = last = None
     with optimisation_loop("pose refinement"):
         for _ in range(settings.steps):
             delta = knots[i0] * (1 - frac)[:, None] + knots[i1] * frac[:, None]
@@ -241,14 +242,8 @@ def _fit_round(knots: torch.Tensor, knot_s: np.ndarray, views: list[Keyframe], s
                     * used).sum() / used.sum().clamp(min=1)
             prior = ((knots / sigma) ** 2).sum(1).mean()
             bend = (((knots[1:] - knots[:-1]) / smooth) ** 2).sum(1).mean()
-            loss = data + settings.prior_weight * prior + settings.smooth_weight * bend
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            decay.step()
-            last = loss.detach()
-            first = last if first is None else first
-    return (float(first), float(last)) if last is not None else (0.0, 0.0)
+            descent.step(data + settings.prior_weight * prior + settings.smooth_weight * bend)
+    return descent.losses()
 
 
 def refine_poses(road_map: RoadMap, train: list[Keyframe], holdout: list[Keyframe],
