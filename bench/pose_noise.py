@@ -19,7 +19,6 @@ import argparse
 import importlib.util
 import json
 import os
-import statistics
 import sys
 import tempfile
 import time
@@ -29,6 +28,7 @@ _spec = importlib.util.spec_from_file_location("worlds_bench", Path(__file__).wi
 worlds_bench = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(worlds_bench)
 
+summarise, fmt = worlds_bench.summarise, worlds_bench.fmt  # median and worst over the worlds; a figure
 MODES = {"lidar": (), "no_lidar": ("--no-lidar",)}
 FIGURES = ("psnr_db", "miou_pct", "lane_marking_iou_pct", "wall_s")
 
@@ -62,17 +62,6 @@ def world(seed: int, seconds: float, folder: Path, drives: Path, noise: tuple[st
     return result
 
 
-def summary(values: list, better: str) -> dict:
-    present = [v for v in values if v is not None]
-    if not present:
-        return {"median": None, "worst": None}
-    return {"median": statistics.median(present), "worst": max(present) if better == "low" else min(present)}
-
-
-def fmt(v) -> str:
-    return "-" if v is None else f"{v:.2f}"
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="one world of 3 s, with Lidar only")
@@ -98,14 +87,14 @@ def main() -> int:
     stats = {}
     for mode in modes:
         stats[mode] = {
-            **{f"{kind}_{k}": summary([r[mode][f"{kind}_{k}"] for r in results], "low")
+            **{f"{kind}_{k}": summarise([r[mode][f"{kind}_{k}"] for r in results], "low")
                for kind in ("noisy", "refined") for k in ("psnr_cost_db", "miou_cost_pts")},
-            **{f"{run_name}_{k}": summary([r[mode][run_name][k] for r in results], "low" if "error" in k or "wall" in k
-                                          else "high")
+            **{f"{run_name}_{k}": summarise([r[mode][run_name][k] for r in results],
+                                            "low" if "error" in k or "wall" in k else "high")
                for run_name in ("exact", "noisy", "refined") for k in (*FIGURES, "pose_error_after_cm",
                                                                        "pose_refinement_wall_s")
                if not (run_name != "refined" and k in ("pose_error_after_cm", "pose_refinement_wall_s"))},
-            "pose_error_before_cm": summary([r[mode]["noisy"]["pose_error_before_cm"] for r in results], "low"),
+            "pose_error_before_cm": summarise([r[mode]["noisy"]["pose_error_before_cm"] for r in results], "low"),
         }
         s = stats[mode]
         stats[mode]["target_met"] = all(s[f"refined_{k}"]["worst"] is not None and s[f"refined_{k}"]["worst"] <= bound
