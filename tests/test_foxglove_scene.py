@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 from pathlib import Path
 
@@ -32,10 +31,10 @@ from daemon.spine.topics import (
     camera_topic,
     health_topic,
 )
-from tests.daemon_fixtures import REPO, private_config
+from tests.daemon_fixtures import private_config
+from tests.node_packages import node_modules as installed
 from tests.roadlog_cli import roadlog
 
-NODE_DIR = REPO / "tests" / ".node"
 SCENE_JS = Path(__file__).with_name("foxglove_scene.js")
 POSE_GAP_NS = 150_000_000  # the live pose is at 10 Hz: a time between two poses this close is on the chain
 pytestmark = pytest.mark.slow
@@ -83,22 +82,8 @@ def test_the_replayed_log_holds_viewing_clouds_and_the_live_pose(replayed):
 
 @pytest.fixture(scope="module")
 def node_modules() -> Path:
-    """tests/.node/node_modules with @mcap/core, lz4js and protobufjs, installed from npm when missing."""
-    modules = NODE_DIR / "node_modules"
-    wanted = ("@mcap/core", "lz4js", "protobufjs")
-    if not all((modules / name).is_dir() for name in wanted):
-        if shutil.which("node") is None or shutil.which("npm") is None:
-            pytest.skip("node and npm are not installed: the TypeScript MCAP reader cannot run")
-        NODE_DIR.mkdir(parents=True, exist_ok=True)
-        try:
-            done = subprocess.run(["npm", "install", "--no-audit", "--no-fund", "--loglevel=error", "--prefix",
-                                   str(NODE_DIR), "@mcap/core@2", "lz4js@0.2", "protobufjs@7"], capture_output=True,
-                                  text=True, timeout=180)
-        except subprocess.TimeoutExpired:
-            pytest.skip("npm install of @mcap/core and protobufjs took over 180 s (no registry?)")
-        if done.returncode != 0:
-            pytest.skip(f"npm install of @mcap/core and protobufjs failed: {done.stderr.strip()[-300:]}")
-    return modules
+    """tests/.node/node_modules with @mcap/core, lz4js and protobufjs."""
+    return installed("@mcap/core@2", "lz4js@0.2", "protobufjs@7")
 
 
 def foxglove_view(node_modules: Path, segment: Path) -> dict:

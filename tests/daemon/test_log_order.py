@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import os
 import random
-import shutil
 import subprocess
 import time
 from pathlib import Path
@@ -25,9 +24,8 @@ from daemon.spine.config import load_config
 from daemon.spine.messages import CameraFrame, ImuSample, LidarPacket, VehiclePose
 from daemon.spine.topics import IMU, LIDAR_PACKETS, POSE_STAMP_LAG_S, VEHICLE_POSE, camera_topic
 from tests.daemon.test_recorder import RecorderProcess, write_config
+from tests.node_packages import node_modules
 
-ROOT = Path(__file__).resolve().parents[2]
-NODE_DIR = ROOT / "tests" / ".node"
 CHUNK_ORDER_JS = Path(__file__).with_name("mcap_chunk_order.js")
 CAMERA = camera_topic("front_wide")
 S = 1_000_000_000
@@ -109,21 +107,8 @@ def publish_out_of_order_drive(config, recorder_start):
 
 @pytest.fixture(scope="module")
 def node_mcap() -> Path:
-    """tests/.node/node_modules with @mcap/core and lz4js, installed from npm when missing."""
-    modules = NODE_DIR / "node_modules"
-    if not (modules / "@mcap" / "core").is_dir() or not (modules / "lz4js").is_dir():
-        if shutil.which("node") is None or shutil.which("npm") is None:
-            pytest.skip("node and npm are not installed: the TypeScript MCAP reader cannot run")
-        NODE_DIR.mkdir(parents=True, exist_ok=True)
-        try:
-            done = subprocess.run(["npm", "install", "--no-audit", "--no-fund", "--loglevel=error", "--prefix",
-                                   str(NODE_DIR), "@mcap/core@2", "lz4js@0.2"], capture_output=True, text=True,
-                                  timeout=180)
-        except subprocess.TimeoutExpired:
-            pytest.skip("npm install of @mcap/core took over 180 s (no registry?)")
-        if done.returncode != 0:
-            pytest.skip(f"npm install of @mcap/core failed: {done.stderr.strip()[-300:]}")
-    return modules
+    """tests/.node/node_modules with @mcap/core and lz4js."""
+    return node_modules("@mcap/core@2", "lz4js@0.2")
 
 
 def typescript_chunks(node_modules: Path, path: Path) -> dict:

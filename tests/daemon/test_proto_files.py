@@ -7,7 +7,6 @@ from __future__ import annotations
 import base64
 import json
 import os
-import shutil
 import subprocess
 from pathlib import Path
 
@@ -23,9 +22,8 @@ from daemon.log_format.writer import LogWriter
 from daemon.spine import message_codec
 from daemon.spine.messages import SemanticMask
 from tests.daemon.test_log_format import CONFIG, _messages
+from tests.node_packages import node_modules
 
-ROOT = Path(__file__).resolve().parents[2]
-NODE_DIR = ROOT / "tests" / ".node"
 DECODE_JS = Path(__file__).with_name("proto_decode.js")
 _LONGS = {FieldDescriptor.TYPE_INT64, FieldDescriptor.TYPE_UINT64, FieldDescriptor.TYPE_FIXED64,
           FieldDescriptor.TYPE_SINT64, FieldDescriptor.TYPE_SFIXED64}
@@ -104,19 +102,7 @@ def python_proto(schema_name: str, data: bytes):
 
 @pytest.fixture(scope="module")
 def protobufjs() -> Path:
-    modules = NODE_DIR / "node_modules"
-    if not (modules / "protobufjs").is_dir():
-        if shutil.which("node") is None or shutil.which("npm") is None:
-            pytest.skip("node and npm are not installed: protobufjs cannot run")
-        NODE_DIR.mkdir(parents=True, exist_ok=True)
-        try:
-            done = subprocess.run(["npm", "install", "--no-audit", "--no-fund", "--loglevel=error", "--prefix",
-                                   str(NODE_DIR), "protobufjs@7"], capture_output=True, text=True, timeout=180)
-        except subprocess.TimeoutExpired:
-            pytest.skip("npm install of protobufjs took over 180 s (no registry?)")
-        if done.returncode != 0:
-            pytest.skip(f"npm install of protobufjs failed: {done.stderr.strip()[-300:]}")
-    return modules
+    return node_modules("protobufjs@7")
 
 
 def contains(js, py) -> bool:
