@@ -1,7 +1,14 @@
 """Configs recorded in older logs, read as today's schema: the flat mapper keys from before the mapper config was
-sectioned, moved into their sections (a log's config is what its data was taken with: it stays readable)."""
+sectioned, moved into their sections (a log's config is what its data was taken with: it stays readable); and the
+mapper keys this version no longer knows (renamed or removed tuning), dropped and named, so today's defaults apply.
+The sensors, vehicle and recorder sections stay strict: they describe the data, and a key read wrong there would
+misread it."""
 
 from __future__ import annotations
+
+from pydantic import BaseModel
+
+from daemon.spine.mapper_config import MapperConfig
 
 # The flat mapper keys of configs recorded before the mapper config was sectioned -> their section and key.
 _FLAT_MAPPER_KEYS = {
@@ -25,3 +32,25 @@ def sectioned_recorded_config(data: object) -> object:
             value = mapper.pop(flat)
             mapper[section] = {**(mapper.get(section) or {}), key: value}
     return {**data, "mapper": mapper}
+
+
+def known_mapper_keys(data: object) -> tuple[object, list[str]]:
+    """The recorded config with the mapper keys today's MapperConfig does not have removed, and their dotted names."""
+    if not isinstance(data, dict) or not isinstance(data.get("mapper"), dict):
+        return data, []
+    dropped: list[str] = []
+    return {**data, "mapper": _known(MapperConfig, data["mapper"], "mapper", dropped)}, dropped
+
+
+def _known(model: type[BaseModel], section: dict, path: str, dropped: list[str]) -> dict:
+    kept = {}
+    for key, value in section.items():
+        field = model.model_fields.get(key) if isinstance(key, str) else None
+        if field is None:
+            dropped.append(f"{path}.{key}")
+            continue
+        sub = field.annotation
+        if isinstance(value, dict) and isinstance(sub, type) and issubclass(sub, BaseModel):
+            value = _known(sub, value, f"{path}.{key}", dropped)
+        kept[key] = value
+    return kept

@@ -39,7 +39,7 @@ from daemon.spine.config import (
 )
 from daemon.spine.health import process_memory_mb
 from daemon.spine.local_frame import LocalFrame
-from daemon.spine.recorded_config import sectioned_recorded_config
+from daemon.spine.recorded_config import known_mapper_keys, sectioned_recorded_config
 from daemon.spine.yaml_document import UnusableYaml, load_yaml
 from mapping.fits.reconstruction import ReconstructionResult, reconstruct
 from mapping.inputs.drive_inputs import DriveInputs, missing_masks_warning, start_loading_drive
@@ -108,9 +108,12 @@ def config_from_logs(paths: list[str]) -> tuple[CarConfig, Path]:
     if "config" not in meta:
         raise ConfigError(f"{paths[0]}: no recorded config in the log metadata; pass --config")
     try:
-        recorded = sectioned_recorded_config(load_yaml(meta["config"].encode()))
+        recorded, dropped = known_mapper_keys(sectioned_recorded_config(load_yaml(meta["config"].encode())))
     except UnusableYaml as exc:
         raise ConfigError(f"{paths[0]}: recorded config: {exc}") from None
+    if dropped:
+        say(f"warning: {paths[0]}: the recorded config's mapper keys {', '.join(dropped)} are unknown to this "
+            f"version (renamed or removed): ignored, today's defaults apply")
     config = parse_config(recorded, f"{paths[0]} (recorded config)")
     folder = Path(tempfile.mkdtemp(prefix="roadlog-reconstruct-"))
     packets = config.sensors.lidar is not None and not config.sensors.lidar.point_clouds  # decoded with metadata

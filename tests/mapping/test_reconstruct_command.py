@@ -10,9 +10,13 @@ import numpy as np
 import pytest
 import rasterio
 import trimesh
+import yaml
 from rasterio.warp import transform
 
+from daemon.log_format.writer import LogWriter
+from daemon.spine.config import ConfigError, config_to_yaml, load_config
 from daemon.spine.local_frame import LocalFrame
+from mapping.offline.reconstruct_command import config_from_logs
 from tests.daemon_fixtures import REPO
 
 
@@ -153,3 +157,24 @@ def test_a_drive_with_some_masks_takes_semantics_from_those_frames(city_drive, t
     labels = np.load(out / "bev_semantics.npy")
     mapped = np.isfinite(np.load(out / "bev_elevation.npy"))
     assert 0.3 < (labels[mapped] != 255).mean() <= 1.0
+
+
+def test_a_log_recorded_with_mapper_keys_this_version_lacks_still_reconstructs(tmp_path, capsys):
+    """A renamed or removed mapper key in a log's recorded config is dropped and named (today's default applies); a
+    key unknown in the sensors still stops the read: it describes the data."""
+    config = load_config(REPO / "configs" / "sim.yaml")
+    data = yaml.safe_load(config_to_yaml(config))
+    data["mapper"]["retired_knob"] = 3
+    data["mapper"]["mesh"]["old_name_m"] = 0.4
+    log = tmp_path / "old.mcap"
+    with LogWriter(log, config, metadata={"config": yaml.safe_dump(data)}, config_path=REPO / "configs" / "sim.yaml"):
+        pass
+    read, _ = config_from_logs([str(log)])
+    assert read.mapper == config.mapper and read.sensors == config.sensors
+    err = capsys.readouterr().err
+    assert "mapper.mesh.old_name_m, mapper.retired_knob" in err and "unknown to this version" in err
+    data["sensors"]["cameras"][0]["lens_colour"] = "blue"
+    with LogWriter(log, config, metadata={"config": yaml.safe_dump(data)}, config_path=REPO / "configs" / "sim.yaml"):
+        pass
+    with pytest.raises(ConfigError, match="lens_colour"):
+        config_from_logs([str(log)])
