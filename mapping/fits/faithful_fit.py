@@ -216,16 +216,20 @@ class FaithfulOptimisation:
         """One step on `batch` around `s_center`; its loss terms (detached, on the device: read after the loop)."""
         cfg = self.config
         s_lo, s_hi = s_center - cfg.windows.before_m, s_center + cfg.windows.after_m
-        a, b = np.searchsorted(self.vertex_s, [s_lo, s_hi])
-        window = torch.sort(self.vertex_order[a:b]).values
-        z = self.elevation_of(window)
-        self.z_now[window] = z.detach()
         a, b = np.searchsorted(self.face_s, [s_lo, s_hi])
-        mesh = self.window_mesh(self.face_order[a:b])
-        sup = [self.exact_supervision(kf, mesh) for kf in batch]
-        touched = torch.unique(torch.cat([s.tri.reshape(-1) for s in sup]))
+        faces = self.face_order[a:b]
         a, b = np.searchsorted(self.lidar_s, [s_lo, s_hi])
         lidar_sel = self.lidar_order[a:b]
+        # the window's vertices, and every vertex of its faces and of its Lidar points (a face near the window's
+        # edge has vertices just outside it): each is looked up in the window, none reads another's row
+        a, b = np.searchsorted(self.vertex_s, [s_lo, s_hi])
+        window = torch.unique(torch.cat([self.vertex_order[a:b], self.faces[faces].reshape(-1),
+                                         self.lidar_ids[lidar_sel]]))
+        z = self.elevation_of(window)
+        self.z_now[window] = z.detach()  # the views are rasterised on the current surface
+        mesh = self.window_mesh(faces)
+        sup = [self.exact_supervision(kf, mesh) for kf in batch]
+        touched = torch.unique(torch.cat([s.tri.reshape(-1) for s in sup]))
         self.lookup[window] = torch.arange(len(window), device=self.device)
         try:
             result = self._losses(sup, window, touched, self.lidar_ids[lidar_sel], self.lidar_z[lidar_sel], z)
@@ -252,12 +256,12 @@ class FaithfulOptimisation:
             rel_z = z[loc] - origins[:, 2:3].to(torch.float32)
             w, _ = ray_triangle_weights(rays.to(torch.float32), torch.cat([rel_xy, rel_z[..., None]], -1))
             # each camera's decoder over every window vertex, one block per camera; a pixel reads its camera's
-            # block at its vertices (a vertex outside the window, lookup -1, reads the block's first row)
+            # block at its vertices
             names = list(dict.fromkeys(s.camera.name for s in sup))
             colour_rows = torch.cat([rm.decoder.decode(codes, name) for name in names])
             block = torch.cat([torch.full((len(s.pixels),), names.index(s.camera.name) * len(ids), device=device)
                                for s in sup])
-            rgb = (colour_rows[block[:, None] + loc.clamp(min=0)] * w[..., None]).sum(1)
+            rgb = (colour_rows[block[:, None] + loc] * w[..., None]).sum(1)
             target = torch.cat([s.view.image[s.pixels] for s in sup])
             everywhere = torch.ones(len(rgb), dtype=torch.bool, device=device)
             terms["rgb"] = w_cfg.rgb * losses.colour_l1(rgb, target.float() / 255, everywhere)

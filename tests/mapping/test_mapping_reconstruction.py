@@ -17,6 +17,7 @@ from daemon.spine.mapper_config import (
     WindowsConfig,
 )
 from daemon.spine.semantic_classes import SemanticClass
+from mapping.fits.faithful_fit import FaithfulOptimisation
 from mapping.fits.lidar_detail import fit_lidar_detail
 from mapping.fits.observation_fit import fit_elevation, semantic_logits_from_counts
 from mapping.fits.reconstruction import reconstruct
@@ -377,3 +378,22 @@ def test_a_failing_reconstruction_cancels_its_background_work(scene, monkeypatch
                     CONFIG, scene.reference_height_m, None, progress=False)
     time.sleep(1.5)  # long enough for every queued view to have rendered, had they not been cancelled
     assert 0 < len(rendered) <= 2 * CONFIG.runtime.evaluation_threads
+
+
+def test_a_faithful_window_holds_every_vertex_of_its_faces(scene, monkeypatch):
+    """A face near a short window's edge has vertices just outside it: each is in the window, so no pixel reads
+    another vertex's height, colour code or logits (they once read the window's last vertex and its first row)."""
+    outside = []
+    losses = FaithfulOptimisation._losses
+
+    def checked(self, sup, ids, touched, lidar_ids, lidar_z, z):
+        used = torch.cat([s.tri.reshape(-1) for s in sup] + [touched, lidar_ids])
+        outside.append(int((self.lookup[used] < 0).sum()))
+        return losses(self, sup, ids, touched, lidar_ids, lidar_z, z)
+
+    monkeypatch.setattr(FaithfulOptimisation, "_losses", checked)
+    config = CONFIG.model_copy(update={"faithful_fit": FaithfulFitConfig(epochs=1),
+                                       "windows": WindowsConfig(before_m=2.0, after_m=2.0)})
+    reconstruct(scene.keyframes, scene.cameras, scene.trajectory, scene.lidar, config, scene.reference_height_m,
+                faithful=True, holdout_every=5, progress=False)
+    assert len(outside) > 5 and sum(outside) == 0, outside
