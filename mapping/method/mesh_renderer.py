@@ -180,8 +180,8 @@ def rasterise_tensors(vertices_world: torch.Tensor, faces: torch.Tensor, camera:
         cand_p.append(p)
         cand_d.append(d)
     for f, p, d in zip(cand_f, cand_p, cand_d, strict=True):
-        win = d >= inv_depth[p]
-        out[p[win]] = visible[f[win]]
+        win = d >= inv_depth[p]  # faces tied at a pixel (a shared edge): the highest face id, whatever the threads
+        out.scatter_reduce_(0, p[win], visible[f[win]], "amax")
     return out
 
 
