@@ -121,23 +121,26 @@ def test_ground_truth_agrees_with_the_logged_sensors(drive):
     assert np.mean([s.rear_left_mps for s in speeds]) == pytest.approx(10.0, abs=1.0)
 
 
-def test_live_mode_plays_the_drive_into_udp_pty_and_can(drive):
+def play_live(drive, with_can: bool = False, **kwargs):
+    """`run_live_drive` into a real UDP socket, a pty (and CAN on udp_multicast): its stats and what came out
+    (datagrams, the serial bytes, CAN frames)."""
     receiver = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     receiver.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 32 * 1024 * 1024)
     receiver.bind(("127.0.0.1", 0))
-    receiver.settimeout(0.2)
     pty = open_gnss_pty()
     reader = os.open(pty.path, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK)
-    group, port = "239.74.163.77", random.randrange(40000, 60000)
-    tx = can.Bus(interface="udp_multicast", channel=group, port=port)
-    rx = can.Bus(interface="udp_multicast", channel=group, port=port)
+    tx = rx = None
+    if with_can:
+        group, port = "239.74.163.77", random.randrange(40000, 60000)
+        tx = can.Bus(interface="udp_multicast", channel=group, port=port)
+        rx = can.Bus(interface="udp_multicast", channel=group, port=port)
     stop = threading.Event()
     result = {}
     packets, serial, frames = [], bytearray(), []
 
     def play():
         result["stats"] = run_live_drive(drive, lidar_address=receiver.getsockname(), gnss_fd=pty.master_fd,
-                                         can_bus=tx, stop=stop, rate=2.0)
+                                         can_bus=tx, stop=stop, **kwargs)
 
     player = threading.Thread(target=play)
     player.start()
@@ -148,17 +151,22 @@ def test_live_mode_plays_the_drive_into_udp_pty_and_can(drive):
                 packets.append(receiver.recv(65536))
             if reader in ready:
                 serial += os.read(reader, 65536)
-            while (msg := rx.recv(0)) is not None:
+            while rx is not None and (msg := rx.recv(0)) is not None:
                 frames.append(msg)
         player.join(10)
     finally:
         stop.set()
-        tx.shutdown()
-        rx.shutdown()
+        for bus in (tx, rx):
+            if bus is not None:
+                bus.shutdown()
         os.close(reader)
         pty.close()
         receiver.close()
-    stats = result["stats"]
+    return result["stats"], packets, serial, frames
+
+
+def test_live_mode_plays_the_drive_into_udp_pty_and_can(drive):
+    stats, packets, serial, frames = play_live(drive, with_can=True, rate=2.0)
     logged = Counter(r.topic for r in read_log([drive], topics=[LIDAR_PACKETS, CAN_FRAMES, GNSS_FIX]))
     assert stats.errors == 0 and stats.gnss_dropped_bytes == 0
     assert stats.lidar_packets == logged[LIDAR_PACKETS] and len(packets) > 0.95 * logged[LIDAR_PACKETS]
@@ -188,32 +196,7 @@ def test_a_looped_live_drive_carries_the_sensors_numbering_and_clocks_on(drive):
     """Two passes: every Lidar frame id once (the second pass's numbered on from the first's), the packets' column
     times and the GNSS epochs one drive length later, so a driver sees one endless drive."""
     layout = packet_layout(parse_metadata(CONFIGS / CONFIG.sensors.lidar.metadata_file))
-    receiver = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    receiver.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 32 * 1024 * 1024)
-    receiver.bind(("127.0.0.1", 0))
-    pty = open_gnss_pty()
-    reader = os.open(pty.path, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK)
-    result, packets, serial = {}, [], bytearray()
-
-    def play():
-        result["stats"] = run_live_drive(drive, lidar_address=receiver.getsockname(), gnss_fd=pty.master_fd,
-                                         passes=2, lidar_layout=layout)
-
-    player = threading.Thread(target=play)
-    player.start()
-    try:
-        while player.is_alive() or select.select([receiver, reader], [], [], 0.3)[0]:
-            ready, _, _ = select.select([receiver, reader], [], [], 0.05)
-            if receiver in ready:
-                packets.append(receiver.recv(65536))
-            if reader in ready:
-                serial += os.read(reader, 65536)
-        player.join(10)
-    finally:
-        os.close(reader)
-        pty.close()
-        receiver.close()
-    stats = result["stats"]
+    stats, packets, serial, _ = play_live(drive, passes=2, lidar_layout=layout)
     logged = [r.message for r in read_log([drive], topics=[LIDAR_PACKETS])]
     assert stats.passes == 2 and stats.errors == 0 and stats.lidar_packets == 2 * len(logged)
     frames_per_pass = len({packet_frame_id(bytes(p.data), layout) for p in logged})
