@@ -31,7 +31,14 @@ from drivers.lidar.hesai_packet_formats import (
     return_type_table,
     u16,
 )
-from drivers.lidar.packet_decoding import DecodedPoints, PacketCheck, empty_points, filled_points, points_buffer
+from drivers.lidar.packet_decoding import (
+    DecodedPoints,
+    PacketCheck,
+    empty_points,
+    filled_points,
+    packet_batch,
+    points_buffer,
+)
 
 __all__ = ["HESAI_MODELS", "HesaiDecoder", "hesai_decoder", "hesai_imu_samples"]
 
@@ -106,17 +113,15 @@ class HesaiDecoder:
         return points
 
     def _accepted(self, packets: list[bytes], counts: dict[str, int]) -> tuple[np.ndarray, np.ndarray]:
-        """The model's good packets as an (n, size) uint8 array (the optional trailing fields cut off), and their
-        positions in `packets`; the others counted by reason."""
+        """The model's good packets as an (n, width) uint8 array (packet_batch: the optional trailing fields cut off
+        unless every packet has them), and their positions in `packets`; the others counted by reason."""
         fmt = self.format
-        size = min(fmt.sizes)
-        sized = [i for i, p in enumerate(packets) if len(p) in fmt.sizes]
-        for i in set(range(len(packets))).difference(sized):
-            other = format_of(packets[i])
-            reason = FOREIGN_MODEL if other is not None and other is not fmt else WRONG_SIZE
-            counts[reason] = counts.get(reason, 0) + 1
-        index = np.array(sized, dtype=np.int64)
-        batch = np.frombuffer(b"".join(packets[i][:size] for i in sized), np.uint8).reshape(-1, size)
+        batch, index = packet_batch(packets, fmt.sizes)
+        if len(index) < len(packets):
+            for i in set(range(len(packets))).difference(index.tolist()):
+                other = format_of(packets[i])
+                reason = FOREIGN_MODEL if other is not None and other is not fmt else WRONG_SIZE
+                counts[reason] = counts.get(reason, 0) + 1
         header_ok = np.all([batch[:, at] == value for at, value in fmt.header], axis=0)
         if fmt.dis_unit_at is not None:
             header_ok &= batch[:, fmt.dis_unit_at] != 0
@@ -133,7 +138,7 @@ class HesaiDecoder:
         for reason, ok in checks:
             counts[reason] = counts.get(reason, 0) + int((good & ~ok).sum())
             good &= ok
-        return batch[good], index[good]
+        return (batch, index) if good.all() else (batch[good], index[good])
 
     def _block_azimuth(self, batch: np.ndarray) -> np.ndarray:
         """(n, blocks) raw azimuth: 0.01 degree, AT128 0.01/256 degree of the motor."""

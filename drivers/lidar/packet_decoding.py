@@ -76,6 +76,23 @@ def empty_points(counts: dict[str, int], model: str | None) -> DecodedPoints:
     )
 
 
+def packet_batch(packets: list[bytes], sizes: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """The datagrams whose length is one of `sizes` as one (n, width) uint8 array, and their positions in `packets`.
+    When they all have one length that is the width (the rows joined as they are: a longer size's optional trailing
+    fields stay at the end of each row); otherwise the smallest size, longer ones cut to it."""
+    lengths = np.fromiter(map(len, packets), np.int64, len(packets))
+    index = np.flatnonzero(np.isin(lengths, sizes))
+    if len(index) == 0:
+        return np.zeros((0, min(sizes)), np.uint8), index
+    width = int(lengths[index[0]])
+    if np.all(lengths[index] == width):
+        joined = b"".join(packets if len(index) == len(packets) else [packets[i] for i in index])
+    else:
+        width = min(sizes)
+        joined = b"".join([packets[i][:width] for i in index])
+    return np.frombuffer(joined, np.uint8).reshape(-1, width), index
+
+
 def _new_points_buffer(capacity: int) -> tuple[np.ndarray, ...]:
     return (np.empty((capacity, 3), np.float32), np.empty(capacity, np.float32), np.empty(capacity, np.float32),
             np.empty(capacity, np.uint16), np.empty(capacity, np.uint16), np.empty(capacity, np.uint16),

@@ -21,6 +21,7 @@ from drivers.lidar.packet_decoding import (
     PacketCheck,
     empty_points,
     filled_points,
+    packet_batch,
     points_buffer,
 )
 from drivers.lidar.robosense_calibration import RobosenseCalibration, load_robosense_calibration
@@ -135,7 +136,8 @@ class RobosenseDecoder:
         counts = {"packets_in": 0, "packets_decoded": 0} | dict.fromkeys(_REASONS, 0)
         batch, index = _as_batch(packets, counts)
         good = self._check_packets(batch, counts)
-        batch, index = batch[good], index[good]
+        if not good.all():
+            batch, index = batch[good], index[good]
         counts["packets_decoded"] = int(batch.shape[0])
         if batch.shape[0] == 0:
             return empty_points(counts, None)
@@ -263,10 +265,9 @@ def robosense_decoder(model: str, calibration_path: str | Path | None = None, du
 
 def _as_batch(packets: list[bytes], counts: dict[str, int]) -> tuple[np.ndarray, np.ndarray]:
     counts["packets_in"] = len(packets)
-    index = np.array([i for i, p in enumerate(packets) if len(p) == PACKET_SIZE], dtype=np.int64)
+    batch, index = packet_batch(packets, (PACKET_SIZE,))
     counts[WRONG_SIZE] = len(packets) - len(index)
-    joined = b"".join(packets[i] for i in index)
-    return np.frombuffer(joined, dtype=np.uint8).reshape(-1, PACKET_SIZE), index
+    return batch, index
 
 
 def _be16(a: np.ndarray, offset: int) -> np.ndarray:

@@ -19,6 +19,7 @@ from drivers.lidar.packet_decoding import (
     PacketCheck,
     empty_points,
     filled_points,
+    packet_batch,
     points_buffer,
 )
 from drivers.lidar.velodyne_calibration import VelodyneCalibration, load_velodyne_calibration
@@ -174,7 +175,8 @@ class VelodyneDecoder:
                   FOREIGN_MODEL: 0}
         batch, index = self._as_batch(packets, counts)
         good, model = self._check_packets(batch, counts)
-        batch, index = batch[good], index[good]
+        if not good.all():
+            batch, index = batch[good], index[good]
         counts["packets_decoded"] = int(batch.shape[0])
         if model is None or batch.shape[0] == 0:
             return empty_points(counts, None if model is None else model.name)
@@ -193,10 +195,9 @@ class VelodyneDecoder:
                 return np.zeros((0, PACKET_SIZE), np.uint8), np.zeros(0, np.int64)
             return packets.astype(np.uint8, copy=False), np.arange(packets.shape[0], dtype=np.int64)
         counts["packets_in"] = len(packets)
-        index = np.array([i for i, p in enumerate(packets) if len(p) == PACKET_SIZE], dtype=np.int64)
+        batch, index = packet_batch(packets, (PACKET_SIZE,))
         counts[WRONG_SIZE] = counts["packets_in"] - len(index)
-        joined = b"".join(packets[i] for i in index)
-        return np.frombuffer(joined, dtype=np.uint8).reshape(-1, PACKET_SIZE), index
+        return batch, index
 
     def _check_packets(self, batch: np.ndarray, counts: dict[str, int]) -> tuple[np.ndarray, VelodyneModel | None]:
         """Mask of the packets to decode; counts the others by reason."""
