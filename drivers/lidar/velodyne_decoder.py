@@ -314,8 +314,8 @@ def _keep_plausible_rates(rate, measured, accepted):  # pragma: no cover - compi
 
 
 @compiled
-def _decode_returns(batch, index, timestamp_us, block_azimuth, dual, last_mode, rate, slots, slot_at, partner_at, keeper,
-                    own_type, slot_block, slot_laser, slot_dt, slot_time_ns, slot_dist_correction, slot_angles,
+def _decode_returns(batch, index, timestamp_us, block_azimuth, dual, last_mode, rate, slots, slot_at, partner_at,
+                    keeper, own_type, slot_block, slot_laser, slot_dt, slot_time_ns, slot_dist_correction, slot_angles,
                     resolution, min_range, max_range, cos_table, sin_table, lasers, rings, has_offsets, two_point,
                     intensity_rule, xyz, distance, intensity, laser, ring, azimuth, return_type, time_ns,
                     packet):  # pragma: no cover - compiled
