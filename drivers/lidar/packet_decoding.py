@@ -81,7 +81,10 @@ def packet_batch(packets: list[bytes], sizes: tuple[int, ...]) -> tuple[np.ndarr
     When they all have one length that is the width (the rows joined as they are: a longer size's optional trailing
     fields stay at the end of each row); otherwise the smallest size, longer ones cut to it."""
     lengths = np.fromiter(map(len, packets), np.int64, len(packets))
-    index = np.flatnonzero(np.isin(lengths, sizes))
+    sized = lengths == sizes[0]
+    for size in sizes[1:]:  # (np.isin costs more than the rest for a few sizes)
+        sized |= lengths == size
+    index = np.flatnonzero(sized)
     if len(index) == 0:
         return np.zeros((0, min(sizes)), np.uint8), index
     width = int(lengths[index[0]])

@@ -224,30 +224,39 @@ def _decode_channels(batch, index, stamps_ns, header_bytes, block_azimuth, step,
     block_bytes = 4 + 3 * n_channels
     k = 0
     for p in range(batch.shape[0]):
+        data = batch[p]
+        packet_p = index[p]
         for b in range(n_blocks):
+            block_at = header_bytes + b * block_bytes + 4
+            block_az, block_step = block_azimuth[p, b], step[p, b]
+            block_time = stamps_ns[p] + block_ns[p, b]
+            block_type = block_return_type[p, b]
             for c in range(n_channels):
-                at = header_bytes + b * block_bytes + 4 + 3 * c
-                raw = (np.int64(batch[p, at]) << 8) | batch[p, at + 1]
+                at = block_at + 3 * c
+                raw = (np.int64(data[at]) << 8) | data[at + 1]
                 if raw == 0:
                     continue
                 d = np.float32(raw) * resolution
                 if d < min_range or d > max_range:
                     continue
-                firing = block_azimuth[p, b] + np.int32(step[p, b] * azimuth_fraction[c])
-                final = (firing + azimuth_offset[c]) % 36000
-                firing %= 36000
+                firing = block_az + np.int32(block_step * azimuth_fraction[c])
+                final = firing + azimuth_offset[c]
+                if final < 0 or final >= 36000:  # mostly not: the remainder only where it changes something
+                    final %= 36000
+                if firing < 0 or firing >= 36000:
+                    firing %= 36000
                 xy = d * cos_elevation[c]
                 xyz[k, 0] = xy * cos_table[final] + lens * cos_table[firing]
                 xyz[k, 1] = -(xy * sin_table[final] + lens * sin_table[firing])
                 xyz[k, 2] = d * sin_elevation[c]
                 distance[k] = d
-                intensity[k] = batch[p, at + 2]
+                intensity[k] = data[at + 2]
                 laser[k] = lasers[c]
                 ring[k] = rings[c]
                 azimuth[k] = firing
-                return_type[k] = block_return_type[p, b] or channel_return_type[c]  # the block's, where it has one
-                time_ns[k] = stamps_ns[p] + block_ns[p, b] + firing_ns[c]
-                packet[k] = index[p]
+                return_type[k] = block_type if block_type else channel_return_type[c]  # the block's, if it has one
+                time_ns[k] = block_time + firing_ns[c]
+                packet[k] = packet_p
                 k += 1
     return k
 
