@@ -1,6 +1,8 @@
 """What a Lidar packet decoder of any vendor but Ouster gives (Velodyne, Hesai, RoboSense): the check of each
 datagram that the driver stamps and counts packets with (PacketCheck), the points of a batch of packets
-(DecodedPoints), and where one rotation ends and the next begins (rotation_starts).
+(DecodedPoints), and where one rotation ends and the next begins (rotation_starts); for the decoders, a batch's
+datagrams as one array (packet_batch) and the arrays their compiled loops fill (points_buffer, reused on a thread
+once nothing holds the points made of them).
 
 A decoder is an object with `model` (its name), `check(packets) -> PacketCheck` and
 `decode(packets) -> DecodedPoints`; `packets` is a list of datagram payloads of any size, in arrival order.
