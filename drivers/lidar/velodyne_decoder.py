@@ -328,7 +328,10 @@ def _decode_returns(batch, index, timestamp_us, block_azimuth, dual, last_mode, 
     near_limit, x_start, y_start = f32(25.04), f32(2.4), f32(1.93)
     x_span, y_span = f32(25.04 - 2.4), f32(25.04 - 1.93)
     half, turn_round = f32(0.5), f32(36000.5)
-    k = 0
+    # Indices unsigned (the slot tables' too): numba checks each signed index for a negative value, to count it
+    # from the end; 1.4x on this loop.
+    one, two, turn = np.uint64(1), np.uint64(2), np.uint64(36000)
+    k = np.uint64(0)
     for p in range(batch.shape[0]):
         is_dual = dual[p]
         row = 1 if is_dual else 0
@@ -338,15 +341,16 @@ def _decode_returns(batch, index, timestamp_us, block_azimuth, dual, last_mode, 
         at_r, partner_r, keeper_r, own_r = slot_at[row], partner_at[row], keeper[row], own_type[row]
         block_r, laser_r, dt_r, time_r = slot_block[row], slot_laser[row], slot_dt[row], slot_time_ns[row]
         correction_r, angles_r = slot_dist_correction[row], slot_angles[row]
-        for j in range(slots[row]):
+        for j in range(np.uint64(slots[row])):
             at = at_r[j]
-            raw_distance = np.int64(data[at]) | (np.int64(data[at + 1]) << 8)
+            raw_distance = np.int64(data[at]) | (np.int64(data[at + one]) << 8)
             if raw_distance == 0:
                 continue
             kind = single_type
             if is_dual:
                 other = partner_r[j]
-                same = data[at] == data[other] and data[at + 1] == data[other + 1] and data[at + 2] == data[other + 2]
+                same = (data[at] == data[other] and data[at + one] == data[other + one]
+                        and data[at + two] == data[other + two])
                 kind = (both if keeper_r[j] else 0) if same else own_r[j]
                 if kind == 0:
                     continue
@@ -356,7 +360,7 @@ def _decode_returns(batch, index, timestamp_us, block_azimuth, dual, last_mode, 
                 continue
             az_f = f32(azimuth_p[block_r[j]]) + rate_p * dt_r[j]
             az_f += turn_round
-            az = np.int64(az_f) % 36000  # az_f > 0: truncation is the floor
+            az = np.uint64(az_f) % turn  # az_f > 0: truncation is the floor
             n = laser_r[j]
             cos_az, sin_az = cos_table[az], sin_table[az]
             cos_rc, sin_rc = angles_r[j, _COS_ROT], angles_r[j, _SIN_ROT]
@@ -388,7 +392,7 @@ def _decode_returns(batch, index, timestamp_us, block_azimuth, dual, last_mode, 
                 xyz[k, 0] = xy_y * cos_rot + h_off * sin_rot
                 xyz[k, 1] = -(xy_x * sin_rot - h_off * cos_rot)
                 xyz[k, 2] = (d_x + d_y) * half * sin_v + v_off
-            value = f32(data[at + 2])
+            value = f32(data[at + two])
             if intensity_rule == INTENSITY_FOCAL:
                 # As velodyne-decoder computes it: the file's focal_distance times 100 (ROS velodyne_pointcloud
                 # takes the value as it is; the two disagree, velodyne-decoder is the oracle checked here).
@@ -406,8 +410,8 @@ def _decode_returns(batch, index, timestamp_us, block_azimuth, dual, last_mode, 
             return_type[k] = kind
             time_ns[k] = stamp_ns + time_r[j]
             packet[k] = packet_p
-            k += 1
-    return k
+            k += one
+    return np.int64(k)
 
 
 def _slot_tables(model: VelodyneModel, calibration: VelodyneCalibration) -> dict[str, np.ndarray]:
@@ -447,12 +451,12 @@ def _slot_tables(model: VelodyneModel, calibration: VelodyneCalibration) -> dict
     in_use = np.broadcast_to(in_use, block.shape)
     angles = _laser_tables(calibration)[[_COS_ROT, _SIN_ROT, _COS_VERT, _SIN_VERT]].T[laser]  # (2, 384, 4)
     per_slot = {
-        "at": block * _BLOCK_BYTES + 4 + channel * 3,
-        "partner_at": partner * _BLOCK_BYTES + 4 + channel * 3,
+        "at": (block * _BLOCK_BYTES + 4 + channel * 3).astype(np.uint64),
+        "partner_at": (partner * _BLOCK_BYTES + 4 + channel * 3).astype(np.uint64),
         "keeper": keeper,
         "own_type": own_type.astype(np.uint8),
-        "block": block,
-        "laser": laser,
+        "block": block.astype(np.uint64),
+        "laser": laser.astype(np.uint64),
         "dt": (time - t0).astype(np.float32),
         "time_ns": np.rint(time.astype(np.float64) * 1e9).astype(np.int64),
         "dist_correction": calibration.dist_correction_m.astype(np.float32)[laser],
