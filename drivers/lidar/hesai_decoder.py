@@ -219,9 +219,13 @@ def _decode_units(batch, index, stamps_ns, first_unit, block_size, unit_size, n_
     cos_b = sin_b = f32(0)
     step = upper = turned = 0
     part = 0.0
+    # Indices unsigned where it counts: numba checks each signed index for a negative value, to count it from
+    # the end.
+    one, two = np.uint64(1), np.uint64(2)
+    unit_step, block_step = np.uint64(unit_size), np.uint64(block_size)
     dir_x = dir_y = f32(0)  # Pandar: the channel's horizontal direction in this firing
     cos_el = sin_el = cos_az = sin_az = 0.0  # AT128
-    k = 0
+    k = np.uint64(0)
     for p in range(batch.shape[0]):
         nr = n_returns[p]
         data = batch[p]
@@ -239,11 +243,11 @@ def _decode_units(batch, index, stamps_ns, first_unit, block_size, unit_size, n_
                 part = (raw - step * AT128_ADJUST_STEP_UNITS) / AT128_ADJUST_STEP_UNITS
                 upper = min(step + 1, last_entry)
                 turned = ((raw - frame_start[p, first]) % _AT128_TURN) * 2
-            first_at = first_unit + first * block_size
-            for c in range(n_channels):
-                at = first_at + c * unit_size
-                d0 = data[at] | (np.int64(data[at + 1]) << 8)
-                refl0 = np.int64(data[at + 2])
+            first_at = np.uint64(first_unit + first * block_size)
+            for c in range(np.uint64(n_channels)):
+                at = first_at + c * unit_step
+                d0 = data[at] | (np.int64(data[at + one]) << 8)
+                refl0 = np.int64(data[at + two])
                 if nr == 1:
                     if d0 < lo_p or d0 > hi_p:
                         continue
@@ -252,9 +256,9 @@ def _decode_units(batch, index, stamps_ns, first_unit, block_size, unit_size, n_
                     units_d[0] = d0
                     units_refl[0] = refl0
                 elif nr == 2:
-                    at1 = at + block_size
-                    d1 = data[at1] | (np.int64(data[at1 + 1]) << 8)
-                    refl1 = np.int64(data[at1 + 2])
+                    at1 = at + block_step
+                    d1 = data[at1] | (np.int64(data[at1 + one]) << 8)
+                    refl1 = np.int64(data[at1 + two])
                     units_d[0], units_d[1], units_refl[0], units_refl[1] = d0, d1, refl0, refl1
                     brightest = max(refl0, refl1)
                     type0 = types[mode_p, 0, 1 if refl0 == brightest else 0]
@@ -269,9 +273,9 @@ def _decode_units(batch, index, stamps_ns, first_unit, block_size, unit_size, n_
                 else:
                     brightest = 0
                     for r in range(nr):
-                        at_r = at + r * block_size
-                        units_d[r] = data[at_r] | (np.int64(data[at_r + 1]) << 8)
-                        units_refl[r] = data[at_r + 2]
+                        at_r = at + np.uint64(r) * block_step
+                        units_d[r] = data[at_r] | (np.int64(data[at_r + one]) << 8)
+                        units_refl[r] = data[at_r + two]
                         brightest = max(brightest, units_refl[r])
                     for r in range(nr):
                         d_r = units_d[r]
@@ -319,7 +323,7 @@ def _decode_units(batch, index, stamps_ns, first_unit, block_size, unit_size, n_
                                 elevation_seen[c] = el
                                 cos_elevation_seen[c], sin_elevation_seen[c] = np.cos(el_rad), np.sin(el_rad)
                             cos_el, sin_el = cos_elevation_seen[c], sin_elevation_seen[c]
-                    block = first + r
+                    block = np.uint64(first + r)
                     d = f32(d_r * unit_p)
                     if not at128:
                         xy = d * pandar_angles[_COS_ELEVATION, c]
@@ -339,8 +343,8 @@ def _decode_units(batch, index, stamps_ns, first_unit, block_size, unit_size, n_
                     return_type[k] = kind
                     time_ns[k] = stamp_p + block_ns[nr, block] + channel_ns[table_rows[p, block], c]
                     packet[k] = packet_p
-                    k += 1
-    return k
+                    k += one
+    return np.int64(k)
 
 
 def _raw_bounds(dis_unit: np.ndarray, min_m: float, max_m: float) -> tuple[np.ndarray, np.ndarray]:

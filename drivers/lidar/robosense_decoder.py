@@ -222,18 +222,20 @@ def _decode_channels(batch, index, stamps_ns, header_bytes, block_azimuth, step,
     interpolation truncated, as RoboSense's SDK does; float32 throughout."""
     n_blocks, n_channels = block_azimuth.shape[1], azimuth_fraction.shape[0]
     block_bytes = 4 + 3 * n_channels
-    k = 0
+    # Indices unsigned: numba checks each signed index for a negative value, to count it from the end.
+    one, two, three = np.uint64(1), np.uint64(2), np.uint64(3)
+    k = np.uint64(0)
     for p in range(batch.shape[0]):
         data = batch[p]
         packet_p = index[p]
         for b in range(n_blocks):
-            block_at = header_bytes + b * block_bytes + 4
+            block_at = np.uint64(header_bytes + b * block_bytes + 4)
             block_az, block_step = block_azimuth[p, b], step[p, b]
             block_time = stamps_ns[p] + block_ns[p, b]
             block_type = block_return_type[p, b]
-            for c in range(n_channels):
-                at = block_at + 3 * c
-                raw = (np.int64(data[at]) << 8) | data[at + 1]
+            for c in range(np.uint64(n_channels)):
+                at = block_at + three * c
+                raw = (np.int64(data[at]) << 8) | data[at + one]
                 if raw == 0:
                     continue
                 d = np.float32(raw) * resolution
@@ -246,19 +248,20 @@ def _decode_channels(batch, index, stamps_ns, header_bytes, block_azimuth, step,
                 if firing < 0 or firing >= 36000:
                     firing %= 36000
                 xy = d * cos_elevation[c]
-                xyz[k, 0] = xy * cos_table[final] + lens * cos_table[firing]
-                xyz[k, 1] = -(xy * sin_table[final] + lens * sin_table[firing])
+                turned, fired = np.uint64(final), np.uint64(firing)  # both in [0, 36000) now
+                xyz[k, 0] = xy * cos_table[turned] + lens * cos_table[fired]
+                xyz[k, 1] = -(xy * sin_table[turned] + lens * sin_table[fired])
                 xyz[k, 2] = d * sin_elevation[c]
                 distance[k] = d
-                intensity[k] = data[at + 2]
+                intensity[k] = data[at + two]
                 laser[k] = lasers[c]
                 ring[k] = rings[c]
                 azimuth[k] = firing
                 return_type[k] = block_type if block_type else channel_return_type[c]  # the block's, if it has one
                 time_ns[k] = block_time + firing_ns[c]
                 packet[k] = packet_p
-                k += 1
-    return k
+                k += one
+    return np.int64(k)
 
 
 def robosense_decoder(model: str, calibration_path: str | Path | None = None, dual_return: bool = False,
