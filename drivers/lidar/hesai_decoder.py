@@ -31,7 +31,14 @@ from drivers.lidar.hesai_packet_formats import (
     return_type_table,
     u16,
 )
-from drivers.lidar.packet_decoding import DecodedPoints, PacketCheck, empty_points, filled_points, points_buffer
+from drivers.lidar.packet_decoding import (
+    DecodedPoints,
+    PacketCheck,
+    empty_points,
+    filled_points,
+    packet_batch,
+    points_buffer,
+)
 
 __all__ = ["HESAI_MODELS", "HesaiDecoder", "hesai_decoder", "hesai_imu_samples"]
 
@@ -48,6 +55,15 @@ _AT128_TURN = 360 * AT128_ANGLE_UNITS_PER_DEG
 _COS_ELEVATION, _SIN_ELEVATION, _COS_OFFSET, _SIN_OFFSET = range(4)  # rows of HesaiDecoder._pandar_angles
 _COS_CDEG = np.cos(np.deg2rad(np.arange(36000) * 0.01)).astype(np.float32)
 _SIN_CDEG = np.sin(np.deg2rad(np.arange(36000) * 0.01)).astype(np.float32)
+# AT128: the cosine and sine of an azimuth in its units (0.01 / 256 degree) from two float64 tables by the angle sum
+# formulas, coarse steps of _AT128_FINE_STEPS units and the fine ones within (np.cos and np.sin per point were 1.5x
+# the loop's time; the xyz they give differ from those in the last float32 bit at most, in 118 of 1.4 M values of
+# bench/lidar.py's AT128 packets, by under 1e-13 m: those near 0).
+_AT128_FINE_STEPS = np.uint64(4096)
+_AT128_UNIT_RAD = np.pi / (180 * AT128_ANGLE_UNITS_PER_DEG)
+_coarse_rad = np.arange(_AT128_TURN // 4096 + 1) * 4096 * _AT128_UNIT_RAD
+_AT128_COS_COARSE, _AT128_SIN_COARSE = np.cos(_coarse_rad), np.sin(_coarse_rad)
+_AT128_COS_FINE, _AT128_SIN_FINE = np.cos(np.arange(4096) * _AT128_UNIT_RAD), np.sin(np.arange(4096) * _AT128_UNIT_RAD)
 
 
 class HesaiDecoder:
@@ -106,17 +122,15 @@ class HesaiDecoder:
         return points
 
     def _accepted(self, packets: list[bytes], counts: dict[str, int]) -> tuple[np.ndarray, np.ndarray]:
-        """The model's good packets as an (n, size) uint8 array (the optional trailing fields cut off), and their
-        positions in `packets`; the others counted by reason."""
+        """The model's good packets as an (n, width) uint8 array (packet_batch: the optional trailing fields cut off
+        unless every packet has them), and their positions in `packets`; the others counted by reason."""
         fmt = self.format
-        size = min(fmt.sizes)
-        sized = [i for i, p in enumerate(packets) if len(p) in fmt.sizes]
-        for i in set(range(len(packets))).difference(sized):
-            other = format_of(packets[i])
-            reason = FOREIGN_MODEL if other is not None and other is not fmt else WRONG_SIZE
-            counts[reason] = counts.get(reason, 0) + 1
-        index = np.array(sized, dtype=np.int64)
-        batch = np.frombuffer(b"".join(packets[i][:size] for i in sized), np.uint8).reshape(-1, size)
+        batch, index = packet_batch(packets, fmt.sizes)
+        if len(index) < len(packets):
+            for i in set(range(len(packets))).difference(index.tolist()):
+                other = format_of(packets[i])
+                reason = FOREIGN_MODEL if other is not None and other is not fmt else WRONG_SIZE
+                counts[reason] = counts.get(reason, 0) + 1
         header_ok = np.all([batch[:, at] == value for at, value in fmt.header], axis=0)
         if fmt.dis_unit_at is not None:
             header_ok &= batch[:, fmt.dis_unit_at] != 0
@@ -133,7 +147,7 @@ class HesaiDecoder:
         for reason, ok in checks:
             counts[reason] = counts.get(reason, 0) + int((good & ~ok).sum())
             good &= ok
-        return batch[good], index[good]
+        return (batch, index) if good.all() else (batch[good], index[good])
 
     def _block_azimuth(self, batch: np.ndarray) -> np.ndarray:
         """(n, blocks) raw azimuth: 0.01 degree, AT128 0.01/256 degree of the motor."""
@@ -196,80 +210,155 @@ def _decode_units(batch, index, stamps_ns, first_unit, block_size, unit_size, n_
     sine from a 0.01 degree table, the channel's offset added by the angle sum formulas, float32. AT128 (float64,
     then float32): the azimuth twice the motor angle past the mirror's frame start, less the channel's azimuth,
     plus the adjustment the file gives every 2 degrees of motor angle, interpolated (nebula's rule; past the last
-    entry the last one is taken), the elevation the channel's plus its adjustment. Hesai's azimuth runs clockwise
-    seen from above, 0 forward."""
+    entry the last one is taken; its cosine and sine from _AT128_COS_COARSE.. tables), the elevation the channel's
+    plus its adjustment. Hesai's azimuth runs clockwise
+    seen from above, 0 forward. What depends on the firing only is worked out once per firing, the direction of a
+    channel once per firing and channel (AT128: an elevation's cosine and sine kept per channel until it changes)."""
     f32 = np.float32
     units_d = np.empty(3, np.int64)
     units_refl = np.empty(3, np.int64)
     dropped = np.zeros(3, np.bool_)
+    keep = np.zeros(3, np.bool_)
+    kinds = np.zeros(3, np.uint8)
     angle_unit = np.pi / (180 * AT128_ANGLE_UNITS_PER_DEG)
     hundredth = AT128_ANGLE_UNITS_PER_DEG // 100
     last_entry = AT128_ADJUST_ENTRIES - 1
-    k = 0
+    elevation_seen = np.full(n_channels, np.nan)  # AT128: the elevation (angle units) of the cosine and sine kept
+    cos_elevation_seen = np.zeros(n_channels)
+    sin_elevation_seen = np.zeros(n_channels)
+    cos_b = sin_b = f32(0)
+    step = upper = turned = 0
+    part = 0.0
+    # Indices unsigned where it counts: numba checks each signed index for a negative value, to count it from
+    # the end.
+    one, two = np.uint64(1), np.uint64(2)
+    unit_step, block_step = np.uint64(unit_size), np.uint64(block_size)
+    dir_x = dir_y = f32(0)  # Pandar: the channel's horizontal direction in this firing
+    cos_el = sin_el = cos_az = sin_az = 0.0  # AT128
+    k = np.uint64(0)
     for p in range(batch.shape[0]):
         nr = n_returns[p]
+        data = batch[p]
+        lo_p, hi_p, near_p, unit_p, mode_p = lo[p], hi[p], near_raw[p], dis_unit[p], mode[p]
+        stamp_p, packet_p = stamps_ns[p], index[p]
+        single_type = types[mode_p, 0, 1]
         for f in range(raw_azimuth.shape[1] // nr):
             first = f * nr  # the firing's first block: its azimuth
-            for c in range(n_channels):
-                brightest = 0
-                for r in range(nr):
-                    at = first_unit + (first + r) * block_size + c * unit_size
-                    units_d[r] = batch[p, at] | (np.int64(batch[p, at + 1]) << 8)
-                    units_refl[r] = batch[p, at + 2]
-                    brightest = max(brightest, units_refl[r])
-                for r in range(nr):
-                    d_r = units_d[r]
-                    dropped[r] = False
-                    if d_r < lo[p] or d_r > hi[p]:
+            raw = raw_azimuth[p, first]
+            firing_az = firing_azimuth[p, first]
+            if not at128:
+                cos_b, sin_b = _COS_CDEG[raw % 36000], _SIN_CDEG[raw % 36000]
+            else:
+                step = min(raw // AT128_ADJUST_STEP_UNITS, last_entry)  # (a raw angle past the turn: bad)
+                part = (raw - step * AT128_ADJUST_STEP_UNITS) / AT128_ADJUST_STEP_UNITS
+                upper = min(step + 1, last_entry)
+                turned = ((raw - frame_start[p, first]) % _AT128_TURN) * 2
+            first_at = np.uint64(first_unit + first * block_size)
+            for c in range(np.uint64(n_channels)):
+                at = first_at + c * unit_step
+                d0 = data[at] | (np.int64(data[at + one]) << 8)
+                refl0 = np.int64(data[at + two])
+                if nr == 1:
+                    if d0 < lo_p or d0 > hi_p:
                         continue
-                    if r < nr - 1:
-                        for o in range(nr):
-                            if o != r and (abs(d_r - units_d[o]) <= near_raw[p] or (
-                                    d_r == units_d[o] and units_refl[r] == units_refl[o])):
-                                dropped[r] = True
-                        if dropped[r]:
+                    keep[0] = True
+                    kinds[0] = single_type
+                    units_d[0] = d0
+                    units_refl[0] = refl0
+                elif nr == 2:
+                    at1 = at + block_step
+                    d1 = data[at1] | (np.int64(data[at1 + one]) << 8)
+                    refl1 = np.int64(data[at1 + two])
+                    units_d[0], units_d[1], units_refl[0], units_refl[1] = d0, d1, refl0, refl1
+                    brightest = max(refl0, refl1)
+                    type0 = types[mode_p, 0, 1 if refl0 == brightest else 0]
+                    in0 = lo_p <= d0 <= hi_p
+                    drop0 = in0 and (abs(d0 - d1) <= near_p or (d0 == d1 and refl0 == refl1))
+                    keep[0] = in0 and not drop0
+                    kinds[0] = type0
+                    keep[1] = lo_p <= d1 <= hi_p
+                    kinds[1] = types[mode_p, 1, 1 if refl1 == brightest else 0] | (type0 if drop0 else 0)
+                    if not (keep[0] or keep[1]):
+                        continue
+                else:
+                    brightest = 0
+                    for r in range(nr):
+                        at_r = at + np.uint64(r) * block_step
+                        units_d[r] = data[at_r] | (np.int64(data[at_r + one]) << 8)
+                        units_refl[r] = data[at_r + two]
+                        brightest = max(brightest, units_refl[r])
+                    for r in range(nr):
+                        d_r = units_d[r]
+                        dropped[r] = False
+                        keep[r] = False
+                        if d_r < lo_p or d_r > hi_p:
                             continue
-                    kind = types[mode[p], r, 1 if units_refl[r] == brightest else 0]
-                    if r == nr - 1:
-                        for o in range(nr - 1):
-                            if dropped[o]:
-                                kind |= types[mode[p], o, 1 if units_refl[o] == brightest else 0]
-                    block = first + r
-                    d = f32(d_r * dis_unit[p])
-                    raw = raw_azimuth[p, first]
+                        if r < nr - 1:
+                            for o in range(nr):
+                                if o != r and (abs(d_r - units_d[o]) <= near_p or (
+                                        d_r == units_d[o] and units_refl[r] == units_refl[o])):
+                                    dropped[r] = True
+                            if dropped[r]:
+                                continue
+                        kind = types[mode_p, r, 1 if units_refl[r] == brightest else 0]
+                        if r == nr - 1:
+                            for o in range(nr - 1):
+                                if dropped[o]:
+                                    kind |= types[mode_p, o, 1 if units_refl[o] == brightest else 0]
+                        keep[r] = True
+                        kinds[r] = kind
+                direction_known = False
+                for r in range(nr):
+                    if not keep[r]:
+                        continue
+                    d_r = units_d[r]
+                    kind = kinds[r]
+                    if not direction_known:
+                        direction_known = True
+                        if not at128:
+                            cos_o, sin_o = pandar_angles[_COS_OFFSET, c], pandar_angles[_SIN_OFFSET, c]
+                            dir_x = cos_b * cos_o - sin_b * sin_o
+                            dir_y = -(sin_b * cos_o + cos_b * sin_o)
+                        else:
+                            az_adjust = np.rint((1 - part) * at128_azimuth_adjust[c, step] + part *
+                                                at128_azimuth_adjust[c, upper]) * hundredth
+                            el_adjust = np.rint((1 - part) * at128_elevation_adjust[c, step] + part *
+                                                at128_elevation_adjust[c, upper]) * hundredth
+                            az = turned - at128_azimuth[c] + az_adjust
+                            el = at128_elevation[c] + el_adjust
+                            turn_units = np.uint64(az % _AT128_TURN)  # az is a whole number of units
+                            coarse, fine = turn_units // _AT128_FINE_STEPS, turn_units % _AT128_FINE_STEPS
+                            cos_c, sin_c = _AT128_COS_COARSE[coarse], _AT128_SIN_COARSE[coarse]
+                            cos_f, sin_f = _AT128_COS_FINE[fine], _AT128_SIN_FINE[fine]
+                            cos_az = cos_c * cos_f - sin_c * sin_f
+                            sin_az = sin_c * cos_f + cos_c * sin_f
+                            if el != elevation_seen[c]:
+                                el_rad = ((el + _AT128_TURN // 2) % _AT128_TURN - _AT128_TURN // 2) * angle_unit
+                                elevation_seen[c] = el
+                                cos_elevation_seen[c], sin_elevation_seen[c] = np.cos(el_rad), np.sin(el_rad)
+                            cos_el, sin_el = cos_elevation_seen[c], sin_elevation_seen[c]
+                    block = np.uint64(first + r)
+                    d = f32(d_r * unit_p)
                     if not at128:
-                        cos_b, sin_b = _COS_CDEG[raw % 36000], _SIN_CDEG[raw % 36000]
-                        cos_o, sin_o = pandar_angles[_COS_OFFSET, c], pandar_angles[_SIN_OFFSET, c]
                         xy = d * pandar_angles[_COS_ELEVATION, c]
-                        xyz[k, 0] = xy * (cos_b * cos_o - sin_b * sin_o)
-                        xyz[k, 1] = xy * -(sin_b * cos_o + cos_b * sin_o)
+                        xyz[k, 0] = xy * dir_x
+                        xyz[k, 1] = xy * dir_y
                         xyz[k, 2] = d * pandar_angles[_SIN_ELEVATION, c]
                     else:
-                        step = min(raw // AT128_ADJUST_STEP_UNITS, last_entry)  # (a raw angle past the turn: bad)
-                        part = (raw - step * AT128_ADJUST_STEP_UNITS) / AT128_ADJUST_STEP_UNITS
-                        upper = min(step + 1, last_entry)
-                        az_adjust = np.rint((1 - part) * at128_azimuth_adjust[c, step] + part * at128_azimuth_adjust[
-                            c, upper]) * hundredth
-                        el_adjust = np.rint((1 - part) * at128_elevation_adjust[c, step] + part *
-                                            at128_elevation_adjust[c, upper]) * hundredth
-                        az = ((raw - frame_start[p, first]) % _AT128_TURN) * 2 - at128_azimuth[c] + az_adjust
-                        el = at128_elevation[c] + el_adjust
-                        az_rad = (az % _AT128_TURN) * angle_unit
-                        el_rad = ((el + _AT128_TURN // 2) % _AT128_TURN - _AT128_TURN // 2) * angle_unit
-                        xy = np.float64(d) * np.cos(el_rad)
-                        xyz[k, 0] = xy * np.cos(az_rad)
-                        xyz[k, 1] = -xy * np.sin(az_rad)
-                        xyz[k, 2] = np.float64(d) * np.sin(el_rad)
+                        xy = np.float64(d) * cos_el
+                        xyz[k, 0] = xy * cos_az
+                        xyz[k, 1] = -xy * sin_az
+                        xyz[k, 2] = np.float64(d) * sin_el
                     distance[k] = d
                     intensity[k] = units_refl[r]
                     laser[k] = c
                     ring[k] = rings[c]
-                    azimuth[k] = firing_azimuth[p, first]
+                    azimuth[k] = firing_az
                     return_type[k] = kind
-                    time_ns[k] = stamps_ns[p] + block_ns[nr, block] + channel_ns[table_rows[p, block], c]
-                    packet[k] = index[p]
-                    k += 1
-    return k
+                    time_ns[k] = stamp_p + block_ns[nr, block] + channel_ns[table_rows[p, block], c]
+                    packet[k] = packet_p
+                    k += one
+    return np.int64(k)
 
 
 def _raw_bounds(dis_unit: np.ndarray, min_m: float, max_m: float) -> tuple[np.ndarray, np.ndarray]:

@@ -1,6 +1,8 @@
 """What a Lidar packet decoder of any vendor but Ouster gives (Velodyne, Hesai, RoboSense): the check of each
 datagram that the driver stamps and counts packets with (PacketCheck), the points of a batch of packets
-(DecodedPoints), and where one rotation ends and the next begins (rotation_starts).
+(DecodedPoints), and where one rotation ends and the next begins (rotation_starts); for the decoders, a batch's
+datagrams as one array (packet_batch) and the arrays their compiled loops fill (points_buffer, reused on a thread
+once nothing holds the points made of them).
 
 A decoder is an object with `model` (its name), `check(packets) -> PacketCheck` and
 `decode(packets) -> DecodedPoints`; `packets` is a list of datagram payloads of any size, in arrival order.
@@ -10,6 +12,8 @@ RoboSense: UTC), so a point's time after its packet's stamp is `timestamp_ns - p
 
 from __future__ import annotations
 
+import sys
+import threading
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -74,12 +78,52 @@ def empty_points(counts: dict[str, int], model: str | None) -> DecodedPoints:
     )
 
 
-def points_buffer(capacity: int) -> tuple[np.ndarray, ...]:
-    """Uninitialised arrays for up to `capacity` points that a compiled decode loop fills, in DecodedPoints' order:
-    xyz, distance_m, intensity, laser_id, ring, azimuth_cdeg, return_type, timestamp_ns, packet_index."""
+def packet_batch(packets: list[bytes], sizes: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """The datagrams whose length is one of `sizes` as one (n, width) uint8 array, and their positions in `packets`.
+    When they all have one length that is the width (the rows joined as they are: a longer size's optional trailing
+    fields stay at the end of each row); otherwise the smallest size, longer ones cut to it."""
+    lengths = np.fromiter(map(len, packets), np.int64, len(packets))
+    sized = lengths == sizes[0]
+    for size in sizes[1:]:  # (np.isin costs more than the rest for a few sizes)
+        sized |= lengths == size
+    index = np.flatnonzero(sized)
+    if len(index) == 0:
+        return np.zeros((0, min(sizes)), np.uint8), index
+    width = int(lengths[index[0]])
+    if np.all(lengths[index] == width):
+        joined = b"".join(packets if len(index) == len(packets) else [packets[i] for i in index])
+    else:
+        width = min(sizes)
+        joined = b"".join([packets[i][:width] for i in index])
+    return np.frombuffer(joined, np.uint8).reshape(-1, width), index
+
+
+def _new_points_buffer(capacity: int) -> tuple[np.ndarray, ...]:
     return (np.empty((capacity, 3), np.float32), np.empty(capacity, np.float32), np.empty(capacity, np.float32),
             np.empty(capacity, np.uint16), np.empty(capacity, np.uint16), np.empty(capacity, np.uint16),
             np.empty(capacity, np.uint8), np.empty(capacity, np.int64), np.empty(capacity, np.int64))
+
+
+def _references(buffer: tuple[np.ndarray, ...]) -> list[int]:
+    return [sys.getrefcount(a) for a in buffer]
+
+
+_FREE_REFERENCES = _references(_new_points_buffer(0))  # a buffer only its tuple holds, as this interpreter counts
+_reusable = threading.local()  # .buffer: this thread's last points_buffer
+
+
+def points_buffer(capacity: int) -> tuple[np.ndarray, ...]:
+    """Uninitialised arrays for at least `capacity` points that a compiled decode loop fills, in DecodedPoints' order:
+    xyz, distance_m, intensity, laser_id, ring, azimuth_cdeg, return_type, timestamp_ns, packet_index.
+
+    The last call's arrays on this thread when nothing else references them any more (every DecodedPoints and view
+    made of them dropped) and they are large enough; otherwise new ones, kept for the next call. New memory is
+    faulted in page by page as the loop writes it: that was 40 % of a VLS-128 decode here (bench/lidar.py)."""
+    last = getattr(_reusable, "buffer", None)
+    if last is not None and len(last[1]) >= capacity and _references(last) == _FREE_REFERENCES:
+        return last
+    _reusable.buffer = _new_points_buffer(capacity)
+    return _reusable.buffer
 
 
 def filled_points(model: str, buffer: tuple[np.ndarray, ...], n: int, n_packets: int, index: np.ndarray,

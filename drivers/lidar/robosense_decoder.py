@@ -21,6 +21,7 @@ from drivers.lidar.packet_decoding import (
     PacketCheck,
     empty_points,
     filled_points,
+    packet_batch,
     points_buffer,
 )
 from drivers.lidar.robosense_calibration import RobosenseCalibration, load_robosense_calibration
@@ -135,7 +136,8 @@ class RobosenseDecoder:
         counts = {"packets_in": 0, "packets_decoded": 0} | dict.fromkeys(_REASONS, 0)
         batch, index = _as_batch(packets, counts)
         good = self._check_packets(batch, counts)
-        batch, index = batch[good], index[good]
+        if not good.all():
+            batch, index = batch[good], index[good]
         counts["packets_decoded"] = int(batch.shape[0])
         if batch.shape[0] == 0:
             return empty_points(counts, None)
@@ -220,34 +222,46 @@ def _decode_channels(batch, index, stamps_ns, header_bytes, block_azimuth, step,
     interpolation truncated, as RoboSense's SDK does; float32 throughout."""
     n_blocks, n_channels = block_azimuth.shape[1], azimuth_fraction.shape[0]
     block_bytes = 4 + 3 * n_channels
-    k = 0
+    # Indices unsigned: numba checks each signed index for a negative value, to count it from the end.
+    one, two, three = np.uint64(1), np.uint64(2), np.uint64(3)
+    k = np.uint64(0)
     for p in range(batch.shape[0]):
+        data = batch[p]
+        packet_p = index[p]
         for b in range(n_blocks):
-            for c in range(n_channels):
-                at = header_bytes + b * block_bytes + 4 + 3 * c
-                raw = (np.int64(batch[p, at]) << 8) | batch[p, at + 1]
+            block_at = np.uint64(header_bytes + b * block_bytes + 4)
+            block_az, block_step = block_azimuth[p, b], step[p, b]
+            block_time = stamps_ns[p] + block_ns[p, b]
+            block_type = block_return_type[p, b]
+            for c in range(np.uint64(n_channels)):
+                at = block_at + three * c
+                raw = (np.int64(data[at]) << 8) | data[at + one]
                 if raw == 0:
                     continue
                 d = np.float32(raw) * resolution
                 if d < min_range or d > max_range:
                     continue
-                firing = block_azimuth[p, b] + np.int32(step[p, b] * azimuth_fraction[c])
-                final = (firing + azimuth_offset[c]) % 36000
-                firing %= 36000
+                firing = block_az + np.int32(block_step * azimuth_fraction[c])
+                final = firing + azimuth_offset[c]
+                if final < 0 or final >= 36000:  # mostly not: the remainder only where it changes something
+                    final %= 36000
+                if firing < 0 or firing >= 36000:
+                    firing %= 36000
                 xy = d * cos_elevation[c]
-                xyz[k, 0] = xy * cos_table[final] + lens * cos_table[firing]
-                xyz[k, 1] = -(xy * sin_table[final] + lens * sin_table[firing])
+                turned, fired = np.uint64(final), np.uint64(firing)  # both in [0, 36000) now
+                xyz[k, 0] = xy * cos_table[turned] + lens * cos_table[fired]
+                xyz[k, 1] = -(xy * sin_table[turned] + lens * sin_table[fired])
                 xyz[k, 2] = d * sin_elevation[c]
                 distance[k] = d
-                intensity[k] = batch[p, at + 2]
+                intensity[k] = data[at + two]
                 laser[k] = lasers[c]
                 ring[k] = rings[c]
                 azimuth[k] = firing
-                return_type[k] = block_return_type[p, b] or channel_return_type[c]  # the block's, where it has one
-                time_ns[k] = stamps_ns[p] + block_ns[p, b] + firing_ns[c]
-                packet[k] = index[p]
-                k += 1
-    return k
+                return_type[k] = block_type if block_type else channel_return_type[c]  # the block's, if it has one
+                time_ns[k] = block_time + firing_ns[c]
+                packet[k] = packet_p
+                k += one
+    return np.int64(k)
 
 
 def robosense_decoder(model: str, calibration_path: str | Path | None = None, dual_return: bool = False,
@@ -263,10 +277,9 @@ def robosense_decoder(model: str, calibration_path: str | Path | None = None, du
 
 def _as_batch(packets: list[bytes], counts: dict[str, int]) -> tuple[np.ndarray, np.ndarray]:
     counts["packets_in"] = len(packets)
-    index = np.array([i for i, p in enumerate(packets) if len(p) == PACKET_SIZE], dtype=np.int64)
+    batch, index = packet_batch(packets, (PACKET_SIZE,))
     counts[WRONG_SIZE] = len(packets) - len(index)
-    joined = b"".join(packets[i] for i in index)
-    return np.frombuffer(joined, dtype=np.uint8).reshape(-1, PACKET_SIZE), index
+    return batch, index
 
 
 def _be16(a: np.ndarray, offset: int) -> np.ndarray:

@@ -19,6 +19,7 @@ from drivers.lidar.packet_decoding import (
     PacketCheck,
     empty_points,
     filled_points,
+    packet_batch,
     points_buffer,
 )
 from drivers.lidar.velodyne_calibration import VelodyneCalibration, load_velodyne_calibration
@@ -118,6 +119,9 @@ def _rotation_tables() -> tuple[np.ndarray, np.ndarray]:
     return np.cos(angle), np.sin(angle)
 
 
+_COS_TABLE, _SIN_TABLE = _rotation_tables()
+
+
 class VelodyneDecoder:
     """Decodes batches of one sensor's data packets with its calibration.
 
@@ -131,7 +135,6 @@ class VelodyneDecoder:
         self.calibration = calibration
         self.min_range_m = np.float32(min_range_m)
         self.max_range_m = np.float32(max_range_m)
-        self._cos_table, self._sin_table = _rotation_tables()
         self._laser_tables = _laser_tables(calibration)
         if hdl64e is not None:
             if hdl64e not in HDL64E_MODELS or calibration.num_lasers != 64:
@@ -172,7 +175,8 @@ class VelodyneDecoder:
                   FOREIGN_MODEL: 0}
         batch, index = self._as_batch(packets, counts)
         good, model = self._check_packets(batch, counts)
-        batch, index = batch[good], index[good]
+        if not good.all():
+            batch, index = batch[good], index[good]
         counts["packets_decoded"] = int(batch.shape[0])
         if model is None or batch.shape[0] == 0:
             return empty_points(counts, None if model is None else model.name)
@@ -191,10 +195,9 @@ class VelodyneDecoder:
                 return np.zeros((0, PACKET_SIZE), np.uint8), np.zeros(0, np.int64)
             return packets.astype(np.uint8, copy=False), np.arange(packets.shape[0], dtype=np.int64)
         counts["packets_in"] = len(packets)
-        index = np.array([i for i, p in enumerate(packets) if len(p) == PACKET_SIZE], dtype=np.int64)
+        batch, index = packet_batch(packets, (PACKET_SIZE,))
         counts[WRONG_SIZE] = counts["packets_in"] - len(index)
-        joined = b"".join(packets[i] for i in index)
-        return np.frombuffer(joined, dtype=np.uint8).reshape(-1, PACKET_SIZE), index
+        return batch, index
 
     def _check_packets(self, batch: np.ndarray, counts: dict[str, int]) -> tuple[np.ndarray, VelodyneModel | None]:
         """Mask of the packets to decode; counts the others by reason."""
@@ -257,10 +260,11 @@ class VelodyneDecoder:
         t, cal = self._slot_tables, self.calibration
         out = points_buffer(n * BLOCKS_PER_PACKET * RETURNS_PER_BLOCK)
         kept = _decode_returns(
-            batch, index, timestamp_us.astype(np.int64), block_azimuth, dual, last_mode, hdl64e, rate.astype(f32),
-            t["order"], t["block"], t["in_use"], t["laser"], t["dt"], t["time_ns"], t["dist_correction"],
-            f32(cal.distance_resolution_m), self.min_range_m, self.max_range_m, self._cos_table, self._sin_table,
-            self._laser_tables, cal.ring, self._has_offsets, cal.two_point_correction, self._intensity_rule, *out)
+            batch, index, timestamp_us.astype(np.int64), block_azimuth, dual, last_mode, rate.astype(f32),
+            t["slots"], t["at"], t["partner_at"], t["keeper"], t["own_type"], t["block"], t["laser"], t["dt"],
+            t["time_ns"], t["dist_correction"], t["angles"], f32(cal.distance_resolution_m), self.min_range_m,
+            self.max_range_m, _COS_TABLE, _SIN_TABLE, self._laser_tables, cal.ring, self._has_offsets,
+            cal.two_point_correction, self._intensity_rule, *out)
         return filled_points(model.name, out, kept, n_packets, index, timestamp_us.astype(np.int64) * 1000)
 
     @property
@@ -310,59 +314,59 @@ def _keep_plausible_rates(rate, measured, accepted):  # pragma: no cover - compi
 
 
 @compiled
-def _decode_returns(batch, index, timestamp_us, block_azimuth, dual, last_mode, hdl64e, rate, order, slot_block, in_use,
-                    slot_laser, slot_dt, slot_time_ns, slot_dist_correction, resolution, min_range, max_range,
-                    cos_table, sin_table, lasers, rings, has_offsets, two_point, intensity_rule, xyz, distance,
-                    intensity, laser, ring, azimuth, return_type, time_ns, packet):  # pragma: no cover - compiled
+def _decode_returns(batch, index, timestamp_us, block_azimuth, dual, last_mode, rate, slots, slot_at, partner_at,
+                    keeper, own_type, slot_block, slot_laser, slot_dt, slot_time_ns, slot_dist_correction, slot_angles,
+                    resolution, min_range, max_range, cos_table, sin_table, lasers, rings, has_offsets, two_point,
+                    intensity_rule, xyz, distance, intensity, laser, ring, azimuth, return_type, time_ns,
+                    packet):  # pragma: no cover - compiled
     """The kept returns of every packet into the points_buffer arrays, in slot order; returns how many. Float32
-    throughout, the operations in velodyne-decoder's order. A return is kept with a nonzero range within the limits
-    and a return type: of a dual pair of equal returns, the first block's carries both types and the second's none
-    (block 2k holds the last returns, 2k + 1 the strongest; HDL-64E: 4k, 4k + 1 the strongest, 4k + 2, 4k + 3 the
-    last)."""
+    throughout, the operations in velodyne-decoder's order. Each packet walks the `slots` in use of its row of the
+    slot tables (_slot_tables: 0 single, 1 dual return). A return is kept with a nonzero range within the limits
+    and a return type: of a dual pair of equal returns, the keeper's carries both types and its partner's none."""
     f32 = np.float32
     both = RETURN_TYPE_LAST | RETURN_TYPE_STRONGEST
     near_limit, x_start, y_start = f32(25.04), f32(2.4), f32(1.93)
     x_span, y_span = f32(25.04 - 2.4), f32(25.04 - 1.93)
     half, turn_round = f32(0.5), f32(36000.5)
-    k = 0
+    # Indices unsigned (the slot tables' too): numba checks each signed index for a negative value, to count it
+    # from the end; 1.4x on this loop.
+    one, two, turn = np.uint64(1), np.uint64(2), np.uint64(36000)
+    k = np.uint64(0)
     for p in range(batch.shape[0]):
-        row = 1 if dual[p] else 0
-        for s in range(order.shape[1]):
-            if not in_use[row, s]:
-                continue
-            block, channel = order[row, s] // 32, order[row, s] % 32
-            at = block * 100 + 4 + channel * 3
-            raw_distance = batch[p, at] | (np.int64(batch[p, at + 1]) << 8)
+        is_dual = dual[p]
+        row = 1 if is_dual else 0
+        single_type = RETURN_TYPE_LAST if last_mode[p] else RETURN_TYPE_STRONGEST
+        stamp_ns, rate_p, packet_p = timestamp_us[p] * 1000, rate[p], index[p]
+        data, azimuth_p = batch[p], block_azimuth[p]
+        at_r, partner_r, keeper_r, own_r = slot_at[row], partner_at[row], keeper[row], own_type[row]
+        block_r, laser_r, dt_r, time_r = slot_block[row], slot_laser[row], slot_dt[row], slot_time_ns[row]
+        correction_r, angles_r = slot_dist_correction[row], slot_angles[row]
+        for j in range(np.uint64(slots[row])):
+            at = at_r[j]
+            raw_distance = np.int64(data[at]) | (np.int64(data[at + one]) << 8)
             if raw_distance == 0:
                 continue
-            if not dual[p]:
-                kind = RETURN_TYPE_LAST if last_mode[p] else RETURN_TYPE_STRONGEST
-            else:
-                if hdl64e:  # blocks 4k, 4k + 1 the strongest returns, 4k + 2, 4k + 3 the last of the same firing
-                    keeper = block % 4 < 2
-                    partner, own = (block + 2, RETURN_TYPE_STRONGEST) if keeper else (block - 2, RETURN_TYPE_LAST)
-                else:  # block 2k the last returns, 2k + 1 the strongest of the same firing
-                    keeper = block % 2 == 0
-                    partner, own = block ^ 1, RETURN_TYPE_LAST if keeper else RETURN_TYPE_STRONGEST
-                other = partner * 100 + 4 + channel * 3
-                same = batch[p, at] == batch[p, other] and batch[p, at + 1] == batch[p, other + 1] and (
-                    batch[p, at + 2] == batch[p, other + 2])
-                kind = (both if keeper else 0) if same else own
+            kind = single_type
+            if is_dual:
+                other = partner_r[j]
+                same = (data[at] == data[other] and data[at + one] == data[other + one]
+                        and data[at + two] == data[other + two])
+                kind = (both if keeper_r[j] else 0) if same else own_r[j]
                 if kind == 0:
                     continue
             d = f32(raw_distance) * resolution
-            d += slot_dist_correction[row, s]
+            d += correction_r[j]
             if d < min_range or d > max_range:
                 continue
-            az_f = f32(block_azimuth[p, slot_block[row, s]]) + rate[p] * slot_dt[row, s]
+            az_f = f32(azimuth_p[block_r[j]]) + rate_p * dt_r[j]
             az_f += turn_round
-            az = np.int64(np.floor(az_f)) % 36000
-            n = slot_laser[row, s]
+            az = np.uint64(az_f) % turn  # az_f > 0: truncation is the floor
+            n = laser_r[j]
             cos_az, sin_az = cos_table[az], sin_table[az]
-            cos_rc, sin_rc = lasers[_COS_ROT, n], lasers[_SIN_ROT, n]
+            cos_rc, sin_rc = angles_r[j, _COS_ROT], angles_r[j, _SIN_ROT]
             cos_rot = cos_az * cos_rc + sin_az * sin_rc  # cos(azimuth - rot_correction)
             sin_rot = sin_az * cos_rc - cos_az * sin_rc
-            cos_v, sin_v = lasers[_COS_VERT, n], lasers[_SIN_VERT, n]
+            cos_v, sin_v = angles_r[j, _COS_VERT], angles_r[j, _SIN_VERT]
             if not has_offsets:
                 xy = d * cos_v
                 xyz[k, 0] = xy * cos_rot
@@ -388,7 +392,7 @@ def _decode_returns(batch, index, timestamp_us, block_azimuth, dual, last_mode, 
                 xyz[k, 0] = xy_y * cos_rot + h_off * sin_rot
                 xyz[k, 1] = -(xy_x * sin_rot - h_off * cos_rot)
                 xyz[k, 2] = (d_x + d_y) * half * sin_v + v_off
-            value = f32(batch[p, at + 2])
+            value = f32(data[at + two])
             if intensity_rule == INTENSITY_FOCAL:
                 # As velodyne-decoder computes it: the file's focal_distance times 100 (ROS velodyne_pointcloud
                 # takes the value as it is; the two disagree, velodyne-decoder is the oracle checked here).
@@ -404,16 +408,19 @@ def _decode_returns(batch, index, timestamp_us, block_azimuth, dual, last_mode, 
             ring[k] = rings[n]
             azimuth[k] = az
             return_type[k] = kind
-            time_ns[k] = timestamp_us[p] * 1000 + slot_time_ns[row, s]
-            packet[k] = index[p]
-            k += 1
-    return k
+            time_ns[k] = stamp_ns + time_r[j]
+            packet[k] = packet_p
+            k += one
+    return np.int64(k)
 
 
 def _slot_tables(model: VelodyneModel, calibration: VelodyneCalibration) -> dict[str, np.ndarray]:
-    """Per return slot (velodyne-decoder's order; see VelodyneDecoder._decode_points), for single
-    (row 0) and dual return (row 1) packets: its block, laser, firing time, the time since its block's
-    reference firing (azimuth interpolation) and the laser's distance correction."""
+    """Per return slot in use (velodyne-decoder's order; see VelodyneDecoder._decode_points), for single (row 0) and
+    dual return (row 1) packets, made once per calibration: `slots` (2,) how many a row has, and per slot its
+    return's byte offset, its dual partner's (the other return of the same firing) and whether it is the keeper of
+    an equal pair (dual blocks 2k: the last returns, 2k + 1 the strongest; HDL-64E 4k, 4k + 1 the strongest,
+    4k + 2, 4k + 3 the last) and its own type, its block, laser, the time since its block's reference firing
+    (azimuth interpolation), its firing time, the laser's distance correction and angles (_COS_ROT.._SIN_VERT)."""
     order = _DUAL_ORDER if model.product_id is not None else _HDL64E_ORDER  # (2, 384) block * 32 + channel
     block, channel = order // RETURNS_PER_BLOCK, order % RETURNS_PER_BLOCK
     dual = np.array([[False], [True]])
@@ -424,25 +431,45 @@ def _slot_tables(model: VelodyneModel, calibration: VelodyneCalibration) -> dict
         row = np.where(dual, block // 4 * 2 + block % 2, block)
         t0 = timing[np.where(dual, block // 4 * 2, block // 2 * 2), 0]
         in_use = np.ones_like(block, dtype=bool)
-    elif model.num_lasers == 128:
-        bank = np.where(dual, block // 2, block) % 4
-        laser = 32 * bank + channel
-        t0 = timing[np.where(dual, 0, block // 4 * 4), 0]
-        in_use = ~dual | (block < 8)  # dual return: blocks 8-11 are empty
+        keeper = block % 4 < 2
+        partner = np.where(keeper, block + 2, block - 2)
+        own_type = np.where(keeper, RETURN_TYPE_STRONGEST, RETURN_TYPE_LAST)
     else:
-        laser = channel % model.num_lasers
-        t0 = timing[row, 0]
-        in_use = np.ones_like(block, dtype=bool)
+        if model.num_lasers == 128:
+            bank = np.where(dual, block // 2, block) % 4
+            laser = 32 * bank + channel
+            t0 = timing[np.where(dual, 0, block // 4 * 4), 0]
+            in_use = ~dual | (block < 8)  # dual return: blocks 8-11 are empty
+        else:
+            laser = channel % model.num_lasers
+            t0 = timing[row, 0]
+            in_use = np.ones_like(block, dtype=bool)
+        keeper = block % 2 == 0
+        partner = block ^ 1
+        own_type = np.where(keeper, RETURN_TYPE_LAST, RETURN_TYPE_STRONGEST)
     time = timing[row, channel]
-    return {
-        "order": order,
-        "block": block,
-        "in_use": np.broadcast_to(in_use, block.shape),
-        "laser": laser,
+    in_use = np.broadcast_to(in_use, block.shape)
+    angles = _laser_tables(calibration)[[_COS_ROT, _SIN_ROT, _COS_VERT, _SIN_VERT]].T[laser]  # (2, 384, 4)
+    per_slot = {
+        "at": (block * _BLOCK_BYTES + 4 + channel * 3).astype(np.uint64),
+        "partner_at": (partner * _BLOCK_BYTES + 4 + channel * 3).astype(np.uint64),
+        "keeper": keeper,
+        "own_type": own_type.astype(np.uint8),
+        "block": block.astype(np.uint64),
+        "laser": laser.astype(np.uint64),
         "dt": (time - t0).astype(np.float32),
         "time_ns": np.rint(time.astype(np.float64) * 1e9).astype(np.int64),
         "dist_correction": calibration.dist_correction_m.astype(np.float32)[laser],
+        "angles": angles,
     }
+    tables = {"slots": in_use.sum(axis=1)}
+    for name, values in per_slot.items():  # the slots in use first in each row, in order
+        values = np.broadcast_to(values, block.shape + values.shape[2:])
+        packed = np.zeros_like(values)
+        for r in range(2):
+            packed[r, : tables["slots"][r]] = values[r][in_use[r]]
+        tables[name] = np.ascontiguousarray(packed)
+    return tables
 
 
 def _u16(a: np.ndarray, offset: int) -> np.ndarray:

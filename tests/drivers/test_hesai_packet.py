@@ -353,3 +353,17 @@ def test_randomly_corrupted_datagrams_never_raise():
         skipped = sum(v for k, v in points.counts.items() if k not in ("packets_in", "packets_decoded"))
         assert points.counts["packets_decoded"] + skipped == len(packets)
         assert np.isfinite(points.xyz).all() and len(points.xyz) == len(points.timestamp_ns)
+
+
+@needs_data
+def test_packets_with_and_without_the_optional_trailing_fields_decode_alike():
+    """The QT128 capture's packets carry the optional tail fields (1,127 bytes); cut to 1,095 some, all or none."""
+    payloads = _payloads("qt128")[:300]
+    assert {len(p) for p in payloads} == {1127}
+    cut = [p[:1095] for p in payloads]
+    mixed = [c if i % 3 else p for i, (p, c) in enumerate(zip(payloads, cut, strict=True))]
+    whole = _decoder("qt128").decode(payloads)
+    for other in (_decoder("qt128").decode(cut), _decoder("qt128").decode(mixed)):
+        assert other.counts == whole.counts
+        for name in ("xyz", "intensity", "return_type", "timestamp_ns", "packet_index", "packet_time_ns"):
+            np.testing.assert_array_equal(getattr(other, name), getattr(whole, name))
