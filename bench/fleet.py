@@ -39,7 +39,7 @@ sys.path.insert(0, str(ROOT))
 from daemon.log_format.reader import read_metadata  # noqa: E402
 from daemon.spine.local_frame import LocalFrame  # noqa: E402
 from daemon.spine.semantic_classes import NUM_MAP_CLASSES, ROAD_SURFACE_CLASSES  # noqa: E402
-from mapping.fleet.drive_merge import MAX_SHIFT_M, DriveLayer, drive_layers, estimate_shift, fuse, shifted  # noqa: E402
+from mapping.fleet.drive_merge import MAX_SHIFT_M, DriveLayer, drive_layers, estimate_shift, fuse  # noqa: E402
 from mapping.fleet.geodetic_grid import utm_to_enu_xy  # noqa: E402
 from mapping.fleet.tile_store import TileStore  # noqa: E402
 from mapping.method.road_map import NO_LABEL  # noqa: E402
@@ -79,14 +79,16 @@ def run_fleet(logs: list[Path], out: Path, workers: int, mapper: Path | None) ->
 class Truth:
     """The world's truth on a zone mosaic's cells."""
 
-    def __init__(self, gt_path: Path, mosaic, tracks_enu: list[np.ndarray]):
+    def __init__(self, gt_path: Path, mosaic, tracks_enu: list[np.ndarray], offset_en_m: tuple[float, float] = (0, 0)):
+        """`offset_en_m`: the truth sampled that far (UTM east, north) from each cell's centre."""
+        self.args = (gt_path, mosaic, tracks_enu)
         gt = np.load(gt_path)
         frame = LocalFrame(*(float(v) for v in gt["enu_origin_lat_lon_alt"]))
         res_t = float(gt["grid_resolution_m"])
         h, w = mosaic.shape
         jj, ii = np.meshgrid(np.arange(w), np.arange(h))
-        e = mosaic.origin_xy[0] + jj.ravel() * mosaic.resolution_m
-        n = mosaic.origin_xy[1] + ii.ravel() * mosaic.resolution_m
+        e = mosaic.origin_xy[0] + jj.ravel() * mosaic.resolution_m + offset_en_m[0]
+        n = mosaic.origin_xy[1] + ii.ravel() * mosaic.resolution_m + offset_en_m[1]
         xy = utm_to_enu_xy(frame, e, n, mosaic.zone, mosaic.south, frame.alt_m)
         ti = np.floor((xy[:, 1] - gt["grid_origin_xy"][1]) / res_t).astype(np.int64)
         tj = np.floor((xy[:, 0] - gt["grid_origin_xy"][0]) / res_t).astype(np.int64)
@@ -116,15 +118,21 @@ def one_hot_layer(name: str, height: np.ndarray, labels: np.ndarray) -> DriveLay
 
 
 def scores(truth: Truth, height: np.ndarray, labels: np.ndarray) -> dict:
-    """As placed, and registered: moved by the whole cells that best overlay its markings and curbs on the
-    truth's (drive_merge.estimate_shift), which takes out where the drives' positioning put the map as a whole."""
+    """As placed, and registered: the truth sampled where the map's markings, curbs and manholes overlay it best
+    (drive_merge.estimate_shift, below a cell: the truth is resampled, the map is not) and the median height
+    difference to the truth there taken out. Registered figures measure the map itself; what they take out is
+    where the drives' positioning (GNSS) put it, reported as shift_to_truth_m and height_offset_cm."""
     placed = _scores(truth, height, labels)
-    shift, _, _ = estimate_shift(one_hot_layer("truth", truth.height, truth.cls), one_hot_layer("map", height, labels),
-                                 int(np.ceil(MAX_SHIFT_M / truth.resolution_m)))
-    di, dj = shift or (0, 0)
-    registered = _scores(truth, shifted(height, di, dj, np.nan), shifted(labels, di, dj, NO_LABEL))
+    found = estimate_shift(one_hot_layer("truth", truth.height, truth.cls), one_hot_layer("map", height, labels),
+                           int(np.ceil(MAX_SHIFT_M / truth.resolution_m)), truth.resolution_m)
+    di, dj = found.shift or (0.0, 0.0)
+    # the map's cell x matches the truth's at x + (di, dj) cells
+    moved = Truth(*truth.args, offset_en_m=(dj * truth.resolution_m, di * truth.resolution_m))
+    on_road = np.isfinite(height) & moved.road
+    dz = float(np.median(height[on_road] - moved.height[on_road]))
+    registered = _scores(moved, height - np.float32(dz), labels)
     return placed | {f"{k}_registered": v for k, v in registered.items() if k != "cells_mapped"} | {
-        "shift_to_truth_m": [dj * truth.resolution_m, di * truth.resolution_m]}
+        "shift_to_truth_m": [-dj * truth.resolution_m, -di * truth.resolution_m], "height_offset_cm": dz * 100}
 
 
 def _scores(truth: Truth, height: np.ndarray, labels: np.ndarray) -> dict:
