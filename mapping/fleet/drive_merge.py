@@ -3,11 +3,11 @@
 overlap, then all layers fused per cell with their confidences, so that what one drive saw (under another's
 parked car) fills the other's hole.
 
-Alignment, per drive: the horizontal shift (whole cells, up to MAX_SHIFT_M) that best overlays its lane markings
-and curbs on the reference's (the class probabilities of both, least squares over the cells both mapped), then
-the elevation offset (the weighted median height difference there); the drives' mean shift and offset are taken
-out of all of them (the map lies where the drives agree on average, not where the reference drive's positioning
-put it). Per camera, the appearance: an affine
+Alignment, per drive: the horizontal shift (up to MAX_SHIFT_M, below a cell: estimate_shift) that best overlays
+its lane markings, curbs, manholes and road texture on the reference's, then the elevation offset (the weighted
+median height difference there); the drives' mean shift (to whole cells) and offset are taken out of all of them
+(the map lies where the drives agree on average, not where the reference drive's positioning put it). Class
+probabilities move by whole cells, heights by the exact fraction (moved). Per camera, the appearance: an affine
 colour map (3 x 4, least squares) from the drive's colours to the reference's in the overlap. That affine map
 stands in for the paper-style "one colour MLP per camera per drive over shared codes": each drive's own colour
 MLPs have already absorbed its light and camera response, and what remains between two drives' renderings of
@@ -259,7 +259,8 @@ def moved(layer: DriveLayer, di: float, dj: float, dz: float = 0.0) -> DriveLaye
     below what its argmax keeps, measured: lane-marking IoU 41 -> 27 %); its heights, smooth, by the exact
     fraction (bilinear, confidence-weighted), where the whole-cell move mapped."""
     i, j = int(np.rint(di)), int(np.rint(dj))
-    out = DriveLayer(layer.drive, shifted(layer.height, i, j, np.nan) + np.float32(dz), shifted(layer.weight, i, j, 0.0),
+    out = DriveLayer(layer.drive, shifted(layer.height, i, j, np.nan) + np.float32(dz),
+                     shifted(layer.weight, i, j, 0.0),
                      shifted(layer.prob, i, j, 0.0) if layer.prob is not None else None,
                      {c: shifted(v, i, j, 0.0) for c, v in layer.rgb.items()})
     if float(di).is_integer() and float(dj).is_integer():
