@@ -13,10 +13,16 @@ own map (its windows fused, unaligned: what that drive alone gives):
 
 Targets: merged coverage above either drive's; merged mIoU and elevation MAE at least the better drive's.
 
-    .venv/bin/python bench/fleet.py [--quick] [--seconds S] [--drives DIR] [--out DIR]
+    .venv/bin/python bench/fleet.py [--quick] [--seconds S] [--seed N] [--visits A,B] [--drives DIR] [--out DIR]
+                                    [--reuse]
 
---quick: 6 s drives and a coarse mapper (0.2 m cells, 60 m windows); --drives keeps the simulated drives between
-runs (simulating is most of the time here). The last line is one JSON object.
+--quick: 4 s drives and a coarse, short mapper (0.2 m cells, 60 m windows, a keyframe every 2 m, every 4th Lidar
+scan, 40 elevation steps); the full bench's drives, mapper and figures are unchanged by it. --seed: the world's
+seed (default the city's own, 11); --visits: which two visits (default 0,1; visit 0 has no GNSS offset, so as
+placed it is the truth's own frame: `--visits 1,2` gives both drives another day's offset). --drives keeps the
+simulated drives between runs (simulating a 4 s drive: 70 s here at a load of 5); --reuse with --out keeps
+finished fleet jobs too (a rerun to try a merge costs only the merge and the scores). The last line is one JSON
+object.
 """
 
 from __future__ import annotations
@@ -39,7 +45,7 @@ sys.path.insert(0, str(ROOT))
 from daemon.log_format.reader import read_metadata  # noqa: E402
 from daemon.spine.local_frame import LocalFrame  # noqa: E402
 from daemon.spine.semantic_classes import NUM_MAP_CLASSES, ROAD_SURFACE_CLASSES  # noqa: E402
-from mapping.fleet.drive_merge import MAX_SHIFT_M, DriveLayer, drive_layers, estimate_shift, fuse, shifted  # noqa: E402
+from mapping.fleet.drive_merge import MAX_SHIFT_M, DriveLayer, drive_layers, estimate_shift, fuse  # noqa: E402
 from mapping.fleet.geodetic_grid import utm_to_enu_xy  # noqa: E402
 from mapping.fleet.tile_store import TileStore  # noqa: E402
 from mapping.method.road_map import NO_LABEL  # noqa: E402
@@ -50,21 +56,39 @@ NEAR_TRACK_M = 12.0
 QUICK_MAPPER = """mapper:
   mesh: {side_m: 0.2, corridor_half_width_m: 13.0}
   windows: {before_m: 30.0, after_m: 30.0}
+  inputs: {keyframe_spacing_m: 2.0, lidar_every_n_scans: 4}
+  fast_fit: {elevation_min_steps: 40, lidar_detail_passes: 2}
 """
 
 
-def simulate(drives: Path, seconds: float) -> list[Path]:
+def simulate(drives: Path, seconds: float, seed: int | None, visits: list[int]) -> list[Path]:
     logs = []
-    for visit in (0, 1):
-        log = drives / f"city_{seconds:g}s_v{visit}.mcap"
+    for visit in visits:
+        log = drives / f"city{'' if seed is None else seed}_{seconds:g}s_v{visit}.mcap"
         if not (log.exists() and log.with_name(log.stem + ".gt.npz").exists()):
             subprocess.run([ROADLOG, "simulate", "--scenario", "city", "--seconds", str(seconds), "--visit",
-                            str(visit), "--out", str(log)], check=True, stdout=subprocess.DEVNULL)
+                            str(visit), "--out", str(log), *(["--seed", str(seed)] if seed is not None else [])],
+                           check=True, stdout=subprocess.DEVNULL)
         logs.append(log)
     return logs
 
 
-def run_fleet(logs: list[Path], out: Path, workers: int, mapper: Path | None) -> dict:
+def finished_job(logs: list[Path], out: Path, mapper: Path | None) -> dict | None:
+    """The summary of a job in `out` that mapped exactly these logs with this mapper and failed nothing (None:
+    there is none): its maps are reused, its timings are the ones measured when it ran."""
+    try:
+        summary = json.loads((out / "fleet.json").read_text())
+        bench = json.loads((out / "bench_job.json").read_text())
+    except (OSError, ValueError):
+        return None
+    same = bench == {"logs": [str(p) for p in logs], "mapper": mapper.read_text() if mapper else None}
+    ok = summary.get("windows") and summary["windows_done"] == summary["windows"] and not summary["failures"]
+    return summary if same and ok else None
+
+
+def run_fleet(logs: list[Path], out: Path, workers: int, mapper: Path | None, reuse: bool = False) -> dict:
+    if reuse and (done := finished_job(logs, out, mapper)) is not None:
+        return done | {"reused": True}
     shutil.rmtree(out, ignore_errors=True)
     cmd = [ROADLOG, "fleet", "reconstruct", *map(str, logs), "--out", str(out), "--workers", str(workers)]
     cmd += ["--mapper", str(mapper)] if mapper else []
@@ -73,20 +97,24 @@ def run_fleet(logs: list[Path], out: Path, workers: int, mapper: Path | None) ->
     if done.returncode != 0:
         raise SystemExit(f"fleet reconstruct failed ({done.returncode}): {done.stderr[-3000:]}")
     summary = json.loads(done.stdout.strip().splitlines()[-1])
-    return summary | {"command_wall_s": time.perf_counter() - started}
+    (out / "bench_job.json").write_text(json.dumps({"logs": [str(p) for p in logs],
+                                                    "mapper": mapper.read_text() if mapper else None}))
+    return summary | {"command_wall_s": time.perf_counter() - started, "reused": False}
 
 
 class Truth:
     """The world's truth on a zone mosaic's cells."""
 
-    def __init__(self, gt_path: Path, mosaic, tracks_enu: list[np.ndarray]):
+    def __init__(self, gt_path: Path, mosaic, tracks_enu: list[np.ndarray], offset_en_m: tuple[float, float] = (0, 0)):
+        """`offset_en_m`: the truth sampled that far (UTM east, north) from each cell's centre."""
+        self.args = (gt_path, mosaic, tracks_enu)
         gt = np.load(gt_path)
         frame = LocalFrame(*(float(v) for v in gt["enu_origin_lat_lon_alt"]))
         res_t = float(gt["grid_resolution_m"])
         h, w = mosaic.shape
         jj, ii = np.meshgrid(np.arange(w), np.arange(h))
-        e = mosaic.origin_xy[0] + jj.ravel() * mosaic.resolution_m
-        n = mosaic.origin_xy[1] + ii.ravel() * mosaic.resolution_m
+        e = mosaic.origin_xy[0] + jj.ravel() * mosaic.resolution_m + offset_en_m[0]
+        n = mosaic.origin_xy[1] + ii.ravel() * mosaic.resolution_m + offset_en_m[1]
         xy = utm_to_enu_xy(frame, e, n, mosaic.zone, mosaic.south, frame.alt_m)
         ti = np.floor((xy[:, 1] - gt["grid_origin_xy"][1]) / res_t).astype(np.int64)
         tj = np.floor((xy[:, 0] - gt["grid_origin_xy"][0]) / res_t).astype(np.int64)
@@ -116,15 +144,21 @@ def one_hot_layer(name: str, height: np.ndarray, labels: np.ndarray) -> DriveLay
 
 
 def scores(truth: Truth, height: np.ndarray, labels: np.ndarray) -> dict:
-    """As placed, and registered: moved by the whole cells that best overlay its markings and curbs on the
-    truth's (drive_merge.estimate_shift), which takes out where the drives' positioning put the map as a whole."""
+    """As placed, and registered: the truth sampled where the map's markings, curbs and manholes overlay it best
+    (drive_merge.estimate_shift, below a cell: the truth is resampled, the map is not) and the median height
+    difference to the truth there taken out. Registered figures measure the map itself; what they take out is
+    where the drives' positioning (GNSS) put it, reported as shift_to_truth_m and height_offset_cm."""
     placed = _scores(truth, height, labels)
-    shift, _, _ = estimate_shift(one_hot_layer("truth", truth.height, truth.cls), one_hot_layer("map", height, labels),
-                                 int(np.ceil(MAX_SHIFT_M / truth.resolution_m)))
-    di, dj = shift or (0, 0)
-    registered = _scores(truth, shifted(height, di, dj, np.nan), shifted(labels, di, dj, NO_LABEL))
+    found = estimate_shift(one_hot_layer("truth", truth.height, truth.cls), one_hot_layer("map", height, labels),
+                           int(np.ceil(MAX_SHIFT_M / truth.resolution_m)), truth.resolution_m)
+    di, dj = found.shift or (0.0, 0.0)
+    # the map's cell x matches the truth's at x + (di, dj) cells
+    moved = Truth(*truth.args, offset_en_m=(dj * truth.resolution_m, di * truth.resolution_m))
+    on_road = np.isfinite(height) & moved.road
+    dz = float(np.median(height[on_road] - moved.height[on_road]))
+    registered = _scores(moved, height - np.float32(dz), labels)
     return placed | {f"{k}_registered": v for k, v in registered.items() if k != "cells_mapped"} | {
-        "shift_to_truth_m": [dj * truth.resolution_m, di * truth.resolution_m]}
+        "shift_to_truth_m": [-dj * truth.resolution_m, -di * truth.resolution_m], "height_offset_cm": dz * 100}
 
 
 def _scores(truth: Truth, height: np.ndarray, labels: np.ndarray) -> dict:
@@ -148,26 +182,34 @@ def single(layer: DriveLayer) -> tuple[np.ndarray, np.ndarray]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="6 s drives, a coarse mapper")
-    parser.add_argument("--seconds", type=float, help="drive length (default 6 quick, 12 otherwise)")
+    parser.add_argument("--seconds", type=float, help="drive length (default 4 quick, 12 otherwise)")
+    parser.add_argument("--seed", type=int, help="the world's seed (default: the city scenario's)")
+    parser.add_argument("--visits", default="0,1", help="the two visits of the world mapped (default 0,1)")
     parser.add_argument("--drives", type=Path, help="folder keeping the simulated drives between runs")
     parser.add_argument("--out", type=Path, help="folder of the fleet jobs (default: a temporary one)")
+    parser.add_argument("--reuse", action="store_true",
+                        help="reuse the jobs in --out that mapped the same drives with the same mapper (only the "
+                             "merge and the scores run again; the timings are those measured when they ran)")
     args = parser.parse_args()
     started = time.perf_counter()
-    seconds = args.seconds or (6.0 if args.quick else 12.0)
+    seconds = args.seconds or (4.0 if args.quick else 12.0)
+    visits = [int(v) for v in args.visits.split(",")]
+    if len(visits) != 2 or len(set(visits)) != 2 or min(visits) < 0:
+        parser.error(f"--visits {args.visits}: two different visits >= 0, e.g. 0,1")
     work = args.out or Path(tempfile.mkdtemp(prefix="bench-fleet-"))
     work.mkdir(parents=True, exist_ok=True)
     drives = args.drives or work / "drives"
     drives.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    logs = simulate(drives, seconds)
+    logs = simulate(drives, seconds, args.seed, visits)
     simulate_s = time.perf_counter() - t0
     mapper = None
     if args.quick:
         mapper = work / "mapper.yaml"
         mapper.write_text(QUICK_MAPPER)
-    one = run_fleet(logs, work / "job_1_worker", 1, mapper)
+    one = run_fleet(logs, work / "job_1_worker", 1, mapper, args.reuse)
     load_1 = os.getloadavg()
-    two = run_fleet(logs, work / "job_2_workers", 2, mapper)
+    two = run_fleet(logs, work / "job_2_workers", 2, mapper, args.reuse)
     load_2 = os.getloadavg()
     (mosaic,) = drive_layers(TileStore(work / "job_2_workers"))
     merged = fuse(mosaic)
@@ -189,18 +231,20 @@ def main() -> int:
         "best_single_coverage": best["coverage"],
         "merged_miou_pct": merged_scores["miou_pct"],
         "merged_registered": {k: merged_scores[k] for k in ("miou_pct_registered", "elev_mae_cm_registered",
-                                                            "shift_to_truth_m")},
+                                                            "shift_to_truth_m", "height_offset_cm")},
         "single_registered": {k: {x: v[x] for x in ("miou_pct_registered", "elev_mae_cm_registered",
-                                                    "shift_to_truth_m")} for k, v in per_drive.items()},
+                                                    "shift_to_truth_m", "height_offset_cm")}
+                              for k, v in per_drive.items()},
         "single_miou_pct": {k: v["miou_pct"] for k, v in per_drive.items()},
         "merged_elev_mae_cm": merged_scores["elev_mae_cm"],
         "single_elev_mae_cm": {k: v["elev_mae_cm"] for k, v in per_drive.items()},
         "single_coverage": {k: v["coverage"] for k, v in per_drive.items()},
         "gnss_offsets_enu_m": {k: v["gnss_offset_enu_m"] for k, v in per_drive.items()},
-        "alignment": [{k: a.get(k) for k in ("drive", "reference", "shift_m", "dz_m", "overlap_cells")}
+        "alignment": [{k: a.get(k) for k in ("drive", "reference", "shift_m", "shift_std_m", "dz_m", "overlap_cells")}
                       for a in merged.alignment],
         "drive_ids": {k: v["drive"] for k, v in per_drive.items()},
         "speedup_2_workers": one["tasks_wall_s"] / two["tasks_wall_s"],
+        "jobs_reused": [one["reused"], two["reused"]],
         "tasks_wall_s_1_worker": one["tasks_wall_s"], "tasks_wall_s_2_workers": two["tasks_wall_s"],
         "ray_start_s": [one["ray_start_s"], two["ray_start_s"]],
         "load_average_after_1_and_2_workers": [list(load_1), list(load_2)],
@@ -209,7 +253,7 @@ def main() -> int:
                      for s in d.get("window_s", [])],
         "drive_load_s": [d.get("load_s") for d in json.loads((work / "job_2_workers" / "fleet.json").read_text())[
             "drives"]],
-        "simulate_s": simulate_s, "seconds": seconds, "quick": args.quick,
+        "simulate_s": simulate_s, "seconds": seconds, "quick": args.quick, "seed": args.seed, "visits": visits,
     }
     single_mious = [v for v in figures["single_miou_pct"].values() if v is not None]
     figures["targets"] = {

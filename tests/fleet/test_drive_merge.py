@@ -95,3 +95,63 @@ def test_each_hole_is_filled_by_the_other_drive(store, tmp_path):
         assert tif.bounds.left == pytest.approx(TILE.col * 40.0) and tif.bounds.bottom == pytest.approx(TILE.row * 40.0)
     with np.load(store.merged_path(TILE)) as z:
         assert np.array_equal(z["labels"], merged.labels)
+
+
+def _soft_road(d_north_m: float, d_east_m: float, dashes: bool) -> np.ndarray:
+    """Class probabilities (N, N, classes) of an east-west road moved by (north, east) metres, each cell the share
+    of its 4 x 4 sub-samples in each class: curbs, a centre line (dashed with a manhole and a stop line, or one
+    unbroken line, which fixes nothing along the road)."""
+    sub = 4
+    fine = (np.arange(N * sub) + 0.5) / sub * GRID.resolution_m
+    y = fine[:, None] - d_north_m  # the world point each sub-sample sees
+    x = fine[None, :] - d_east_m
+    cls = np.full(y.shape[:1] + x.shape[1:], int(SemanticClass.BACKGROUND))
+    cls[((y >= 6.0) & (y < 34.0)) * np.ones_like(x, bool)] = SemanticClass.ROAD
+    curb = ((y >= 5.5) & (y < 6.0)) | ((y >= 34.0) & (y < 34.5))
+    cls[curb * np.ones_like(x, bool)] = SemanticClass.CURB
+    line = (y >= 19.9) & (y < 20.1)
+    if dashes:
+        cls[line & ((x % 9.0) < 3.0)] = SemanticClass.LANE_MARKING
+        cls[(y >= 6.0) & (y < 19.9) & (x >= 23.0) & (x < 23.5)] = SemanticClass.LANE_MARKING  # a stop line
+        cls[(np.abs(y - 12.0) < 0.3) & (np.abs(x - 30.0) < 0.3)] = SemanticClass.MANHOLE
+    else:
+        cls[line * np.ones_like(x, bool)] = SemanticClass.LANE_MARKING
+    one_hot = np.eye(NUM_MAP_CLASSES, dtype=np.float32)[cls]
+    return one_hot.reshape(N, sub, N, sub, NUM_MAP_CLASSES).mean((1, 3))
+
+
+def _soft_store(tmp_path, d_north_m: float, d_east_m: float, dashes: bool) -> TileStore:
+    store = TileStore(tmp_path / ("dashed" if dashes else "unbroken"))
+    rows, cols = np.mgrid[0:N, 0:N]
+    mapped = (rows >= 40) & (rows < 360) & (cols >= 20) & (cols < 380)
+    for drive, (dn, de) in (("a", (0.0, 0.0)), ("b", (d_north_m, d_east_m))):
+        prob = _soft_road(dn, de, dashes)
+        store.write(TILE, Contribution(drive, 0, np.where(mapped, 520.0, np.nan).astype(np.float32),
+                                       np.where(mapped, 2.0, 0.0).astype(np.float32),
+                                       np.where(mapped[..., None], prob * 255 + 0.5, 0).astype(np.uint8), {}))
+    return store
+
+
+def _relative_shift_m(merged) -> np.ndarray:
+    report = {r["drive"]: r for r in merged.alignment}
+    return np.array(report["b"]["shift_m"]) - np.array(report["a"]["shift_m"])  # (east, north) moving b onto a
+
+
+def test_a_shift_below_a_cell_is_found_along_the_road_from_dashes_a_stop_line_and_a_manhole(tmp_path):
+    # b's map lies 0.27 m east (along the road) and 0.04 m north of a's: neither a whole number of 0.1 m cells
+    (mosaic,) = drive_layers(_soft_store(tmp_path, 0.04, 0.27, dashes=True))
+    merged = fuse(mosaic)
+    assert _relative_shift_m(merged) == pytest.approx([-0.27, -0.04], abs=0.02)
+
+
+def test_along_an_unbroken_line_nothing_fixes_the_along_road_shift_and_the_merge_says_so(tmp_path):
+    (mosaic,) = drive_layers(_soft_store(tmp_path, 0.04, 0.27, dashes=False))
+    merged = fuse(mosaic)
+    east, north = _relative_shift_m(merged)
+    assert north == pytest.approx(-0.04, abs=0.02)  # across the road: the curbs and the line fix it
+    assert abs(east) < 0.1  # along it the prior keeps the drives' GNSS (no shift), not a guess from noise
+    report = next(r for r in merged.alignment if not r["reference"])
+    weak_east, weak_north = report["least_constrained_direction_en"]
+    assert abs(weak_east) > 0.99  # the least constrained direction is along the road
+    std_weak, std_strong = report["shift_std_m"]
+    assert std_weak > 10 * std_strong
