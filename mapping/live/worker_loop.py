@@ -28,6 +28,8 @@ worker moves on. With
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import hashlib
 import json
 import logging
@@ -90,6 +92,19 @@ ODOMETRY_PERIOD_S = 1.0
 TILE_M = 40.0
 WINDOW_ATTEMPTS = 2
 log = logging.getLogger(__name__)
+
+
+def return_freed_memory() -> None:
+    """Give the heap memory freed after a window back to the system (glibc's malloc_trim; a no-op elsewhere).
+
+    A default window's working set is ~1 GB here; after it glibc kept ~600 MB of it as free heap in its per-thread
+    arenas (RSS 1,160 MB after a window, 545 MB after the trim), and with windows of different sizes and the
+    fits' thread pools that free memory grew from window to window in the 10-minute soak."""
+    name = ctypes.util.find_library("c")
+    try:
+        ctypes.CDLL(name).malloc_trim(0)
+    except (OSError, AttributeError, TypeError):
+        pass
 
 
 @dataclass
@@ -332,6 +347,9 @@ class MappingWorker:
             self.state.last_window_wall_s = entry.wall_s
             self.recent_walls.append(entry.wall_s)
         self.state.mapped_until_m = max(self.state.mapped_until_m, min(entry.end_m, self.state.distance_m))
+        return_freed_memory()
+        if entry.metrics is not None:  # the worker's memory after each window, in the journal (soaks)
+            entry.metrics["rss_mb_after_window"] = round(process_memory_mb()["VmRSS"], 1)
         self._save_journal(entry)
         self._prune_for(k + 1)
         self.update_distance()  # the wheel speeds that came during the window

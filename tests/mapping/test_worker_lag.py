@@ -110,6 +110,8 @@ def test_a_worker_behind_skips_ahead_and_a_stop_leaves_what_cannot_finish_in_tim
     assert windows[-1]["reason"].startswith(f"stop: {n_stop} window(s) of ~")
     assert final["finished"] and final["bus_lost"] == 0 and final["windows_skipped"] == statuses.count("skipped")
     assert final["windows_done"] == statuses.count("done")
+    for w in windows:  # its memory after each window (freed heap given back), for soaks to follow
+        assert w["status"] != "done" or 0 < w["metrics"]["rss_mb_after_window"] <= final["peak_rss_mb"]
     assert final["stop"]["windows"] == n_stop and final["stop"]["first"] == len(windows) - n_stop
     assert abs(final["skipped_m"] - WINDOW_M * final["windows_skipped"]) <= WINDOW_M  # central stretches, 5 m each
     meta = FinalMapMetadata.read(data / "map" / "final")
