@@ -17,6 +17,9 @@ about 2 s a window here, most of it fixed costs of the worker (the 200-step colo
 pose fusion over its 20 s margin), plus a one-off ~5 s per worker to import torch and its optimisers.
   --quick  0.2 km vs 1 km (4 vs 13 windows): 48-55 s wall here at a load of 2.5-6 from other sessions;
   full     1 km vs 10 km (13 vs 126 windows): about 5-6 minutes.
+`--behind`: the feed does not wait for the worker (the whole drive is on the bus long before it is mapped) and the
+worker never skips (`mapper.lag.max_behind_m: null`): the worker as far behind as the drive is long, to show that
+what it holds does not grow with its lag either; `lag_m_max` is how far behind it fell.
 The two drives run side by side, each with its own worker and bus. Each worker is stopped with SIGTERM
 after its feed (it drains the bus, finishes the remaining windows, writes the final map).
 
@@ -32,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import shutil
 import signal
@@ -75,14 +79,17 @@ HWM_POLL_S = 0.02
 RSS_PERIOD_S = 0.5
 
 
-def car_config_data() -> dict:
-    """configs/sim.yaml with one camera and no Lidar, the cheap mapper settings, a bus of its own."""
+def car_config_data(behind: bool = False) -> dict:
+    """configs/sim.yaml with one camera and no Lidar, the cheap mapper settings, a bus of its own (`behind`: a
+    worker that never skips ahead)."""
     data = yaml.safe_load((REPO / "configs" / "sim.yaml").read_text())
     data["bus"] = {"shm_prefix": f"mem{uuid.uuid4().hex[:8]}"}
     data["sensors"].pop("lidar")
     data["sensors"]["cameras"] = [c for c in data["sensors"]["cameras"] if c["name"] == CAMERA]
     data["sensors"]["can"]["dbc_file"] = str(REPO / "configs" / data["sensors"]["can"]["dbc_file"])
     data["mapper"].update(MAPPER)
+    if behind:
+        data["mapper"]["lag"] = {"max_behind_m": None}
     return data
 
 
@@ -172,10 +179,10 @@ def feed(config: CarConfig, km: float, pairs: list, health: pubsub.Subscriber, l
             (GNSS_FIX, IMU, WHEEL_SPEEDS, camera_topic(CAMERA), mask_topic(CAMERA))}
     time.sleep(ATTACH_S)  # the worker registers as a lossless reader of the new rings
     t0_ns = time.monotonic_ns()
-    allowed_ns = t0_ns + int(lead_m / SPEED * 1e9)
+    allowed_ns = t0_ns + int(lead_m / SPEED * 1e9) if math.isfinite(lead_m) else None
     try:
         for topic, msg in drive_messages(km, pairs, t0_ns, config):
-            while msg.host_mono_ns > allowed_ns:
+            while allowed_ns is not None and msg.host_mono_ns > allowed_ns:
                 allowed_ns = t0_ns + int((mapped_m(health) + lead_m) / SPEED * 1e9)
                 if msg.host_mono_ns > allowed_ns:
                     time.sleep(0.05)
@@ -192,6 +199,7 @@ class RssSampler(threading.Thread):
         super().__init__(name="rss-sampler", daemon=True)
         self.pid, self.health = pid, health
         self.samples: list[tuple[float, float]] = []  # (mapped m, RSS MB)
+        self.lag_m_max = 0.0  # how far behind the fed distance the worker fell
         self.peak_mb = 0.0
         self.stop = threading.Event()
 
@@ -207,6 +215,9 @@ class RssSampler(threading.Thread):
             self.peak_mb = max(self.peak_mb, status["VmHWM"])
             if time.monotonic() >= next_sample:
                 self.samples.append((mapped_m(self.health), status["VmRSS"]))
+                latest = self.health.latest()
+                if latest is not None and "lag_m" in latest.detail:
+                    self.lag_m_max = max(self.lag_m_max, json.loads(latest.detail)["lag_m"])
                 next_sample = time.monotonic() + RSS_PERIOD_S
             time.sleep(HWM_POLL_S)
 
@@ -219,21 +230,24 @@ def rss_slope_mb_per_km(samples: list[tuple[float, float]], from_m: float) -> fl
     return round(float(np.polyfit(pts[:, 0] / 1000.0, pts[:, 1], 1)[0]), 2)
 
 
-def run_drive(km: float, pairs: Future, lead_m: float, keep: bool) -> dict:
+def run_drive(km: float, pairs: Future, lead_m: float, keep: bool, behind: bool = False) -> dict:
     """Start a worker, feed it a drive of `km`, stop it; its memory and timings."""
     folder = Path(tempfile.mkdtemp(prefix="roadlog-mem-"))
-    data = car_config_data()
+    data = car_config_data(behind)
     data["recorder"]["output_dir"] = str(folder / "data")
     config_path = folder / "car.yaml"
     config_path.write_text(yaml.safe_dump(data))
     config = load_config(config_path)
     env = dict(os.environ, PYTHONPATH=str(REPO))
     started = time.monotonic()
-    proc = subprocess.Popen([sys.executable, "-m", "mapping.live.mapping_worker", "--config", str(config_path)],
-                            cwd=REPO, env=env, stdout=open(folder / "worker.log", "wb"), stderr=subprocess.STDOUT)
+    proc = subprocess.Popen([sys.executable, "-m", "mapping.live.mapping_worker", "--config", str(config_path),
+                             "--stop-timeout-s", "0"], cwd=REPO, env=env, stdout=open(folder / "worker.log", "wb"),
+                            stderr=subprocess.STDOUT)
     sampler = None
     try:
         health = pubsub.open_subscriber(config, health_topic("mapper"), wait_s=120)
+        while (first := health.latest()) is None or first.state == "starting":  # loading torch: not yet listening
+            time.sleep(0.1)
         up_s = time.monotonic() - started
         sampler = RssSampler(proc.pid, pubsub.open_subscriber(config, health_topic("mapper")))
         sampler.start()
@@ -253,7 +267,9 @@ def run_drive(km: float, pairs: Future, lead_m: float, keep: bool) -> dict:
         return {"km": km, "peak_rss_mb": round(sampler.peak_mb, 1), "peak_rss_mb_driving": round(driving_mb, 1),
                 "rss_slope_mb_per_km": rss_slope_mb_per_km(driving, km * 500.0),
                 "windows": len(journal.windows),
-                "windows_failed": sum(w.status != "done" for w in journal.windows),
+                "windows_failed": sum(w.status == "failed" for w in journal.windows),
+                "windows_skipped": sum(w.status == "skipped" for w in journal.windows),
+                "lag_m_max": round(sampler.lag_m_max, 1),
                 "distance_m": last["distance_m"], "bus_lost": last["bus_lost"], "errors": last["errors"],
                 "startup_s": round(up_s, 1), "feed_s": round(fed_s - up_s, 1),
                 "finish_s": round(time.monotonic() - started - fed_s, 1),
@@ -277,6 +293,8 @@ def main() -> int:
     parser.add_argument("--km", type=float, nargs=2, metavar=("SHORT", "LONG"), help="other drive lengths")
     parser.add_argument("--lead-m", type=float, default=LEAD_M,
                         help=f"how far the feed may run ahead of the mapped distance (default {LEAD_M:g} m)")
+    parser.add_argument("--behind", action="store_true",
+                        help="the feed never waits for the worker, which never skips: memory with the lag")
     parser.add_argument("--drive-log", type=Path, help="a simulated drive (with the bench's camera) to replay")
     parser.add_argument("--keep", action="store_true", help="keep each worker's folder (map, log, RSS samples)")
     args = parser.parse_args()
@@ -286,8 +304,9 @@ def main() -> int:
     try:
         with ThreadPoolExecutor(3) as pool:  # the workers start (imports) while the source drive is simulated
             pairs = pool.submit(lambda: city_frames(args.drive_log or simulate_source(source)))
-            short_run = pool.submit(run_drive, km_short, pairs, args.lead_m, args.keep)
-            long_run = pool.submit(run_drive, km_long, pairs, args.lead_m, args.keep)
+            lead_m = float("inf") if args.behind else args.lead_m
+            short_run = pool.submit(run_drive, km_short, pairs, lead_m, args.keep, args.behind)
+            long_run = pool.submit(run_drive, km_long, pairs, lead_m, args.keep, args.behind)
             short = short_run.result()
             print(json.dumps({"short": short}), flush=True)
             long = long_run.result()
@@ -301,7 +320,9 @@ def main() -> int:
                       "peak_rss_mb_driving_long": long["peak_rss_mb_driving"],
                       "rss_slope_mb_per_km_long": long["rss_slope_mb_per_km"],
                       "windows_short": short["windows"], "windows_long": long["windows"],
-                      "window_m": 2 * WINDOW_M, "lead_m": args.lead_m, "wall_s": round(time.monotonic() - started, 1)}))
+                      "lag_m_max_short": short["lag_m_max"], "lag_m_max_long": long["lag_m_max"],
+                      "window_m": 2 * WINDOW_M, "lead_m": None if args.behind else args.lead_m,
+                      "wall_s": round(time.monotonic() - started, 1)}))
     return 0
 
 

@@ -14,7 +14,11 @@ the Lidar driver's own count of packets missing from the sensor's numbering (los
 and the simulator's count of fixes and IMU samples cut off by a full pseudo-terminal (a serial overrun: the GNSS
 driver did not read in time): `unaccounted` is what none of them counted. Last line: one JSON object (per-topic
 sent/logged/lost, RSS per process start/end/max and slope, mapper windows, stop exit code and seconds, orphans, load
-average).
+average). The mapper's part (`mapper`): its windows by outcome from its journal (done, failed, skipped behind the
+car, skipped at the stop: mapping.live.lag_policy), how far behind it was at the stop, what it held in memory at
+the start and the end of the drive (counts from its health), its own stop time from its log and whether the
+supervisor killed any process at its stop timeout. `--mapper-slow-s S` makes each window take at least S s
+(`mapper.lag.min_window_wall_s`): a mapper that cannot keep up, on any machine.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import json
 import math
 import os
 import random
+import re
 import shutil
 import signal
 import socket
@@ -51,6 +56,7 @@ from daemon.spine.topics import health_topic  # noqa: E402
 from drivers.can.can_bus import open_can_bus  # noqa: E402
 from drivers.lidar.ouster_metadata import parse_metadata  # noqa: E402
 from drivers.lidar.ouster_packet_layout import packet_layout  # noqa: E402
+from mapping.live.worker_journal import read_journal  # noqa: E402
 from sim.live_drive import LiveDriveStats, open_gnss_pty, run_live_drive  # noqa: E402
 from tests.daemon_fixtures import free_port, http_json  # noqa: E402
 
@@ -61,7 +67,8 @@ MIN_FREE_DISK_GB = 15.0  # the soak stops its drive early rather than fill a dis
 STOP_TIMEOUT_S = 900.0
 
 
-def write_config(work: Path, drive: Path, pty_path: str, segment_s: float, mapper: bool) -> Path:
+def write_config(work: Path, drive: Path, pty_path: str, segment_s: float, mapper: bool,
+                 mapper_slow_s: float = 0.0) -> Path:
     """configs/sim.yaml with private ports and bus prefix, looping sim cameras, logs under work/data."""
     data = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
     data["bus"] = {"shm_prefix": f"soak{uuid.uuid4().hex[:8]}"}
@@ -75,6 +82,8 @@ def write_config(work: Path, drive: Path, pty_path: str, segment_s: float, mappe
                     options={"port": random.randint(40000, 49000)})
     data["recorder"].update(output_dir=str(work / "data"), segment_seconds=segment_s)
     data["mapper"]["enabled"] = mapper
+    if mapper_slow_s:
+        data["mapper"]["lag"] = {"min_window_wall_s": mapper_slow_s}
     data["status"]["port"] = free_port()
     path = work / "car.yaml"
     path.write_text(yaml.safe_dump(data))
@@ -192,6 +201,22 @@ def simulate(work: Path, scenario: str, seconds: float, seed: int) -> Path:
     return drive
 
 
+def mapper_report(folder: Path, daemon_log: Path, held: list[dict], before_stop: dict) -> dict:
+    """The mapper's windows by outcome (its journal), its lag at the stop, what it held in memory at the drive's start
+    and end, its own stop time (its log) and the processes the supervisor killed at their stop timeout."""
+    journal = read_journal(folder)
+    outcomes: Counter = Counter()
+    for w in journal.windows if journal is not None else []:
+        outcomes[w.status if w.status != "skipped" else f"skipped_{(w.reason or '').split(':')[0]}"] += 1
+    text = daemon_log.read_text(errors="replace") if daemon_log.exists() else ""
+    stop_s = re.findall(r"final map in .*?, ([0-9.]+) s after the stop request", text)
+    return {"windows": dict(outcomes), "finished": bool(journal and journal.finished),
+            "lag_m_at_stop": before_stop.get("lag_m"), "distance_m_at_stop": before_stop.get("distance_m"),
+            "skipped_m": before_stop.get("skipped_m"), "held_start": held[0] if held else None,
+            "held_end": held[-1] if held else None, "stop_s": float(stop_s[-1]) if stop_s else None,
+            "killed_at_stop_timeout": re.findall(r"(\w+) did not stop within its stop timeout", text)}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--duration", type=float, default=3600.0, help="seconds of driving (whole passes)")
@@ -204,6 +229,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sample-s", type=float, default=10.0)
     parser.add_argument("--segment-s", type=float, default=60.0)
     parser.add_argument("--no-mapper", action="store_true")
+    parser.add_argument("--mapper-slow-s", type=float, default=0.0,
+                        help="each mapper window takes at least this long (s): a mapper that falls behind")
     args = parser.parse_args(argv)
     if args.quick:
         args.duration, args.sample_s, args.segment_s = 40.0, 2.0, 10.0
@@ -217,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
         shutil.rmtree(work / "data")
 
     pty = open_gnss_pty()
-    config_path = write_config(work, drive, pty.path, args.segment_s, not args.no_mapper)
+    config_path = write_config(work, drive, pty.path, args.segment_s, not args.no_mapper, args.mapper_slow_s)
     config = load_config(config_path)
     port = config.status.port
     layout = packet_layout(parse_metadata(Path(config.sensors.lidar.metadata_file)))
@@ -238,6 +265,7 @@ def main(argv: list[str] | None = None) -> int:
     free_gb: list[float] = []
     stop_drive = threading.Event()
     final_health: dict = {}
+    mapper_held: list[dict] = []  # what the mapper held in memory (its health's counts), first and latest
     stats_box: list[LiveDriveStats] = []
     try:
         names = {"lidar", "gnss", "can", "recorder", *(f"camera_{c.name}" for c in config.sensors.cameras)}
@@ -267,6 +295,8 @@ def main(argv: list[str] | None = None) -> int:
             player.join(args.sample_s)
             status = http_json(port, "/status", timeout_s=5.0)[1]
             sampler.sample(status, time.monotonic() - t0)
+            if "held" in status.get("mapping", {}):
+                mapper_held[1:] = [status["mapping"]["held"] | {"rss_mb": status["mapping"].get("rss_mb")}]
             lost_now = sum(status.get("recorder", {}).get("lost", {}).values())
             if lost_now != (losses[-1][1] if losses else 0):
                 losses.append((round(time.monotonic() - t0, 1), lost_now))
@@ -350,6 +380,8 @@ def main(argv: list[str] | None = None) -> int:
         "recorder_lost_over_time": losses,
         "free_disk_gb_min": round(min(free_gb), 1) if free_gb else None,
         "map_final": (data / "map" / "final" / "metadata.json").exists(),
+        "mapper": mapper_report(data / "map", work / "daemon.log", mapper_held, result.get("mapping_before_stop", {}))
+        if not args.no_mapper else None,
     })
     print(json.dumps(result))
     return 0

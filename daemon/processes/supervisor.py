@@ -301,8 +301,9 @@ class Supervisor:
 
     # --- main loop -----------------------------------------------------------------------------
     def _ready_to_start(self, child: Child) -> bool:
-        """A process that starts after others waits until each of them has published health."""
-        return all(self._last_health_age_s(self.children[name]) is not None
+        """A process that starts after others waits until each of them has published health saying it is up (a
+        `starting` health, published while a process loads, keeps it from being taken for hung, no more)."""
+        return all((msg := self._latest_health(self.children[name])) is not None and msg.state != "starting"
                    for name in child.spec.start_after if name in self.children)
 
     def run(self) -> int:

@@ -215,6 +215,23 @@ class RuntimeConfig(StrictModel):
     raster_threads: int = Field(2, ge=1)  # threads filling the bird's-eye rasters (blocks of rows)
 
 
+class LagConfig(StrictModel):
+    """What the live worker does when it cannot keep up with the car, and at its stop (mapping.live.lag_policy)."""
+
+    max_behind_m: float | None = Field(1000.0, gt=0)  # when the next window ended more than this far (m) behind the
+    # car, the windows up to the newest ended one are skipped: journalled `skipped` with their time span and log
+    # segments (`roadlog reconstruct` on those segments maps them later), counted in its health; None: never skip
+    # (a replay never skips: its process-table entry says --no-skip). Keep it well above the road driven in the 2 s
+    # a window's inputs reach past its end (60 m at 30 m/s): a worker that keeps up is that far behind
+    stop_reserve_s: float = Field(60.0, ge=0)  # of its stop timeout (--stop-timeout-s), the seconds kept for the
+    # final map: after SIGTERM no window starts that would not end before the timeout less this
+    min_window_wall_s: float = Field(0.0, ge=0)  # each window takes at least this long (s): a mapper slower than
+    # the car without the CPU it would cost (tests, soaks); 0: as fast as it fits
+
+
+DEVICES = ("auto", "cpu", "cuda")  # mapper.device's values (mapping.method.compute_device)
+
+
 class MapperConfig(StrictModel):
     """The road-surface mapper (the live worker and `roadlog reconstruct`)."""
 
@@ -231,4 +248,5 @@ class MapperConfig(StrictModel):
     maskless: MasklessConfig = MasklessConfig()
     runtime: RuntimeConfig = RuntimeConfig()
     live_view: LiveViewConfig = LiveViewConfig()
+    lag: LagConfig = LagConfig()
     segmentation: SegmentationConfig = SegmentationConfig()

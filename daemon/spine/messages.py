@@ -147,7 +147,7 @@ class DriverHealth:
     sensor_time_ns: int = 0
     host_mono_ns: int = 0
     process: str = ""
-    state: str = "ok"  # ok | degraded | error
+    state: str = "ok"  # ok | degraded | error | starting (loading: alive, not yet up)
     rate_hz: float = 0.0
     last_message_age_s: float = float("inf")
     received: int = 0

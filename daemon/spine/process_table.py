@@ -12,6 +12,7 @@ from daemon.spine.config import POINT_CLOUD_LIDAR, CarConfig, ConfigError
 from daemon.spine.topics import LIDAR_VIEW_PROCESS, VEHICLE_POSE_PROCESS, camera_process, fuses_pose, views_lidar
 
 Mode = Literal["live", "replay"]
+MAP_STOP_TIMEOUT_S = 600.0  # how long the mapper may take after SIGTERM (its remaining windows, the final map)
 MAPPER_NICE = 10  # the mapper's CPU priority below the drivers' and the recorder's
 VIEWER_NICE = MAPPER_NICE  # the viewing clouds' and the live pose's: as the mapper, below the drivers and the recorder
 RESTARTS_ENV = "ROADLOG_RESTARTS"  # set by the supervisor: how many times it restarted this process (0: first start)
@@ -65,7 +66,7 @@ def process_table(
     replay_rate: str = "1.0",
     record: bool = True,
     output_dir: str | None = None,
-    map_stop_timeout_s: float = 600.0,
+    map_stop_timeout_s: float = MAP_STOP_TIMEOUT_S,
 ) -> list[ProcessSpec]:
     """The processes of one daemon run. Live: one per driver; replay: the log player instead. A live run of a
     config with a sensor that has no live driver is a ConfigError (`roadlog run` and check-config exit 2)."""
@@ -104,7 +105,9 @@ def process_table(
         table.append(ProcessSpec(VEHICLE_POSE_PROCESS, "mapping.viewing.vehicle_pose", cfg, **viewing))
     if config.mapper.enabled:
         # the log comes first: on a busy machine the drivers and the recorder get the CPU before the mapper
-        table.append(ProcessSpec("mapper", "mapping.live.mapping_worker", cfg + out, heartbeat_s=120.0,
+        # it plans its stop within its stop timeout; a replay's never skips a window (nothing is lost by waiting)
+        lag = ("--stop-timeout-s", f"{map_stop_timeout_s:g}") + ("--no-skip",) * (mode == "replay")
+        table.append(ProcessSpec("mapper", "mapping.live.mapping_worker", cfg + out + lag, heartbeat_s=120.0,
                                  stop_timeout_s=map_stop_timeout_s, restart_on_success=False, nice=MAPPER_NICE,
                                  check="mapping.inputs.drive_inputs:check_config"))
     table.append(ProcessSpec("status", "daemon.processes.status_server", cfg + out, heartbeat_s=0.0))

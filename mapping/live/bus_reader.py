@@ -1,6 +1,9 @@
-"""The live worker's bus thread: every topic the mapper needs, read losslessly into the disk spool (the small
-streams, GNSS/IMU/wheels/anchors, also into memory; of the Lidar's packets or point clouds every n-th scan), and the
-log segments the recorder or player name."""
+"""The live worker's bus thread: every topic the mapper needs, read losslessly into the disk spools (the small
+streams, GNSS/IMU/wheels/anchors, into a spool of their own, read back for each window's fusion; of the Lidar's packets
+or point clouds every n-th scan), and the log segments the recorder or player name.
+
+What it holds in memory does not grow with how far the worker is behind: the wheel speeds not yet integrated into
+the odometry (taken every second, or after a window), and the time anchors (one a second, ~100 bytes each)."""
 
 from __future__ import annotations
 
@@ -34,17 +37,20 @@ SEGMENT_SOURCES = (health_topic("recorder"), health_topic("replay"))
 
 
 class BusReader(threading.Thread):
-    """Reads every topic the mapper needs into the spool (and the small streams into memory)."""
+    """Reads every topic the mapper needs into the spools (wheel speeds and anchors also into memory)."""
 
-    def __init__(self, config: CarConfig, spool: KeyframeSpool, lock: threading.Lock, health: HealthCounters,
-                 last_seq: dict[str, int], lidar_decoding: OusterMetadata | VendorDecoding | None):
+    def __init__(self, config: CarConfig, spool: KeyframeSpool, small_spool: KeyframeSpool, lock: threading.Lock,
+                 health: HealthCounters, last_seq: dict[str, int],
+                 lidar_decoding: OusterMetadata | VendorDecoding | None):
         super().__init__(name="mapper-bus", daemon=True)
         self.config = config
         self.spool = spool
+        self.small_spool = small_spool  # GNSS, IMU, wheel speeds, anchors
         self.lock = lock
         self.health = health
         self.last_seq = last_seq
-        self.small: dict[str, list] = {t: [] for t in SMALL_TOPICS}
+        self.wheels: list = []  # wheel speeds not yet taken by the odometry (take_wheels)
+        self.anchors: list = []  # every time anchor (one a second)
         self.segments: dict[str, list[int]] = {}  # segment name -> [first, last] host ns seen open
         self.stop_requested = threading.Event()
         self.drained = threading.Event()
@@ -76,7 +82,7 @@ class BusReader(threading.Thread):
                     pass
 
     def take(self, topic: str, msg: object) -> None:
-        """Spool one message (and keep it in memory if it is a small stream)."""
+        """Spool one message (a wheel speed also for the odometry, an anchor also in memory)."""
         if msg.seq <= self.last_seq.get(topic, -1):
             return  # spooled before a restart
         self.last_seq[topic] = msg.seq
@@ -90,9 +96,14 @@ class BusReader(threading.Thread):
             if not keeps_scan(scan, 1, self.config.mapper.inputs.lidar_every_n_scans):
                 return
         with self.lock:
-            self.spool.append(topic, msg, arrival)
-            if topic in self.small:
-                self.small[topic].append(msg)
+            if topic in SMALL_TOPICS:
+                self.small_spool.append(topic, msg, arrival)
+                if topic == WHEEL_SPEEDS:
+                    self.wheels.append(msg)
+                elif topic == TIME_ANCHOR:
+                    self.anchors.append(msg)
+            else:
+                self.spool.append(topic, msg, arrival)
 
     def _side(self, topic: str, msg: object) -> None:
         try:
@@ -130,22 +141,29 @@ class BusReader(threading.Thread):
                 self.last_message_ns = now
                 with self.lock:
                     self.spool.flush()
+                    self.small_spool.flush()
             elif self.stop_requested.is_set() and now - self.last_message_ns > DRAIN_QUIET_S * 1e9:
                 break
             else:
                 time.sleep(0.01)
         with self.lock:
             self.spool.flush_close()
+            self.small_spool.flush_close()
         for sub in list(self.subs.values()) + list(self.side.values()):
             sub.close()
         self.drained.set()
 
     def prune(self, before_ns: int) -> None:
+        """Delete the spooled chunks no window from `before_ns` on needs."""
         with self.lock:
-            for topic, msgs in self.small.items():
-                if topic != TIME_ANCHOR:
-                    self.small[topic] = [m for m in msgs if m.host_mono_ns >= before_ns]
             self.spool.prune_before(before_ns)
+            self.small_spool.prune_before(before_ns)
+
+    def take_wheels(self) -> list:
+        """The wheel speeds received since the last call, in arrival order."""
+        with self.lock:
+            wheels, self.wheels = self.wheels, []
+        return wheels
 
     def complete_until(self, host_ns: int) -> bool:
         """Whether every topic heard from has delivered its messages up to `host_ns` (each topic arrives in
@@ -156,6 +174,17 @@ class BusReader(threading.Thread):
         top = max(newest.values())
         return all(t >= host_ns or t < top - STALLED_TOPIC_NS for t in newest.values())
 
-    def small_copy(self) -> dict[str, list]:
+    def read_small(self, first_ns: int, last_ns: int) -> dict[str, list]:
+        """The GNSS fixes, IMU samples and wheel speeds that arrived in [first_ns, last_ns] (from their spool), and
+        every time anchor up to last_ns."""
+        small: dict[str, list] = {t: [] for t in SMALL_TOPICS}
         with self.lock:
-            return {t: list(v) for t, v in self.small.items()}
+            for _, topic, msg in self.small_spool.read(first_ns, last_ns, {GNSS_FIX, IMU, WHEEL_SPEEDS}):
+                small[topic].append(msg)
+            small[TIME_ANCHOR] = [a for a in self.anchors if a.host_mono_ns <= last_ns]
+        return small
+
+    def held(self) -> dict[str, int]:
+        """What it holds in memory, by count (health)."""
+        return {"wheel_speeds_pending": len(self.wheels), "time_anchors": len(self.anchors),
+                "segments": len(self.segments), "spool_chunks": len(self.spool.chunks) + len(self.small_spool.chunks)}

@@ -40,16 +40,19 @@ class JournalHeader:
 @dataclass
 class WindowEntry:
     """One window's outcome. A failed window has `error`; a done one its seed, wall time, tiles, metrics and
-    provenance (host time range, per-topic seq ranges, log segments, input counts, the config)."""
+    provenance (host time range, per-topic seq ranges, log segments, input counts, the config); a skipped one
+    (mapping.live.lag_policy: behind the car, or left at the stop) its `reason`, host time range and the log
+    segments that hold it (`roadlog reconstruct` on them maps it)."""
 
     index: int
-    status: Literal["done", "failed"]
+    status: Literal["done", "failed", "skipped"]
     centre_m: float | None = None  # place on the drive, m
     start_m: float | None = None
     end_m: float | None = None
     attempts: int | None = None
     finished_mono_ns: int | None = None
     error: str | None = None
+    reason: str | None = None  # skipped: "behind: ..." or "stop: ..."
     seed: int | None = None
     wall_s: float | None = None
     tiles: list[str] | None = None  # the tile files it wrote

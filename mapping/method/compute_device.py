@@ -13,8 +13,8 @@ from contextlib import contextmanager
 import torch
 
 from daemon.spine.config import ConfigError
+from daemon.spine.mapper_config import DEVICES
 
-DEVICES = ("auto", "cpu", "cuda")
 _IN_LOOP: contextvars.ContextVar[str | None] = contextvars.ContextVar("optimisation_loop", default=None)
 
 

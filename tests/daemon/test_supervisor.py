@@ -176,6 +176,24 @@ def test_a_process_starts_after_the_ones_it_waits_for(config):
         thread.join(30)
 
 
+def test_a_starting_health_keeps_a_process_alive_but_does_not_start_the_ones_waiting_for_it(config):
+    cfg, path = config
+    player = ProcessSpec("replay", "fake_process", ("--config", str(path), "--name", "replay"),
+                         start_after=("mapper",))
+    sup = Supervisor(cfg, [player, _spec("mapper", path, "slow-start", after=4.0, heartbeat_s=2.0)], env=ENV,
+                     startup_grace_s=1.0)
+    thread = _run_in_thread(sup)
+    try:
+        _wait_for_health(cfg, ["mapper"])  # its first health: "starting"
+        time.sleep(3.0)  # past its heartbeat: a starting health is a heartbeat
+        assert sup.children["mapper"].restarts == 0 and sup.children["replay"].popen is None
+        assert _wait(lambda: sup.children["replay"].state == "running")  # once it says it is up
+        assert sup.children["replay"].started_at > sup.children["mapper"].started_at + 4.0
+    finally:
+        sup.stop_event.set()
+        thread.join(30)
+
+
 def _notify_socket(tmp_path):
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     path = str(tmp_path / "notify.sock")
@@ -273,6 +291,12 @@ def test_process_table_live_and_replay(config):
                      for rate in ("max", "1.0")}
     assert "--lossless" in recorder_args["max"] and "--lossless" not in recorder_args["1.0"]
     assert "--lossless" not in next(p for p in live if p.name == "recorder").args
+    # the mapper plans its stop within its stop timeout; a replay's never skips a window
+    mapper = {mode: next(p for p in table if p.name == "mapper") for mode, table in (("live", live),
+                                                                                     ("replay", replay))}
+    assert mapper["live"].stop_timeout_s == 600.0 and "--stop-timeout-s" in mapper["live"].args
+    assert mapper["live"].args[mapper["live"].args.index("--stop-timeout-s") + 1] == "600"
+    assert "--no-skip" not in mapper["live"].args and "--no-skip" in mapper["replay"].args
     # the log before the map and what shows it (viewing clouds, the live pose)
     assert {p.name: p.nice for p in live if p.nice} == {"lidar_view": 10, "vehicle_pose": 10, "mapper": 10}
 

@@ -15,7 +15,8 @@ def main() -> int:
     parser = argparse.ArgumentParser()
     parser.add_argument("--config", required=True)
     parser.add_argument("--name", required=True)
-    parser.add_argument("--behaviour", default="ok", choices=["ok", "crash", "hang", "done", "slow-stop", "bad-config"])
+    parser.add_argument("--behaviour", default="ok", choices=["ok", "crash", "hang", "done", "slow-stop", "bad-config",
+                                                             "slow-start"])
     parser.add_argument("--after", type=float, default=1.0)
     parser.add_argument("--marker", default="")
     args = parser.parse_args()
@@ -37,7 +38,10 @@ def main() -> int:
             if args.behaviour == "hang":
                 time.sleep(3600)
         health.count_published(10)
-        pub.publish(health.snapshot())
+        msg = health.snapshot()
+        if args.behaviour == "slow-start" and elapsed <= args.after:
+            msg.state = "starting"  # alive, loading (the mapper before torch)
+        pub.publish(msg)
         time.sleep(0.1)
     if args.behaviour == "slow-stop":
         time.sleep(3600)

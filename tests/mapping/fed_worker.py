@@ -3,7 +3,7 @@
 from pathlib import Path
 
 from daemon.log_format.reader import read_log
-from mapping.live.mapping_worker import MappingWorker
+from mapping.live.worker_loop import MappingWorker
 from tests.daemon_fixtures import private_config
 
 SMALL_WINDOWS = {"windows": {"before_m": 10.0, "after_m": 10.0}, "mesh": {"side_m": 0.25, "corridor_half_width_m": 6.0},

@@ -111,9 +111,9 @@ def city_drive(tmp_path_factory):
     return folder / "city.mcap"
 
 
-def _start_worker(config_path: Path, log: Path) -> subprocess.Popen:
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    return subprocess.Popen([sys.executable, "-m", "mapping.live.mapping_worker", "--config", str(config_path)],
+def _start_worker(config_path: Path, log: Path, *args: str, path_first: Path | None = None) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(str(p) for p in (path_first, REPO) if p))
+    return subprocess.Popen([sys.executable, "-m", "mapping.live.mapping_worker", "--config", str(config_path), *args],
                             cwd=REPO, env=env, stdout=open(log, "ab"), stderr=subprocess.STDOUT)
 
 
@@ -232,7 +232,7 @@ def test_rasters_written_a_row_of_tiles_at_a_time_equal_the_mosaic(tmp_path):
 def test_the_worker_maps_a_drive_without_masks_and_its_final_map_has_no_semantics(city_drive_without_masks, tmp_path,
                                                                                    caplog):
     worker = worker_fed(tmp_path / "run", city_drive_without_masks)
-    with caplog.at_level(logging.WARNING, logger="mapping.live.mapping_worker"):
+    with caplog.at_level(logging.WARNING, logger="mapping.live.worker_loop"):
         entries = [worker.run_window(0), worker.run_window(1)]
     warnings = [r.getMessage() for r in caplog.records if "no semantic mask" in r.getMessage()]
     assert len(warnings) == 1 and warnings[0].startswith("window 0: ")  # once, not per window

@@ -20,7 +20,7 @@ from daemon.processes.replay import replay
 from daemon.spine.config import load_config
 from daemon.spine.topics import LIDAR_POINTS
 from mapping.inputs.drive_inputs import check_config, load_drive
-from mapping.live.mapping_worker import MappingWorker
+from mapping.live.worker_loop import MappingWorker
 from mapping.offline.reconstruct_command import DriveTruth, config_from_logs
 from mapping.offline.reconstruct_command import main as reconstruct_main
 from tests.daemon_fixtures import REPO, private_config
