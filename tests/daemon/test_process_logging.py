@@ -109,10 +109,10 @@ def test_a_crash_under_the_journal_is_logged_at_critical_priority_line_by_line()
 
 def test_every_process_the_daemon_runs_sets_up_its_logging_the_one_way(tmp_path):
     """No process keeps a logging set-up of its own (basicConfig with its timestamps): each main() calls
-    setup_logging, itself or through the camera processes' common main."""
+    setup_logging, itself or through the camera processes' or the viewing processes' common main."""
     config, path = private_config(tmp_path)
     modules = {s.module for mode in ("live", "replay") for s in process_table(config, str(path), mode)}
     for name in sorted(modules):
         source = inspect.getsource(importlib.import_module(name))
         assert "basicConfig" not in source, name
-        assert "setup_logging(" in source or "camera_process_main(" in source, name
+        assert "setup_logging(" in source or "camera_process_main(" in source or "viewing_main(" in source, name
