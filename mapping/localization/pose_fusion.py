@@ -2,8 +2,9 @@
 
 An error-state Kalman filter runs the IMU strapdown mechanisation forward and updates at every GNSS fix
 (position, optionally velocity, antenna lever arm) and at 20 Hz epochs with the wheel speeds interpolated
-there (rear-axle speed with a scale-factor state, zero lateral and vertical velocity, optional yaw rate; a drive
-without wheel speeds, such as a GNSS/INS box alone, keeps the zero lateral and vertical velocity of the rear axle);
+there (rear-axle speed with a scale-factor state, zero lateral velocity of the rear axle and zero vertical velocity
+of the middle between the axles, optional yaw rate; a drive without wheel speeds, such as a GNSS/INS box alone,
+keeps the zero lateral and vertical velocities);
 a Rauch-Tung-Striebel pass then smooths the whole window backward, and poses come out at IMU rate. A
 first pass over the first minute refines the initial state. States (19 errors): position, velocity,
 attitude of the IMU frame (world-frame angles), accelerometer bias, gyro bias, wheel scale error,
@@ -78,6 +79,10 @@ class VehicleMounting:
     imu_to_vehicle: np.ndarray = field(default_factory=lambda: np.eye(3))  # rotates IMU-frame vectors
     # prior 1-sigma of the error of imu_to_vehicle about the vehicle x, y, z axes (rad); estimated online
     imu_misalignment_sigma: np.ndarray = field(default_factory=lambda: np.full(3, 1e-4))
+    # front axle this far ahead of the rear: with all four wheels on the road the body pitches with the chord
+    # between the axles, and the point that does not move up or down in the body frame is the middle between
+    # them (on a crest or a sag the rear axle does, by pitch rate x half the wheel base); 0: the rear axle
+    wheel_base_m: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -233,7 +238,7 @@ class _Inputs:
     rear_speed: np.ndarray
     yaw_rate: np.ndarray | None
     l_gnss: np.ndarray
-    l_axle: np.ndarray
+    wheel_points: np.ndarray  # (3, 3) vehicle frame: where the speed, the zero lateral, the zero vertical velocity hold
     g0: float
 
 
@@ -253,7 +258,7 @@ def _smooth(inputs: _Inputs, x: NavState, p: np.ndarray, end_ns: int, settings: 
     x = x.copy()
     imu_ns, gyro, force_ref, gnss_ns = inputs.imu_ns, inputs.gyro, inputs.force_ref, inputs.gnss_ns
     gnss_enu, gnss_cov, wheel_t, rear_speed = inputs.gnss_enu, inputs.gnss_cov, inputs.wheel_t, inputs.rear_speed
-    l_gnss, l_axle, g0 = inputs.l_gnss, inputs.l_axle, inputs.g0
+    l_gnss, g0 = inputs.l_gnss, inputs.g0
     epochs_ns = _epoch_times(gnss_ns, end_ns, settings.update_rate_hz)
     epochs = epochs_ns * 1e-9
     gnss_at = {int(t): i for i, t in enumerate(gnss_ns)}
@@ -367,21 +372,21 @@ def _smooth(inputs: _Inputs, x: NavState, p: np.ndarray, end_ns: int, settings: 
                        settings.gate_chi2, "gnss_velocity")
 
         speed = epoch_speed[epoch - 1]
-        if np.isfinite(speed) or no_wheels:  # the rear axle's velocity in the vehicle frame
+        if np.isfinite(speed) or no_wheels:  # the wheels' velocity in the vehicle frame
             r_wv = x.r_wi @ x.r_iv
             u_center = r_wv.T @ x.v
-            u = u_center + skew(w_vehicle) @ l_axle
+            u = u_center + np.diag(np.cross(w_vehicle, inputs.wheel_points))  # row k: point k's component k
             h = np.zeros((3, N_STATES))
             h[:, V] = r_wv.T
             h[:, TH] = r_wv.T @ skew(x.v)
-            h[:, BG] = skew(l_axle) @ x.r_iv.T
+            h[:, BG] = np.array([skew(arm)[k] for k, arm in enumerate(inputs.wheel_points)]) @ x.r_iv.T
             h[:, MU] = skew(u_center)
             if np.isfinite(speed):
                 h[0] *= 1.0 + x.k
                 h[0, K] = u[0]
                 predicted = np.array([(1.0 + x.k) * u[0], u[1], u[2]])
                 update(np.array([speed, 0.0, 0.0]) - predicted, h, wheel_noise, settings.gate_chi2, "wheel")
-            else:  # no wheel speeds at all: the rear axle still moves without sliding sideways or up
+            else:  # no wheel speeds at all: the car still moves without sliding sideways or up
                 update(-u[1:], h[1:], wheel_noise[1:, 1:], CHI2_2DOF_9999, "nonholonomic")
 
         yaw_rate = epoch_yaw_rate[epoch - 1]
@@ -450,8 +455,8 @@ def fuse_trajectory(gnss: GnssFixes, imu: ImuSamples, wheels: WheelSpeeds | None
 
     inputs = _Inputs(imu_ns=imu_ns, gyro=gyro, force_ref=force_ref, gnss_ns=gnss_ns, gnss_enu=gnss_enu,
                      gnss_cov=gnss_cov, gnss_velocity=gnss.velocity_enu, gnss_velocity_cov=gnss.velocity_cov_enu,
-                     wheel_t=wheel_t, rear_speed=rear_speed, yaw_rate=wheels.yaw_rate, l_gnss=l_gnss, l_axle=l_axle,
-                     g0=g0)
+                     wheel_t=wheel_t, rear_speed=rear_speed, yaw_rate=wheels.yaw_rate, l_gnss=l_gnss, g0=g0,
+                     wheel_points=np.array([l_axle, l_axle, l_axle + [0.5 * mounting.wheel_base_m, 0.0, 0.0]]))
     x, p_antenna = _initial_state(gnss_enu, gnss_cov[0], gnss_t, imu_t, force_ref, gyro, wheel_t, rear_speed,
                                   mounting, settings)
     if settings.initial_pass_s > 0.0:
