@@ -30,10 +30,10 @@ def world_7():
     return config, ego, origin
 
 
-def exact_inputs(config, ego, origin, first_fix_offset=np.zeros(3)):
+def exact_inputs(config, ego, origin, first_fix_offset=(0.0, 0.0, 0.0)):
     ns = lambda t: np.round(t * 1e9).astype(np.int64) + T0_NS  # noqa: E731
-    t_imu, t_gnss, t_wheel = np.arange(0.003, SECONDS, 0.01), np.arange(0.0, SECONDS, 0.1), np.arange(0.007, SECONDS,
-                                                                                                        0.02)
+    t_imu, t_gnss = np.arange(0.003, SECONDS, 0.01), np.arange(0.0, SECONDS, 0.1)
+    t_wheel = np.arange(0.007, SECONDS, 0.02)
     lever = np.array(config.sensors.gnss.antenna_lever_arm_m)
     rot, pos = ego.pose(t_gnss)
     antenna = pos + np.einsum("nij,j->ni", rot, lever)
