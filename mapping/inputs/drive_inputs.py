@@ -172,6 +172,7 @@ def fuse_log_trajectory(gnss: list[GnssFix], imu: list[ImuSample], wheels: list[
         gnss_lever_arm=np.array(g.antenna_lever_arm_m, float),
         imu_lever_arm=np.array(g.imu_extrinsics.translation_m, float),
         rear_axle_lever_arm=np.array(config.vehicle.rear_axle_m, float),
+        wheel_base_m=config.vehicle.wheel_base_m,
         imu_to_vehicle=g.imu_extrinsics.rotation_matrix(),
     )
     return pose_fusion.fuse_trajectory(fixes, samples, speeds, mounting, origin=origin).trajectory

@@ -2,8 +2,9 @@
 
 An error-state Kalman filter runs the IMU strapdown mechanisation forward and updates at every GNSS fix
 (position, optionally velocity, antenna lever arm) and at 20 Hz epochs with the wheel speeds interpolated
-there (rear-axle speed with a scale-factor state, zero lateral and vertical velocity, optional yaw rate; a drive
-without wheel speeds, such as a GNSS/INS box alone, keeps the zero lateral and vertical velocity of the rear axle);
+there (rear-axle speed with a scale-factor state, zero lateral velocity of the rear axle and zero vertical velocity
+of the middle between the axles, optional yaw rate; a drive without wheel speeds, such as a GNSS/INS box alone,
+keeps the zero lateral and vertical velocities);
 a Rauch-Tung-Striebel pass then smooths the whole window backward, and poses come out at IMU rate. A
 first pass over the first minute refines the initial state. States (19 errors): position, velocity,
 attitude of the IMU frame (world-frame angles), accelerometer bias, gyro bias, wheel scale error,
@@ -16,11 +17,21 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from daemon.spine.local_frame import LocalFrame
-from mapping.localization.navigation_math import gravity_enu, normal_gravity, skew, so3_exp, so3_log
+from mapping.localization.error_state import (
+    BA,
+    BG,
+    MU,
+    N_STATES,
+    TH,
+    K,
+    NavState,
+    P,
+    V,
+    reference_point_prior,
+)
+from mapping.localization.navigation_math import gravity_enu, normal_gravity, skew, so3_exp
 from mapping.localization.trajectory import Trajectory
 
-_P, _V, _TH, _BA, _BG, _K, _MU = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15), 15, slice(16, 19)
-N_STATES = 19
 CHI2_3DOF_9999 = 21.11  # 99.99 % quantile of chi-square with 3 degrees of freedom
 CHI2_2DOF_9999 = 18.42
 CHI2_1DOF_9999 = 15.14
@@ -68,6 +79,10 @@ class VehicleMounting:
     imu_to_vehicle: np.ndarray = field(default_factory=lambda: np.eye(3))  # rotates IMU-frame vectors
     # prior 1-sigma of the error of imu_to_vehicle about the vehicle x, y, z axes (rad); estimated online
     imu_misalignment_sigma: np.ndarray = field(default_factory=lambda: np.full(3, 1e-4))
+    # front axle this far ahead of the rear: with all four wheels on the road the body pitches with the chord
+    # between the axles, and the point that does not move up or down in the body frame is the middle between
+    # them (on a crest or a sag the rear axle does, by pitch rate x half the wheel base); 0: the rear axle
+    wheel_base_m: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -123,42 +138,6 @@ def _specific_force_at_reference(imu: ImuSamples, lever_arm_imu: np.ndarray, sec
     return np.asarray(imu.accel, dtype=np.float64) - np.cross(angular_accel, lever_arm_imu) - centripetal
 
 
-@dataclass
-class _State:
-    p: np.ndarray
-    v: np.ndarray
-    r_wi: np.ndarray  # IMU frame -> ENU
-    ba: np.ndarray
-    bg: np.ndarray
-    k: float
-    r_iv: np.ndarray  # vehicle frame -> IMU frame
-
-    def copy(self) -> "_State":
-        return _State(self.p.copy(), self.v.copy(), self.r_wi.copy(), self.ba.copy(), self.bg.copy(), self.k,
-                      self.r_iv.copy())
-
-    def inject(self, dx: np.ndarray) -> None:
-        self.p = self.p + dx[_P]
-        self.v = self.v + dx[_V]
-        self.r_wi = so3_exp(dx[_TH]) @ self.r_wi
-        self.ba = self.ba + dx[_BA]
-        self.bg = self.bg + dx[_BG]
-        self.k = self.k + dx[_K]
-        self.r_iv = self.r_iv @ so3_exp(dx[_MU])
-
-    def minus(self, other: "_State") -> np.ndarray:
-        """Error vector dx such that other.inject(dx) gives self."""
-        dx = np.empty(N_STATES)
-        dx[_P] = self.p - other.p
-        dx[_V] = self.v - other.v
-        dx[_TH] = so3_log(self.r_wi @ other.r_wi.T)
-        dx[_BA] = self.ba - other.ba
-        dx[_BG] = self.bg - other.bg
-        dx[_K] = self.k - other.k
-        dx[_MU] = so3_log(other.r_iv.T @ self.r_iv)
-        return dx
-
-
 def _epoch_times(gnss_ns: np.ndarray, end_ns: int, update_rate_hz: float) -> np.ndarray:
     """Kalman epochs (int64 ns): every GNSS fix plus a regular grid for the wheel speeds, all in (0, end]."""
     grid = np.round(np.arange(1, int(end_ns * 1e-9 * update_rate_hz) + 1) * (1e9 / update_rate_hz))
@@ -204,7 +183,8 @@ def _rotate(xy: np.ndarray, angle: float) -> np.ndarray:
 
 def _initial_state(gnss_enu, gnss_cov0, gnss_t, imu_t, force_ref, gyro, wheel_t, rear_speed, mounting, settings):
     """Attitude from gravity (less the car's own acceleration: along its track from the speeds, centripetal from
-    the gyro) and the first GNSS displacement; returns x, P."""
+    the gyro) and the first GNSS displacement; returns x and its covariance with the first fix's error in the
+    position block (reference_point_prior makes it the reference point's)."""
     start = gnss_t[0]
     first = (imu_t >= start) & (imu_t <= start + 0.5)
     if not np.any(first):
@@ -231,14 +211,14 @@ def _initial_state(gnss_enu, gnss_cov0, gnss_t, imu_t, force_ref, gyro, wheel_t,
     world = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
     r_wi = world @ body.T
     r_wv = r_wi @ r_iv
-    x = _State(p=gnss_enu[0] - r_wv @ mounting.gnss_lever_arm, v=r_wv[:, 0] * speed0, r_wi=r_wi,
-               ba=np.zeros(3), bg=np.zeros(3), k=0.0, r_iv=r_iv)
+    x = NavState(p=gnss_enu[0] - r_wv @ mounting.gnss_lever_arm, v=r_wv[:, 0] * speed0, r_wi=r_wi,
+                 ba=np.zeros(3), bg=np.zeros(3), k=0.0, r_iv=r_iv)
     sigmas = np.concatenate([np.zeros(3), np.full(3, settings.initial_speed_sigma),
                              [settings.initial_tilt_sigma, settings.initial_tilt_sigma, settings.initial_yaw_sigma],
                              np.full(3, settings.accel_bias_sigma), np.full(3, settings.gyro_bias_sigma),
                              [settings.wheel_scale_sigma], mounting.imu_misalignment_sigma])
     p0 = np.diag(sigmas ** 2)
-    p0[_P, _P] = gnss_cov0
+    p0[P, P] = gnss_cov0
     return x, p0
 
 
@@ -258,7 +238,7 @@ class _Inputs:
     rear_speed: np.ndarray
     yaw_rate: np.ndarray | None
     l_gnss: np.ndarray
-    l_axle: np.ndarray
+    wheel_points: np.ndarray  # (3, 3) vehicle frame: where the speed, the zero lateral, the zero vertical velocity hold
     g0: float
 
 
@@ -268,17 +248,17 @@ class _Smoothed:
     positions: np.ndarray
     r_wv: np.ndarray  # (N, 3, 3) vehicle -> ENU
     velocities: np.ndarray
-    first: _State
-    final: _State
+    first: NavState
+    final: NavState
     counts: dict[str, int]
 
 
-def _smooth(inputs: _Inputs, x: _State, p: np.ndarray, end_ns: int, settings: FusionSettings) -> _Smoothed:
+def _smooth(inputs: _Inputs, x: NavState, p: np.ndarray, end_ns: int, settings: FusionSettings) -> _Smoothed:
     """The forward error-state Kalman filter from time 0 to end_ns, then the RTS pass backward."""
     x = x.copy()
     imu_ns, gyro, force_ref, gnss_ns = inputs.imu_ns, inputs.gyro, inputs.force_ref, inputs.gnss_ns
     gnss_enu, gnss_cov, wheel_t, rear_speed = inputs.gnss_enu, inputs.gnss_cov, inputs.wheel_t, inputs.rear_speed
-    l_gnss, l_axle, g0 = inputs.l_gnss, inputs.l_axle, inputs.g0
+    l_gnss, g0 = inputs.l_gnss, inputs.g0
     epochs_ns = _epoch_times(gnss_ns, end_ns, settings.update_rate_hz)
     epochs = epochs_ns * 1e-9
     gnss_at = {int(t): i for i, t in enumerate(gnss_ns)}
@@ -300,18 +280,18 @@ def _smooth(inputs: _Inputs, x: _State, p: np.ndarray, end_ns: int, settings: Fu
     is_epoch = np.isin(knots_ns, epochs_ns)
 
     q_rate = np.zeros(N_STATES)
-    q_rate[_V] = settings.accel_noise ** 2
-    q_rate[_TH] = settings.gyro_noise ** 2
-    q_rate[_BA] = settings.accel_bias_walk ** 2
-    q_rate[_BG] = settings.gyro_bias_walk ** 2
-    q_rate[_K] = settings.wheel_scale_walk ** 2
-    q_rate[_MU] = settings.misalignment_walk ** 2
+    q_rate[V] = settings.accel_noise ** 2
+    q_rate[TH] = settings.gyro_noise ** 2
+    q_rate[BA] = settings.accel_bias_walk ** 2
+    q_rate[BG] = settings.gyro_bias_walk ** 2
+    q_rate[K] = settings.wheel_scale_walk ** 2
+    q_rate[MU] = settings.misalignment_walk ** 2
     wheel_noise = np.diag([settings.wheel_speed_sigma ** 2, settings.lateral_velocity_sigma ** 2,
                            settings.vertical_velocity_sigma ** 2])
 
     n_epochs = len(epochs) + 1
-    priors: list[_State] = [x.copy()]
-    posts: list[_State] = [x.copy()]
+    priors: list[NavState] = [x.copy()]
+    posts: list[NavState] = [x.copy()]
     gains = np.zeros((n_epochs, N_STATES, N_STATES))
     knot_p = np.zeros((len(knots), 3))
     knot_v = np.zeros((len(knots), 3))
@@ -357,13 +337,13 @@ def _smooth(inputs: _Inputs, x: _State, p: np.ndarray, end_ns: int, settings: Fu
 
         epoch = knot_epoch[s_index]
         phi = eye.copy()  # second-order transition over the interval, world-frame attitude errors
-        phi[_P, _V] = np.eye(3) * interval
-        phi[_V, _TH] = -skew(sum_force)
-        phi[_P, _TH] = -0.5 * interval * skew(sum_force)
-        phi[_V, _BA] = -sum_rotation
-        phi[_P, _BA] = -0.5 * interval * sum_rotation
-        phi[_TH, _BG] = -sum_rotation
-        phi[_V, _BG] = 0.5 * skew(sum_force) @ sum_rotation
+        phi[P, V] = np.eye(3) * interval
+        phi[V, TH] = -skew(sum_force)
+        phi[P, TH] = -0.5 * interval * skew(sum_force)
+        phi[V, BA] = -sum_rotation
+        phi[P, BA] = -0.5 * interval * sum_rotation
+        phi[TH, BG] = -sum_rotation
+        phi[V, BG] = 0.5 * skew(sum_force) @ sum_rotation
         p_prev = p
         p = phi @ p @ phi.T + np.diag(q_rate * interval)
         gains[epoch] = np.linalg.solve(p, phi @ p_prev).T
@@ -378,42 +358,42 @@ def _smooth(inputs: _Inputs, x: _State, p: np.ndarray, end_ns: int, settings: Fu
             r_wv = x.r_wi @ x.r_iv
             lever_world = r_wv @ l_gnss
             h = np.zeros((3, N_STATES))
-            h[:, _P] = np.eye(3)
-            h[:, _TH] = -skew(lever_world)
-            h[:, _MU] = -r_wv @ skew(l_gnss)
+            h[:, P] = np.eye(3)
+            h[:, TH] = -skew(lever_world)
+            h[:, MU] = -r_wv @ skew(l_gnss)
             update(gnss_enu[i] - (x.p + lever_world), h, gnss_cov[i], settings.gate_chi2, "gnss_position")
             if inputs.gnss_velocity is not None and np.all(np.isfinite(inputs.gnss_velocity[i])):
                 r_wv = x.r_wi @ x.r_iv
                 arm_velocity = r_wv @ (skew(w_vehicle) @ l_gnss)
                 h = np.zeros((3, N_STATES))
-                h[:, _V] = np.eye(3)
-                h[:, _TH] = -skew(arm_velocity)
+                h[:, V] = np.eye(3)
+                h[:, TH] = -skew(arm_velocity)
                 update(inputs.gnss_velocity[i] - (x.v + arm_velocity), h, inputs.gnss_velocity_cov[i],
                        settings.gate_chi2, "gnss_velocity")
 
         speed = epoch_speed[epoch - 1]
-        if np.isfinite(speed) or no_wheels:  # the rear axle's velocity in the vehicle frame
+        if np.isfinite(speed) or no_wheels:  # the wheels' velocity in the vehicle frame
             r_wv = x.r_wi @ x.r_iv
             u_center = r_wv.T @ x.v
-            u = u_center + skew(w_vehicle) @ l_axle
+            u = u_center + np.diag(np.cross(w_vehicle, inputs.wheel_points))  # row k: point k's component k
             h = np.zeros((3, N_STATES))
-            h[:, _V] = r_wv.T
-            h[:, _TH] = r_wv.T @ skew(x.v)
-            h[:, _BG] = skew(l_axle) @ x.r_iv.T
-            h[:, _MU] = skew(u_center)
+            h[:, V] = r_wv.T
+            h[:, TH] = r_wv.T @ skew(x.v)
+            h[:, BG] = np.array([skew(arm)[k] for k, arm in enumerate(inputs.wheel_points)]) @ x.r_iv.T
+            h[:, MU] = skew(u_center)
             if np.isfinite(speed):
                 h[0] *= 1.0 + x.k
-                h[0, _K] = u[0]
+                h[0, K] = u[0]
                 predicted = np.array([(1.0 + x.k) * u[0], u[1], u[2]])
                 update(np.array([speed, 0.0, 0.0]) - predicted, h, wheel_noise, settings.gate_chi2, "wheel")
-            else:  # no wheel speeds at all: the rear axle still moves without sliding sideways or up
+            else:  # no wheel speeds at all: the car still moves without sliding sideways or up
                 update(-u[1:], h[1:], wheel_noise[1:, 1:], CHI2_2DOF_9999, "nonholonomic")
 
         yaw_rate = epoch_yaw_rate[epoch - 1]
         if np.isfinite(yaw_rate):
             h = np.zeros((1, N_STATES))
-            h[0, _BG] = -x.r_iv.T[2]
-            h[0, _MU] = skew(w_vehicle)[2]
+            h[0, BG] = -x.r_iv.T[2]
+            h[0, MU] = skew(w_vehicle)[2]
             update(np.array([yaw_rate - w_vehicle[2]]), h, np.array([[settings.yaw_rate_sigma ** 2]]),
                    CHI2_1DOF_9999, "yaw_rate")
         posts.append(x.copy())
@@ -439,9 +419,9 @@ def _smooth(inputs: _Inputs, x: _State, p: np.ndarray, end_ns: int, settings: Fu
     correction = (correction_start[interval_index] * (1.0 - fraction[:, None])
                   + correction_end[interval_index] * fraction[:, None])
     r_iv = np.array([s.r_iv for s in smoothed])[interval_index]
-    r_wv = Rotation.from_rotvec(correction[:, _TH]).as_matrix() @ knot_r @ r_iv
-    return _Smoothed(times_ns=knots_ns, positions=knot_p + correction[:, _P], r_wv=r_wv,
-                     velocities=knot_v + correction[:, _V], first=smoothed[0], final=smoothed[-1], counts=counts)
+    r_wv = Rotation.from_rotvec(correction[:, TH]).as_matrix() @ knot_r @ r_iv
+    return _Smoothed(times_ns=knots_ns, positions=knot_p + correction[:, P], r_wv=r_wv,
+                     velocities=knot_v + correction[:, V], first=smoothed[0], final=smoothed[-1], counts=counts)
 
 
 def fuse_trajectory(gnss: GnssFixes, imu: ImuSamples, wheels: WheelSpeeds | None,
@@ -475,17 +455,18 @@ def fuse_trajectory(gnss: GnssFixes, imu: ImuSamples, wheels: WheelSpeeds | None
 
     inputs = _Inputs(imu_ns=imu_ns, gyro=gyro, force_ref=force_ref, gnss_ns=gnss_ns, gnss_enu=gnss_enu,
                      gnss_cov=gnss_cov, gnss_velocity=gnss.velocity_enu, gnss_velocity_cov=gnss.velocity_cov_enu,
-                     wheel_t=wheel_t, rear_speed=rear_speed, yaw_rate=wheels.yaw_rate, l_gnss=l_gnss, l_axle=l_axle,
-                     g0=g0)
-    x, p = _initial_state(gnss_enu, gnss_cov[0], gnss_t, imu_t, force_ref, gyro, wheel_t, rear_speed, mounting,
-                          settings)
+                     wheel_t=wheel_t, rear_speed=rear_speed, yaw_rate=wheels.yaw_rate, l_gnss=l_gnss, g0=g0,
+                     wheel_points=np.array([l_axle, l_axle, l_axle + [0.5 * mounting.wheel_base_m, 0.0, 0.0]]))
+    x, p_antenna = _initial_state(gnss_enu, gnss_cov[0], gnss_t, imu_t, force_ref, gyro, wheel_t, rear_speed,
+                                  mounting, settings)
     if settings.initial_pass_s > 0.0:
         # a first pass over the start of the drive finds the initial heading, tilt and biases, so the
         # full pass starts near the truth and its linearisation holds from the first second
-        x = _smooth(inputs, x, p, min(int(imu_ns[-1]), int(settings.initial_pass_s * 1e9)), settings).first
-        p[_TH, _TH] = np.diag([settings.refined_tilt_sigma, settings.refined_tilt_sigma,
-                               settings.refined_yaw_sigma]) ** 2
-    smoothed = _smooth(inputs, x, p, int(imu_ns[-1]), settings)
+        x = _smooth(inputs, x, reference_point_prior(p_antenna, x, l_gnss),
+                    min(int(imu_ns[-1]), int(settings.initial_pass_s * 1e9)), settings).first
+        p_antenna[TH, TH] = np.diag([settings.refined_tilt_sigma, settings.refined_tilt_sigma,
+                                     settings.refined_yaw_sigma]) ** 2
+    smoothed = _smooth(inputs, x, reference_point_prior(p_antenna, x, l_gnss), int(imu_ns[-1]), settings)
     knots_ns, counts = smoothed.times_ns, smoothed.counts
     first = smoothed.first
     times_ns = t_ref + np.concatenate([[0], knots_ns])

@@ -60,9 +60,9 @@ def test_keyframes_and_lidar_ground(drive):
     inside = (i >= 0) & (i < e.elevation_m.shape[0]) & (j >= 0) & (j < e.elevation_m.shape[1])
     dz = g[inside, 2] - e.elevation_m[i[inside], j[inside]]
     dz = dz[np.isfinite(dz)]
-    # on the road surface (cars filtered out), within the range noise and the fused roll's few tenths of a degree
-    # (this drive: 3.5 cm at -0.23 deg since the start in a bend is fused right, 2.9 cm at -0.07 deg before)
-    assert np.mean(np.abs(dz)) < 0.04
+    # on the road surface (cars filtered out), within the range noise and the fused roll's error (this drive:
+    # 2.5 cm at -0.08 deg since the start's prior pins the antenna, 3.5 cm at -0.23 deg before)
+    assert np.mean(np.abs(dz)) < 0.03
     assert np.percentile(np.abs(dz), 99) < 0.15
 
 
