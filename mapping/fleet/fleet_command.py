@@ -118,7 +118,11 @@ def map_drive(logs: list[str], out: str, retries: int, device: str | None, mappe
 def run_job(drives: list[list[str]], out: Path, address: str | None, workers: int, retries: int,
             device: str | None, mapper: dict | None = None) -> dict:
     """Every drive as one Ray task on the cluster at `address` (None: a new local Ray of `workers` CPUs)."""
-    import ray  # the fleet's optional dependency (pip install roadlog[fleet]): only this command imports it
+    try:
+        import ray  # the fleet's optional dependency (pip install roadlog[fleet]): only this command imports it
+    except ImportError:
+        raise ConfigError("roadlog fleet needs Ray, its optional dependency: pip install -e '.[fleet]' "
+                          "(ray 2.60.0)") from None
 
     started = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
@@ -129,6 +133,7 @@ def run_job(drives: list[list[str]], out: Path, address: str | None, workers: in
         ray.init(address="local", num_cpus=workers, include_dashboard=False, logging_level="WARNING",
                  log_to_driver=False)
     ray_s = time.perf_counter() - started
+    tasks_started = tasks_ended = time.perf_counter()  # the tasks' wall time: Ray's start and shutdown left out
     try:
         task = ray.remote(num_cpus=1, max_retries=TASK_RETRIES)(map_drive)
         pending = [task.remote(logs, str(out.resolve()), retries, device, mapper) for logs in drives]
@@ -147,9 +152,10 @@ def run_job(drives: list[list[str]], out: Path, address: str | None, workers: in
                       f"of {known} in the {sum(journal.drive(r) is not None for r in _drive_ids(out))} drives read "
                       f"({len(drives)} given, {len(drives) - len(pending)} finished)", file=sys.stderr, flush=True)
                 last = state
+        tasks_ended = time.perf_counter()
     finally:
         ray.shutdown()
-    return {"drives": results, "ray_start_s": ray_s, "tasks_wall_s": time.perf_counter() - started}
+    return {"drives": results, "ray_start_s": ray_s, "tasks_wall_s": tasks_ended - tasks_started}
 
 
 def _drive_ids(out: Path) -> list[str]:

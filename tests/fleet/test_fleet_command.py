@@ -5,6 +5,7 @@ journalled failed while the others are done (exit 1), and the next run fits only
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 
@@ -38,6 +39,7 @@ def _fleet(tmp_path, log, out, env_extra=None):
 @pytest.mark.slow
 @pytest.mark.timeout(2400)  # three runs of the command, each starting its own Ray, on a loaded 2-core machine
 def test_fleet_reconstruct_is_resumable_idempotent_and_survives_a_failing_window(city_drive, tmp_path):
+    pytest.importorskip("ray", reason="Ray, the fleet's optional dependency, is not installed: pip install '.[fleet]'")
     out = tmp_path / "job"
     name = drive_id([city_drive])
     first = _fleet(tmp_path, city_drive, out, {FAIL_WINDOWS_ENV: f"{city_drive.stem}:1"})
@@ -97,3 +99,11 @@ def test_fleet_refuses_bad_arguments_with_one_error_line(tmp_path):
     can_only_log(log, load_config(REPO / "configs" / "sim.yaml"))
     result = roadlog("fleet", "reconstruct", str(log), "--out", str(tmp_path / "o"), "--mapper", str(bad))
     assert result.returncode == 2 and "mesh.side_m" in result.stderr
+
+
+def test_without_ray_the_fleet_command_says_how_to_install_it_in_one_line(city_drive, tmp_path):
+    if importlib.util.find_spec("ray") is not None:
+        pytest.skip("Ray is installed here: the message for its absence cannot be seen")
+    run = roadlog("fleet", "reconstruct", str(city_drive), "--out", str(tmp_path / "job"), timeout=120)
+    assert run.returncode == 2 and "Traceback" not in run.stderr, run.stderr[-2000:]
+    assert run.stderr.strip().splitlines()[-1].startswith("error: roadlog fleet needs Ray") and "[fleet]" in run.stderr
