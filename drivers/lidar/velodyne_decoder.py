@@ -23,16 +23,23 @@ from drivers.lidar.packet_decoding import (
     points_buffer,
 )
 from drivers.lidar.velodyne_calibration import VelodyneCalibration, load_velodyne_calibration
+from drivers.lidar.velodyne_models import (
+    BLOCKS_PER_PACKET,
+    HDL64E_MODELS,
+    MODELS,
+    PACKET_SIZE,
+    RETURN_DUAL,
+    RETURN_LAST,
+    RETURN_STRONGEST,
+    RETURNS_PER_BLOCK,
+    VelodyneModel,
+)
 
-PACKET_SIZE = 1206
-BLOCKS_PER_PACKET = 12
-RETURNS_PER_BLOCK = 32
 _BLOCK_BYTES = 100
 _TIMESTAMP_OFFSET = 1200
 _RETURN_MODE_OFFSET = 1204
 _PRODUCT_ID_OFFSET = 1205
 
-RETURN_STRONGEST, RETURN_LAST, RETURN_DUAL = 0x37, 0x38, 0x39
 _BANK_FLAGS = np.array([0xEEFF, 0xDDFF, 0xCCFF, 0xBBFF], dtype=np.uint16)  # lasers 0-31, 32-63, ...
 
 _DUAL_ORDER = np.stack(
@@ -50,61 +57,8 @@ def _hdl64e_order() -> np.ndarray:
 _HDL64E_ORDER = _hdl64e_order()
 
 
-@dataclass(frozen=True)
-class VelodyneModel:
-    name: str
-    product_id: int | None  # factory byte 1205; None: the model does not set it (HDL-64E)
-    num_lasers: int
-    firing_time_s: np.ndarray  # (12, 32) float32, time of each return after the packet's timestamp
-
-
-def _vlp16_timing() -> np.ndarray:
-    # VLP-16 manual: 16 firings of 2.304 us, a 55.296 us cycle; a block holds two cycles.
-    block, channel = np.meshgrid(np.arange(12), np.arange(32), indexing="ij")
-    return (55.296e-6 * (2 * block + channel // 16) + 2.304e-6 * (channel % 16)).astype(np.float32)
-
-
-def _vlp32c_timing() -> np.ndarray:
-    # VLP-32C manual: lasers fire in pairs, 16 firings of 2.304 us, a 55.296 us cycle per block.
-    block, channel = np.meshgrid(np.arange(12), np.arange(32), indexing="ij")
-    return (55.296e-6 * block + 2.304e-6 * (channel // 2)).astype(np.float32)
-
-
-def _vls128_timing() -> np.ndarray:
-    # VLS-128: groups of 8 lasers fire every 2.66666 us, 20 group slots a sequence (16 groups plus
-    # maintenance after groups 8 and 16); 4 blocks (banks) make one sequence; timestamp 7 us late.
-    block, channel = np.meshgrid(np.arange(12), np.arange(32), indexing="ij")
-    group_time = 2.66666e-6
-    laser = 32 * (block % 4) + channel
-    t = (block // 4) * 20 * group_time + (laser // 8 + laser // 64 * 2) * group_time - 7e-6
-    return t.astype(np.float32)
-
-
-def _hdl64e_timing(cycle_us: float, step_us: float, pattern_us: tuple[float, ...]) -> np.ndarray:
-    # HDL-64E S2/S3 manuals' laser firing table, as velodyne-decoder builds it: an upper and a lower block
-    # fire together; in a block, four lasers `pattern_us` apart every `step_us`; a firing every `cycle_us`.
-    block, channel = np.meshgrid(np.arange(12), np.arange(32), indexing="ij")
-    pattern = np.array(pattern_us)[channel % 4]
-    return ((cycle_us * (block // 2) + step_us * (channel // 4) + pattern) * 1e-6).astype(np.float32)
-
-
-MODELS = {
-    m.product_id: m
-    for m in (
-        VelodyneModel("VLP-16", 0x22, 16, _vlp16_timing()),
-        VelodyneModel("VLP-32C", 0x28, 32, _vlp32c_timing()),
-        VelodyneModel("VLS-128", 0xA1, 128, _vls128_timing()),
-    )
-}
-# The HDL-64E puts a rotating status byte where the others have their factory bytes: its model is configured.
-HDL64E_MODELS = {
-    m.name: m
-    for m in (
-        VelodyneModel("HDL-64E S2", None, 64, _hdl64e_timing(48.0, 6.0, (0.0, 1.26, 2.46, 3.66))),
-        VelodyneModel("HDL-64E S3", None, 64, _hdl64e_timing(57.6, 7.2, (0.0, 1.3, 2.5, 3.7))),
-    )
-}
-
+_KNOWN_PRODUCT = np.isin(np.arange(256), list(MODELS))  # by factory byte
+_KNOWN_MODE = np.isin(np.arange(256), [RETURN_STRONGEST, RETURN_LAST, RETURN_DUAL])
 
 # Reasons a datagram is skipped, as DecodedPoints.counts and PacketCheck.counts name them.
 WRONG_SIZE = "wrong_size"  # not 1,206 bytes (position packets are 512)
@@ -135,7 +89,6 @@ class VelodyneDecoder:
         self.calibration = calibration
         self.min_range_m = np.float32(min_range_m)
         self.max_range_m = np.float32(max_range_m)
-        self._laser_tables = _laser_tables(calibration)
         if hdl64e is not None:
             if hdl64e not in HDL64E_MODELS or calibration.num_lasers != 64:
                 raise ValueError(f"{calibration.source}: {calibration.num_lasers} lasers, not an {hdl64e!r} of "
@@ -143,10 +96,7 @@ class VelodyneDecoder:
             self._model = HDL64E_MODELS[hdl64e]
         else:
             self._model = next((m for m in MODELS.values() if m.num_lasers == calibration.num_lasers), None)
-        self._slot_tables = _slot_tables(self._model, calibration) if self._model is not None else {}
-        # With no offsets the offset terms vanish: the formula velodyne-decoder uses for such files.
-        self._has_offsets = bool(np.any(calibration.vert_offset_m) or np.any(calibration.horiz_offset_m))
-        self._has_offsets |= calibration.two_point_correction
+        self._tables = _calibration_tables(self._model, calibration)
         self._prev_azimuth: int | None = None  # VLS-128: first block azimuth of the last packet
         self._prev_rate = np.float32(0.0)
 
@@ -210,7 +160,7 @@ class VelodyneDecoder:
             flags_ok = (flags == _BANK_FLAGS[np.arange(BLOCKS_PER_PACKET) % 2]).all(axis=1)
             counts[BAD_BLOCK_FLAG] = int((~flags_ok).sum())
             return flags_ok, model
-        known = np.isin(product, list(MODELS)) & np.isin(mode, [RETURN_STRONGEST, RETURN_LAST, RETURN_DUAL])
+        known = _KNOWN_PRODUCT[product] & _KNOWN_MODE[mode]
         counts[UNKNOWN_FACTORY] = int((~known).sum())
         mine = known & (product == (model.product_id if model else -1))
         counts[FOREIGN_MODEL] = int((known & ~mine).sum())
@@ -257,25 +207,59 @@ class VelodyneDecoder:
             duration = model.firing_time_s[last_row, 0] - model.firing_time_s[0, 0]
             diff = (block_azimuth[:, -1].astype(np.int32) - block_azimuth[:, 0] + 36000) % 36000
             rate = diff.astype(f32) / duration
-        t, cal = self._slot_tables, self.calibration
+        tables, t, cal = self._tables, self._tables.slots, self.calibration
         out = points_buffer(n * BLOCKS_PER_PACKET * RETURNS_PER_BLOCK)
+        stamps_us = timestamp_us.astype(np.int64)
         kept = _decode_returns(
-            batch, index, timestamp_us.astype(np.int64), block_azimuth, dual, last_mode, rate.astype(f32),
+            batch, index, stamps_us, block_azimuth, dual, last_mode, rate.astype(f32, copy=False),
             t["slots"], t["at"], t["partner_at"], t["keeper"], t["own_type"], t["block"], t["laser"], t["dt"],
             t["time_ns"], t["dist_correction"], t["angles"], f32(cal.distance_resolution_m), self.min_range_m,
-            self.max_range_m, _COS_TABLE, _SIN_TABLE, self._laser_tables, cal.ring, self._has_offsets,
-            cal.two_point_correction, self._intensity_rule, *out)
-        return filled_points(model.name, out, kept, n_packets, index, timestamp_us.astype(np.int64) * 1000)
+            self.max_range_m, _COS_TABLE, _SIN_TABLE, tables.lasers, cal.ring, tables.has_offsets,
+            tables.two_point, tables.intensity_rule, *out)
+        return filled_points(model.name, out, kept, n_packets, index, stamps_us * 1000)
 
-    @property
-    def _intensity_rule(self) -> int:
-        """INTENSITY_RAW, INTENSITY_CLIPPED or INTENSITY_FOCAL (see _decode_returns) for the calibration."""
-        cal = self.calibration
+
+@dataclass(frozen=True)
+class _CalibrationTables:
+    """What _decode_returns takes from a model and calibration, made once (_calibration_tables)."""
+
+    slots: dict[str, np.ndarray]  # _slot_tables; empty without a model
+    lasers: np.ndarray  # _laser_tables
+    has_offsets: bool  # with no offsets the offset terms vanish: the formula velodyne-decoder uses for such files
+    two_point: bool  # the calibration's two_point_correction
+    intensity_rule: int  # INTENSITY_RAW, INTENSITY_CLIPPED or INTENSITY_FOCAL (see _decode_returns)
+
+
+_TABLES_KEPT = 8  # calibrations whose tables are kept for the next decoder made with the same
+_tables_made: dict[tuple, _CalibrationTables] = {}
+
+
+def _calibration_tables(model: VelodyneModel | None, calibration: VelodyneCalibration) -> _CalibrationTables:
+    """The tables of a model and calibration: the ones made for a decoder before when the calibration's per-laser
+    values are the same (a decoder made anew for every stream of one sensor makes them once), otherwise new ones."""
+    cal = calibration
+    per_laser = (cal.rot_correction_rad, cal.vert_correction_rad, cal.dist_correction_m, cal.dist_correction_x_m,
+                 cal.dist_correction_y_m, cal.vert_offset_m, cal.horiz_offset_m, cal.focal_distance, cal.focal_slope,
+                 cal.min_intensity, cal.max_intensity)
+    key = (None if model is None else model.name, cal.num_lasers,
+           b"".join(np.asarray(a, np.float64).tobytes() for a in per_laser))
+    tables = _tables_made.get(key)
+    if tables is None:
+        two_point = cal.two_point_correction
         if np.any(cal.focal_slope != 0):
-            return INTENSITY_FOCAL
-        if np.all(cal.min_intensity <= 0) and np.all(cal.max_intensity >= 255):
-            return INTENSITY_RAW  # a raw byte is always within the limits
-        return INTENSITY_CLIPPED
+            rule = INTENSITY_FOCAL
+        elif np.all(cal.min_intensity <= 0) and np.all(cal.max_intensity >= 255):
+            rule = INTENSITY_RAW  # a raw byte is always within the limits
+        else:
+            rule = INTENSITY_CLIPPED
+        tables = _CalibrationTables(
+            slots=_slot_tables(model, cal) if model is not None else {}, lasers=_laser_tables(cal),
+            has_offsets=bool(np.any(cal.vert_offset_m) or np.any(cal.horiz_offset_m)) or two_point,
+            two_point=two_point, intensity_rule=rule)
+        if len(_tables_made) >= _TABLES_KEPT:
+            del _tables_made[next(iter(_tables_made))]
+        _tables_made[key] = tables
+    return tables
 
 
 # How a return's intensity is made from its raw byte: as it is; clipped to the laser's limits; velodyne-decoder's

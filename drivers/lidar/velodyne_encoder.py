@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivers.lidar.velodyne_decoder import (
+from drivers.lidar.velodyne_models import (
     BLOCKS_PER_PACKET,
     MODELS,
     PACKET_SIZE,

@@ -1,6 +1,6 @@
 """The simulated Velodyne (VLP-16, VLP-32C, VLS-128) of a calibration file, as a LidarRig: a column is one firing
 sequence of all lasers (a packet holds 384 returns: 24, 12 or 3 sequences), each laser's ray at the azimuth the
-head has turned to at its own firing time (the manual's firing timing, velodyne_decoder.MODELS) less its
+head has turned to at its own firing time (the manual's firing timing, velodyne_models.MODELS) less its
 rot_correction, up by its vert_correction, the head turning `rate_hz` times a second from azimuth 0 at each scan's
 start. A scan is the whole packets that fit in one rotation; they are encoded into the sensor's single-return
 packets (drivers/lidar/velodyne_encoder.py), stamped in microseconds past the hour as the sensor does, and published
@@ -14,8 +14,8 @@ import numpy as np
 
 from daemon.spine.config import LidarConfig
 from drivers.lidar.lidar_models import VENDOR_LIDARS
-from drivers.lidar.velodyne_decoder import BLOCKS_PER_PACKET, RETURNS_PER_BLOCK
 from drivers.lidar.velodyne_encoder import encode_velodyne_packets, velodyne_model
+from drivers.lidar.velodyne_models import BLOCKS_PER_PACKET, RETURNS_PER_BLOCK
 from sim.sensors.lidar_sim import LidarRig, LidarScanSim
 
 SLOTS = BLOCKS_PER_PACKET * RETURNS_PER_BLOCK  # returns per packet

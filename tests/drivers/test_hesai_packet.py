@@ -367,3 +367,28 @@ def test_packets_with_and_without_the_optional_trailing_fields_decode_alike():
         assert other.counts == whole.counts
         for name in ("xyz", "intensity", "return_type", "timestamp_ns", "packet_index", "packet_time_ns"):
             np.testing.assert_array_equal(getattr(other, name), getattr(whole, name))
+
+
+@needs_data
+def test_each_packet_decodes_with_its_own_distance_unit():
+    """The range bounds and distances follow each packet's distance-unit byte: a packet relabelled from 4 to 8 mm
+    beside one left at 4 mm gives twice the distances (its returns past the 50 m limit dropped), the other its own."""
+    first, second = _payloads("qt128")[100:102]
+    assert first[9] == second[9] == 4
+    relabelled = bytearray(second)
+    relabelled[9] = 8
+    decoder = _decoder("qt128")
+    as_sent = decoder.decode([first, second])
+    mixed = decoder.decode([first, bytes(relabelled)])
+    for name in ("xyz", "distance_m", "return_type", "timestamp_ns"):
+        np.testing.assert_array_equal(getattr(mixed, name)[mixed.packet_index == 0],
+                                      getattr(as_sent, name)[as_sent.packet_index == 0])
+    was, now = as_sent.packet_index == 1, mixed.packet_index == 1
+    assert now.sum() > 50 and mixed.distance_m[now].max() <= 50.0
+    # within 25 m at 4 mm, every return is one at 8 mm too (the dual threshold in raw units only halves)
+    near = was & (as_sent.distance_m <= 25.0)
+    expected = set(zip(as_sent.laser_id[near].tolist(), as_sent.timestamp_ns[near].tolist(),
+                       np.round(2 * as_sent.distance_m[near].astype(np.float64), 4).tolist(), strict=True))
+    got = set(zip(mixed.laser_id[now].tolist(), mixed.timestamp_ns[now].tolist(),
+                  np.round(mixed.distance_m[now].astype(np.float64), 4).tolist(), strict=True))
+    assert len(expected) > 50 and expected <= got

@@ -4,6 +4,7 @@ against the reference clouds; malformed input counted and skipped; the calibrati
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -247,3 +248,26 @@ def test_a_vls128_stream_decoded_call_by_call_gives_the_points_of_one_call():
     parts = [decoder.decode(payloads[i : i + 70]) for i in range(0, len(payloads), 70)]
     np.testing.assert_array_equal(np.concatenate([p.xyz for p in parts]), whole.xyz)
     np.testing.assert_array_equal(np.concatenate([p.azimuth_cdeg for p in parts]), whole.azimuth_cdeg)
+
+
+def test_decoders_made_anew_for_changed_calibrations_use_each_ones_values():
+    """A decoder made again for a calibration seen before reuses its tables (made once per calibration); one whose
+    per-laser values differ in any laser gets its own: its angles and its intensity limits, the others' unchanged."""
+    payloads = [p for _, p in _payloads("vlp32")[:40]]
+    calibration = load_velodyne_calibration(DATA / "calib" / "VLP32.yaml")
+    first = VelodyneDecoder(calibration).decode(payloads)
+    vert = calibration.vert_correction_rad.copy()
+    vert[5] += np.radians(1.0)
+    top = calibration.max_intensity.copy()
+    top[6] = 20.0
+    changed = replace(calibration, vert_correction_rad=vert, max_intensity=top)
+    second = VelodyneDecoder(changed).decode(payloads)
+    again = VelodyneDecoder(calibration).decode(payloads)
+    laser5, laser6 = first.laser_id == 5, first.laser_id == 6
+    assert laser5.sum() > 100 and (first.intensity[laser6] > 20).sum() > 10
+    assert np.all(second.xyz[laser5, 2] > first.xyz[laser5, 2])  # 1 degree higher: z up at every range
+    np.testing.assert_array_equal(second.xyz[~laser5], first.xyz[~laser5])
+    np.testing.assert_array_equal(second.intensity[laser6], np.minimum(first.intensity[laser6], 20.0))
+    np.testing.assert_array_equal(second.intensity[~laser6], first.intensity[~laser6])
+    for name in ("xyz", "intensity", "timestamp_ns", "ring"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(first, name))
