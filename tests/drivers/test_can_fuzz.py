@@ -25,27 +25,12 @@ from drivers.can.wheel_speed_codec import (
     load_dbc,
     wheel_speed_layout,
 )
+from tests.list_can_bus import ListBus
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 SIM_DBC = CONFIGS / "sim_car.dbc"
 CONFIG = load_config(CONFIGS / "sim.yaml").sensors.can.model_copy(update={"interface": "virtual"})
 WHEEL_ID, YAW_ID = 0xAA, 0x24
-
-
-class ListBus:
-    """A bus that hands out the given frames, then sets `stop` (duck-typed like can.BusABC)."""
-
-    def __init__(self, frames: list[can.Message], stop: threading.Event):
-        self.frames, self.stop = list(frames), stop
-
-    def recv(self, timeout=None):
-        if self.frames:
-            return self.frames.pop(0)
-        self.stop.set()
-        return None
-
-    def shutdown(self):
-        pass
 
 
 frame_ids = st.one_of(st.sampled_from([WHEEL_ID, YAW_ID]), st.integers(0, 0x7FF), st.integers(0, 0x1FFFFFFF))
