@@ -165,6 +165,11 @@ class BusReader(threading.Thread):
             wheels, self.wheels = self.wheels, []
         return wheels
 
+    def pending_wheels(self) -> list:
+        """The wheel speeds received and not yet taken (a copy: they stay for take_wheels)."""
+        with self.lock:
+            return list(self.wheels)
+
     def complete_until(self, host_ns: int) -> bool:
         """Whether every topic heard from has delivered its messages up to `host_ns` (each topic arrives in
         host-time order); a topic stalled far behind the others is not waited for."""

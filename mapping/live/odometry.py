@@ -39,6 +39,14 @@ class Odometry:
         self.last_speed_mps = speed_mps
         return True
 
+    def distance_after(self, later: list[tuple[int, float]]) -> float:
+        """The distance once the `later` (host ns, speed) messages are integrated, without adding them: what the
+        health reports while a window is fitted and the messages wait for the next `add`."""
+        tip = Odometry(self.knots_t[-1:], self.knots_s[-1:], self.last_speed_mps)  # `add` on a copy of the tip
+        for host_ns, speed in later:
+            tip.add(host_ns, speed)
+        return tip.distance_m
+
     @property
     def distance_m(self) -> float:
         return self.knots_s[-1] if self.knots_s else 0.0

@@ -107,7 +107,7 @@ def gather_window_inputs(worker: MappingWorker, k: int) -> WindowInputs:
     ground = standing = None
     if scans is not None:  # what stands on the road too, when a keyframe has no mask to leave it out
         occlusion = m.maskless.lidar_occlusion and any(kf.semantics is None for kf in keyframes)
-        ground, standing = scans_ground(scans, clocks[scans.topic], worker.config, traj,
+        ground, _, standing = scans_ground(scans, clocks[scans.topic], worker.config, traj,
                                         GroundFilter(corridor_half_width_m=m.mesh.corridor_half_width_m),
                                         t_lo if occlusion else None)
     fed = dict(by_topic)

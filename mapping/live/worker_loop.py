@@ -147,6 +147,7 @@ class MappingWorker:
         self.health = HealthCounters(PROCESS)
         self.state = WorkerState()
         self.lock = threading.Lock()
+        self.odometry_lock = threading.Lock()  # the health thread reads the odometry while the main loop adds to it
         self.spool = KeyframeSpool(self.folder / "spool", topic_table(config), chunk_s=2.0)
         self.small_spool = KeyframeSpool(self.spool.folder / "small", topic_table(config), chunk_s=10.0)
         self.max_behind_m = self.mapper.lag.max_behind_m if skips else None
@@ -232,12 +233,13 @@ class MappingWorker:
 
     def update_distance(self) -> None:
         """Integrate the wheel speeds that arrived since the last call into the odometry."""
-        for msg in self.reader.take_wheels():
-            speed = wheel_speed_mps(msg)
-            if speed is None:
-                self.state.wheel_messages_without_speed += 1
-            else:
-                self.odometry.add(msg.host_mono_ns, speed)
+        with self.odometry_lock:
+            for msg in self.reader.take_wheels():
+                speed = wheel_speed_mps(msg)
+                if speed is None:
+                    self.state.wheel_messages_without_speed += 1
+                else:
+                    self.odometry.add(msg.host_mono_ns, speed)
         self.state.distance_m = self.odometry.distance_m
         mapped_t = self.odometry.time_at(self.state.mapped_until_m) if self.odometry.knots_t else 0
         self.state.lag_s = max(0.0, (self.odometry.knots_t[-1] - mapped_t) / 1e9) if mapped_t else 0.0
@@ -391,10 +393,19 @@ class MappingWorker:
         self._prune_for(windows.stop)
 
     # ---- health ------------------------------------------------------------------------------------------
+    def distance_now_m(self) -> float:
+        """The distance driven with the wheel speeds the odometry has not taken yet (it takes them between windows:
+        while one is fitted, `state.distance_m` stands still and the car does not)."""
+        with self.odometry_lock:
+            pending = [(msg.host_mono_ns, v) for msg in self.reader.pending_wheels()
+                       if (v := wheel_speed_mps(msg)) is not None]
+            return self.odometry.distance_after(pending)
+
     def health_message(self):
         st = self.state
         m = self.mapper
-        ready = windows_ended(self.journal.next_window, st.distance_m, m.windows.before_m, m.windows.after_m)
+        distance_m = self.distance_now_m()
+        ready = windows_ended(self.journal.next_window, distance_m, m.windows.before_m, m.windows.after_m)
         st.windows_pending = ready
         msg = self.health.snapshot()
         msg.state = "degraded" if self.health.errors or st.windows_skipped else "ok"
@@ -403,8 +414,8 @@ class MappingWorker:
             "windows_done": st.windows_done, "windows_failed": st.windows_failed, "windows_pending": ready,
             "windows_skipped": st.windows_skipped, "skipped_m": round(st.skipped_m, 1),
             "max_behind_m": self.max_behind_m,
-            "distance_m": round(st.distance_m, 2), "mapped_until_m": round(st.mapped_until_m, 2),
-            "lag_m": round(max(0.0, st.distance_m - st.mapped_until_m), 2), "lag_s": round(st.lag_s, 2),
+            "distance_m": round(distance_m, 2), "mapped_until_m": round(st.mapped_until_m, 2),
+            "lag_m": round(max(0.0, distance_m - st.mapped_until_m), 2), "lag_s": round(st.lag_s, 2),
             "last_window_wall_s": round(st.last_window_wall_s, 2),
             "spool_bytes": self.spool.bytes + self.small_spool.bytes,
             "errors": self.health.errors, "last_error": self.health.last_error, "bus_lost": self.reader.lost,

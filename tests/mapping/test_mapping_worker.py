@@ -21,14 +21,16 @@ import numpy as np
 import pytest
 
 from daemon.bus import pubsub
+from daemon.log_format.reader import read_log
 from daemon.processes.replay import replay
 from daemon.spine.messages import CameraFrame, GnssFix
-from daemon.spine.topics import GNSS_FIX, camera_topic, health_topic, topic_table
+from daemon.spine.topics import GNSS_FIX, WHEEL_SPEEDS, camera_topic, health_topic, topic_table
 from mapping.live import map_tiles
 from mapping.live.final_map import FinalMapMetadata, map_semantics, write_final_map
 from mapping.live.keyframe_spool import KeyframeSpool
 from mapping.live.window_schedule import window_span, windows_ended, windows_for_drive
 from mapping.live.worker_journal import JOURNAL_NAME, read_journal
+from mapping.live.worker_loop import MappingWorker
 from sim.drive_log import simulate_drive
 from tests.daemon_fixtures import REPO, private_config
 from tests.mapping.fed_worker import worker_fed
@@ -226,6 +228,24 @@ def test_rasters_written_a_row_of_tiles_at_a_time_equal_the_mosaic(tmp_path):
         assert np.array_equal(np.load(paths["labels"]), mos.labels)
     cells = map_tiles.mapped_cells(folder, n, 0.1, "cam", max_cells=10**6)
     assert len(cells.i) == 5 * 30 + 5 * 12 and set(np.unique(cells.elevation)) == {1.0, 2.0}
+
+
+def test_health_counts_the_wheel_speeds_that_arrive_while_a_window_is_fitted(city_drive, tmp_path):
+    config, config_path = private_config(tmp_path, mapper=SMALL_WINDOWS)
+    worker = MappingWorker(config, str(config_path), str(tmp_path / "data"))
+    wheels = [r for r in read_log([city_drive]) if r.topic == WHEEL_SPEEDS]
+    for n, r in enumerate(wheels):
+        r.message.host_mono_ns = r.log_time_ns
+        worker.reader.take(r.topic, r.message)
+        if n == len(wheels) // 2:
+            worker.update_distance()  # the odometry takes the first half; the car drives on while a window is fitted
+    half = worker.state.distance_m
+    reported = json.loads(worker.health_message().detail)
+    assert worker.state.distance_m == half > 10  # the second half is not taken yet
+    worker.update_distance()
+    assert worker.state.distance_m > 1.5 * half
+    assert reported["distance_m"] == pytest.approx(worker.state.distance_m, abs=0.01)
+    assert reported["lag_m"] == pytest.approx(worker.state.distance_m, abs=0.01)  # nothing mapped yet
 
 
 # ---- a drive without masks -----------------------------------------------------------------------------
