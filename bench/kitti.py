@@ -3,10 +3,14 @@ reconstruct`, maskless: KITTI has no masks), with the import's time against the 
 
 Runs: kitti_raw_0005 with the OXTS INS poses and with pose fusion of its GNSS + IMU, each with and without its
 Velodyne ground; kitti_odometry_01 (ground-truth poses, camera only). Prints one line per run and, last, one JSON
-object with every run's figures (`--quick`: 0005 with INS poses and 01 only). `--pose-refinement on|off` passes
-that to every reconstruction (default: the config's); `both` maps every run twice, `.../refined` with it on.
+object with every run's figures (`--quick`: 0005 with INS poses and 01 only). A camera-only map of a drive with a
+Velodyne also gets `elev_vs_velodyne_cm`: its elevation raster against the drive's own Velodyne ground points
+(the reconstruction's Lidar ground filter), per band of horizontal distance from the car's path
+(velodyne_gap). `--pose-refinement on|off` passes that to every reconstruction (default: the config's); `both`
+maps every run twice, `.../refined` with it on; `all` three times, also `.../photometric` (on without the Lidar
+ground registration: the Lidar runs differ). `--lidar` adds 0005's Lidar run to `--quick`.
 
-    .venv/bin/python bench/kitti.py [--quick] [--pose-refinement on|off|both]
+    .venv/bin/python bench/kitti.py [--quick] [--lidar] [--pose-refinement on|off|both|all]
 """
 
 from __future__ import annotations
@@ -14,17 +18,27 @@ from __future__ import annotations
 import argparse
 import json
 import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+from scipy.spatial import cKDTree
+
 ROOT = Path(__file__).resolve().parents[1]
 ROADLOG = str(ROOT / ".venv" / "bin" / "roadlog")
 DATA = ROOT.parent / "shared" / "data"
+sys.path.insert(0, str(ROOT))
+
+from mapping.inputs.drive_inputs import start_loading_drive  # noqa: E402
+from mapping.offline.reconstruct_command import config_from_logs  # noqa: E402
+
 KEYS = ("psnr_db", "psnr_train_db", "psnr_pixels", "psnr_by_distance_db", "saturation_rendered_pct",
         "saturation_observed_pct", "saturation_ratio", "edge_sawtooth_cm", "smear_pct", "elev_error_cm",
         "maskless_hidden_pct", "semantics", "wall_s", "rtf", "vertices", "pose_refinement",
-        "pose_refinement_wall_s")
+        "pose_refinement_wall_s", "lidar_registration", "lidar_registration_wall_s")
+BANDS_M = ((0.0, 2.0), (2.0, 4.0), (4.0, 8.0), (8.0, 15.0))  # distance from the car's path (m)
 
 
 def imported(fmt: str, folder: Path, out: Path, *extra: str) -> dict:
@@ -43,13 +57,42 @@ def mapped(log: Path, out: Path, *extra: str) -> dict:
     return {k: metrics.get(k) for k in KEYS}
 
 
+def velodyne_gap(log: Path, out: Path) -> dict:
+    """The map's elevation raster (`out`/bev_elevation.npy, read at the cell holding each point) against the
+    log's Velodyne ground points, per band of horizontal distance from the car's path (the nearest trajectory
+    point): points, median and mean |map - Velodyne| (cm) and the median signed gap (cm), over the points the map
+    covers."""
+    config, config_path = config_from_logs([str(log)])
+    loading = start_loading_drive([str(log)], config, config_path, standing=False)
+    ground, track = loading.lidar_ground_points.result(), loading.path
+    bev = json.loads((out / "bev.json").read_text())
+    z = np.load(out / "bev_elevation.npy")
+    step, (bx, by) = bev["resolution_m"], bev["origin_xy"]
+    i, j = np.rint((ground[:, 1] - by) / step).astype(int), np.rint((ground[:, 0] - bx) / step).astype(int)
+    inside = (i >= 0) & (i < z.shape[0]) & (j >= 0) & (j < z.shape[1])
+    mapped = np.full(len(ground), np.nan)
+    mapped[inside] = z[i[inside], j[inside]]
+    gap = mapped - ground[:, 2]
+    away = cKDTree(track.positions[:, :2]).query(ground[:, :2])[0]
+    bands = {}
+    for lo, hi in BANDS_M:
+        g = gap[(away >= lo) & (away < hi) & np.isfinite(gap)]
+        bands[f"{lo:g}-{hi:g} m"] = ({"points": len(g), "median_abs_cm": round(100 * float(np.median(np.abs(g))), 2),
+                                      "mean_abs_cm": round(100 * float(np.mean(np.abs(g))), 2),
+                                      "median_cm": round(100 * float(np.median(g)), 2)} if len(g) else None)
+    return bands
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="0005 with its INS poses and 01, camera only")
-    parser.add_argument("--pose-refinement", choices=("on", "off", "both"),
-                        help="reconstruct with --pose-refinement on or off (default: the config's), or both")
+    parser.add_argument("--pose-refinement", choices=("on", "off", "both", "all"),
+                        help="reconstruct with --pose-refinement on or off (default: the config's), both, or all "
+                             "(off, photometric, on)")
+    parser.add_argument("--lidar", action="store_true", help="--quick: also 0005 with its Lidar ground")
     args = parser.parse_args()
     refinements = {"on": [("", "on")], "off": [("", "off")], "both": [("", "off"), ("/refined", "on")],
+                   "all": [("", "off"), ("/photometric", "photometric"), ("/refined", "on")],
                    None: [("", None)]}[args.pose_refinement]
     runs = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -62,11 +105,14 @@ def main() -> int:
             log = tmp / f"{name}.mcap"
             timing = imported(fmt, folder, log, *extra)
             variants = [("camera-only", ("--no-lidar",))]
-            if fmt == "kitti-raw" and not args.quick:
+            if fmt == "kitti-raw" and (args.lidar or not args.quick):
                 variants.append(("lidar", ()))
             for (variant, flags), (suffix, refinement) in ((v, r) for v in variants for r in refinements):
                 refine = ("--pose-refinement", refinement) if refinement else ()
-                figures = timing | mapped(log, tmp / f"{name}-{variant}{suffix.replace('/', '-')}", *flags, *refine)
+                out = tmp / f"{name}-{variant}{suffix.replace('/', '-')}"
+                figures = timing | mapped(log, out, *flags, *refine)
+                if fmt == "kitti-raw" and variant == "camera-only":
+                    figures["elev_vs_velodyne_cm"] = velodyne_gap(log, out)
                 runs[f"{name}/{variant}{suffix}"] = figures
                 print(f"{name}/{variant}{suffix}", json.dumps(figures), flush=True)
     print(json.dumps({"runs": runs}))

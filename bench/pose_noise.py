@@ -1,13 +1,16 @@
 """Pose-noise bench (issue 17 item 5): what injected pose error costs the map, with and without pose refinement.
 
 On N random worlds (`roadlog simulate --scenario random --seed S`, as bench/worlds.py) each drive is mapped by
-`roadlog reconstruct --gt`, with Lidar and with `--no-lidar`, three times: with the poses as fused (`exact`), with
-a smooth random pose error injected into the trajectory (`--pose-noise-m`, `--pose-noise-deg`: independent draws
-every `--every-s`, linear between; mapping/localization/pose_noise.py) without refinement (`noisy`), and the same
-with `--pose-refinement on` (`refined`). Reported per run and as median / worst over the worlds: held-out PSNR,
-bird's-eye mIoU, lane-marking IoU, the costs against `exact` (dB, points), the vehicle pose's RMS error at the
-keyframes before and after refinement, and the wall times. The target (issue 17): 10-20 cm RMS pose noise costs at
-most 3 points of mIoU and 1 dB of PSNR. The last line is one JSON object.
+`roadlog reconstruct --gt`, with Lidar and with `--no-lidar`: with the poses as fused (`exact`), with a
+smooth random pose error injected into the trajectory (`--pose-noise-m`, `--pose-noise-deg`: independent draws every
+`--every-s`, linear between; mapping/localization/pose_noise.py) without refinement (`noisy`), and the same with
+`--pose-refinement on` (`refined`); with Lidar also with `--pose-refinement photometric` (`photometric`: no Lidar
+ground registration first), the refinement before the registration, side by side; and with the exact poses and
+`--pose-refinement on` (`--clean-refined`: the refinement must not make a good map worse). Reported per run and as
+median / worst over the worlds: held-out PSNR, bird's-eye mIoU, lane-marking IoU, the costs against `exact` (dB,
+points), the vehicle pose's RMS error at the keyframes before and after refinement, and the wall times. The target
+(issue 17): 10-20 cm RMS pose noise costs at most 3 points of mIoU and 1 dB of PSNR. The last line is one JSON
+object.
 
     .venv/bin/python bench/pose_noise.py [--quick] [--worlds 3] [--seconds 6] [--noise-m 0.2] [--noise-deg 0.1]
         [--every-s 0.5] [--modes lidar no_lidar] [--drives DIR]
@@ -45,7 +48,14 @@ def run(log: Path, out: Path, noise: tuple[str, ...], *extra: str) -> dict:
             "pose_refinement_wall_s": m.get("pose_refinement_wall_s")}
 
 
-def world(seed: int, seconds: float, folder: Path, drives: Path, noise: tuple[str, ...], modes: dict) -> dict:
+def noisy_runs(mode: str, clean: bool) -> tuple[str, ...]:
+    """The runs of a mode besides `exact` (all but clean_refined with the noise injected)."""
+    return (("noisy", "refined") + (("photometric",) if mode == "lidar" else ())
+            + (("clean_refined",) if clean else ()))
+
+
+def world(seed: int, seconds: float, folder: Path, drives: Path, noise: tuple[str, ...], modes: dict,
+          clean: bool) -> dict:
     log = drives / f"random_{seed}_{seconds:g}s.mcap"
     if not log.exists():
         worlds_bench.simulate("random", seed, seconds, log)
@@ -54,10 +64,17 @@ def world(seed: int, seconds: float, folder: Path, drives: Path, noise: tuple[st
         exact = run(log, folder / f"{seed}_{mode}_exact", (), *extra)
         noisy = run(log, folder / f"{seed}_{mode}_noisy", noise, *extra, "--pose-refinement", "off")
         refined = run(log, folder / f"{seed}_{mode}_refined", noise, *extra, "--pose-refinement", "on")
+        runs = {"exact": exact, "noisy": noisy, "refined": refined}
+        if clean:
+            runs["clean_refined"] = run(log, folder / f"{seed}_{mode}_clean_refined", (), *extra,
+                                        "--pose-refinement", "on")
+        if mode == "lidar":
+            runs["photometric"] = run(log, folder / f"{seed}_{mode}_photometric", noise, *extra,
+                                      "--pose-refinement", "photometric")
         costs = {f"{name}_{k}": (exact[figure] - r[figure]) if None not in (exact[figure], r[figure]) else None
-                 for name, r in (("noisy", noisy), ("refined", refined))
+                 for name, r in runs.items() if name != "exact"
                  for k, figure in (("psnr_cost_db", "psnr_db"), ("miou_cost_pts", "miou_pct"))}
-        result[mode] = {"exact": exact, "noisy": noisy, "refined": refined, **costs}
+        result[mode] = {**runs, **costs}
         print(json.dumps({"seed": seed, "mode": mode, **result[mode]}), flush=True)
     return result
 
@@ -73,6 +90,8 @@ def main() -> int:
     parser.add_argument("--every-s", type=float, default=0.5, help="the error's independent draws this far apart")
     parser.add_argument("--modes", nargs="+", choices=sorted(MODES), default=sorted(MODES),
                         help="with Lidar, camera-only (--no-lidar) or both")
+    parser.add_argument("--clean-refined", action="store_true",
+                        help="also map each drive with the exact poses and the refinement on (clean_refined)")
     parser.add_argument("--drives", type=Path, default=Path("/tmp/maplab/pose_noise"),
                         help="the simulated drives are kept here and reused")
     args = parser.parse_args()
@@ -83,17 +102,18 @@ def main() -> int:
     args.drives.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
-        results = [world(args.first_seed + i, seconds, Path(tmp), args.drives, noise, modes) for i in range(count)]
+        results = [world(args.first_seed + i, seconds, Path(tmp), args.drives, noise, modes, args.clean_refined)
+                   for i in range(count)]
     stats = {}
     for mode in modes:
         stats[mode] = {
             **{f"{kind}_{k}": summarise([r[mode][f"{kind}_{k}"] for r in results], "low")
-               for kind in ("noisy", "refined") for k in ("psnr_cost_db", "miou_cost_pts")},
+               for kind in noisy_runs(mode, args.clean_refined) for k in ("psnr_cost_db", "miou_cost_pts")},
             **{f"{run_name}_{k}": summarise([r[mode][run_name][k] for r in results],
                                             "low" if "error" in k or "wall" in k else "high")
-               for run_name in ("exact", "noisy", "refined") for k in (*FIGURES, "pose_error_after_cm",
-                                                                       "pose_refinement_wall_s")
-               if not (run_name != "refined" and k in ("pose_error_after_cm", "pose_refinement_wall_s"))},
+               for run_name in ("exact", *noisy_runs(mode, args.clean_refined))
+               for k in (*FIGURES, "pose_error_after_cm", "pose_refinement_wall_s")
+               if not (run_name in ("exact", "noisy") and k in ("pose_error_after_cm", "pose_refinement_wall_s"))},
             "pose_error_before_cm": summarise([r[mode]["noisy"]["pose_error_before_cm"] for r in results], "low"),
         }
         s = stats[mode]
@@ -103,14 +123,25 @@ def main() -> int:
     print("|---|---|---|---|---|---|---|---|")
     for r in results:
         for mode in modes:
-            for name in ("exact", "noisy", "refined"):
+            for name in ("exact", *noisy_runs(mode, args.clean_refined)):
                 f = r[mode][name]
-                error = f["pose_error_after_cm"] if name == "refined" else f["pose_error_before_cm"]
+                error = f["pose_error_before_cm"] if name == "noisy" else f["pose_error_after_cm"]
                 print(f"| {r['seed']} | {mode} | {name} | {fmt(f['psnr_db'])} | {fmt(f['miou_pct'])} | "
                       f"{fmt(f['lane_marking_iou_pct'])} | {fmt(error if name != 'exact' else 0.0)} | "
                       f"{fmt(f['wall_s'])} |")
     for mode in modes:
         s = stats[mode]
+        if mode == "lidar":
+            print(f"lidar, photometric refinement only: PSNR cost median "
+                  f"{fmt(s['photometric_psnr_cost_db']['median'])} worst {fmt(s['photometric_psnr_cost_db']['worst'])}"
+                  f" dB; mIoU cost median {fmt(s['photometric_miou_cost_pts']['median'])} worst "
+                  f"{fmt(s['photometric_miou_cost_pts']['worst'])} points")
+        if args.clean_refined:
+            print(f"{mode}, refinement on with no noise: PSNR cost median "
+                  f"{fmt(s['clean_refined_psnr_cost_db']['median'])} worst "
+                  f"{fmt(s['clean_refined_psnr_cost_db']['worst'])} dB; mIoU cost median "
+                  f"{fmt(s['clean_refined_miou_cost_pts']['median'])} worst "
+                  f"{fmt(s['clean_refined_miou_cost_pts']['worst'])} points")
         print(f"{mode}: PSNR cost noisy median {fmt(s['noisy_psnr_cost_db']['median'])} worst "
               f"{fmt(s['noisy_psnr_cost_db']['worst'])} dB, refined median {fmt(s['refined_psnr_cost_db']['median'])} "
               f"worst {fmt(s['refined_psnr_cost_db']['worst'])} dB; mIoU cost noisy median "

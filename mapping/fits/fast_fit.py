@@ -7,8 +7,10 @@ keyframes instead of epochs of rendering."""
 
 from __future__ import annotations
 
+import copy
 import time
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -65,28 +67,38 @@ def fit_surface_from_images(road_map: RoadMap, train: list[Keyframe], cameras: d
                             timings: dict[str, float], progress: bool = False) -> tuple[float, float]:
     """Camera-only elevation (no Lidar ground): the plane sweep's heights at the lattice nodes
     (mapping.fits.photometric_elevation), the residual MLP fitted to them weighted by their confidence with the
-    same loss as the Lidar's; the weighted loss of the fit's first and last step."""
+    same loss as the Lidar's; then (`photometric_refine_span_m` > 0) a second, narrow sweep around that surface
+    and the MLP fitted again, from its initial weights, to those heights. The weighted loss of the last fit's
+    first and last step."""
     fast = config.fast_fit
     if road_map.elevation is None or not fast.photometric_elevation or not fast.elevation_lattice_m or not train:
         return 0.0, 0.0
-    started = time.perf_counter()
     settings = SweepSettings(fast.photometric_span_m, fast.photometric_step_m, fast.photometric_patch_m,
                              fast.photometric_patch_samples, fast.photometric_min_views, fast.photometric_min_std,
                              fast.photometric_distinct_m, fast.photometric_behind_m, fast.photometric_ahead_m,
                              config.runtime.photometric_threads)
     lattice = lattice_nodes(road_map, fast.elevation_lattice_m, trajectory)
     keyframe_s = np.array([float(trajectory.horizontal_distance_at(kf.timestamp)) for kf in train])
-    sweep = sweep_heights(road_map, lattice, train, keyframe_s, cameras, settings)
-    timings["photometric_sweep_wall_s"] = time.perf_counter() - started
-    timings["photometric_nodes_pct"] = 100.0 * float((sweep.confidence > 0).mean()) if len(lattice.xy) else 0.0
-    started = time.perf_counter()
-    first_last = fit_lattice(road_map, lattice.nodes, sweep.residual, lattice.z0, sweep.confidence,
-                             fast.elevation_lattice_m, fast.elevation_epochs, fast.elevation_min_steps,
-                             fast.elevation_batch, fast.elevation_smooth_pairs, fast.elevation_lr,
-                             fast.elevation_loss_weight, fast.smoothness_loss_weight, rng,
-                             resolve_device(config.device), progress)
-    road_map.refresh_elevation()
-    timings["elevation_fit_wall_s"] = time.perf_counter() - started
+    initial = copy.deepcopy(road_map.elevation.state_dict())
+    passes = [(settings, None)] + ([(replace(settings, span_m=fast.photometric_refine_span_m), True)]
+                                   if fast.photometric_refine_span_m > 0 else [])
+    timings["photometric_sweep_wall_s"] = timings["elevation_fit_wall_s"] = 0.0
+    for pass_settings, on_fit in passes:
+        started = time.perf_counter()
+        if on_fit:  # the second pass starts the MLP afresh, centred where the first put the surface
+            road_map.elevation.load_state_dict(initial)
+        sweep = sweep_heights(road_map, lattice, train, keyframe_s, cameras, pass_settings,
+                              road_map.z_now.copy() if on_fit else None)
+        timings["photometric_sweep_wall_s"] += time.perf_counter() - started
+        timings["photometric_nodes_pct"] = 100.0 * float((sweep.confidence > 0).mean()) if len(lattice.xy) else 0.0
+        started = time.perf_counter()
+        first_last = fit_lattice(road_map, lattice.nodes, sweep.residual, lattice.z0, sweep.confidence,
+                                 fast.elevation_lattice_m, fast.elevation_epochs, fast.elevation_min_steps,
+                                 fast.elevation_batch, fast.elevation_smooth_pairs, fast.elevation_lr,
+                                 fast.elevation_loss_weight, fast.smoothness_loss_weight, rng,
+                                 resolve_device(config.device), progress)
+        road_map.refresh_elevation()
+        timings["elevation_fit_wall_s"] += time.perf_counter() - started
     return first_last
 
 

@@ -17,6 +17,13 @@ Views whose mask marks the patch centre as an obstacle or unlabelled are left ou
 patch is blank (grey standard deviation under `min_std`), and nodes seen by fewer than `min_views` views.
 The nodes are swept in blocks along the track, each with the keyframes that reach it, so memory stays bounded
 on long drives; the keyframes are split over `threads` threads, their sums added in a fixed order.
+
+The sweep can also be centred on a given surface (`surface`: a height per mesh vertex, such as the residual
+MLP's first fit to the sweep on z0), each patch lying on that surface (its crossfall and grade) and raised from
+it: the fast fit sweeps a second time +-`photometric_refine_span_m` around its first fit and fits the MLP again
+to those heights (mapping.fits.fast_fit.fit_surface_from_images). A false peak of the first sweep (a repeated
+texture, an edge along the line of sight) is then outside the range, and a node whose truth lies beyond it gets
+no height.
 """
 
 from __future__ import annotations
@@ -49,7 +56,8 @@ class SweepSettings:
     patch_samples: int = 7  # points along each side of it
     min_views: int = 3  # a node's candidate needs this many views
     min_std: float = 2.0  # grey levels (0-255): a view's patch below this is blank and left out
-    distinct_m: float = 0.3  # the second peak is looked for at least this far from the best height
+    distinct_m: float = 0.3  # the second peak is looked for at least this far from the best height (a sweep
+    # narrower than that has none: its confidence is the peak NCC)
     behind_m: float = 3.0  # a keyframe reads the nodes from this far behind its trajectory point ...
     ahead_m: float = 12.0  # ... to this far ahead
     threads: int = 2
@@ -117,19 +125,20 @@ def lattice_nodes(road_map: RoadMap, lattice_m: float, trajectory: HorizontalTra
     return LatticeNodes(nodes, xy, z0, mesh.s[ids[:, 0]], TrackEnds.of(trajectory) if trajectory else None)
 
 
-def _patch_points(road_map: RoadMap, xy: np.ndarray, settings: SweepSettings,
-                  ends: TrackEnds | None) -> tuple[np.ndarray, np.ndarray]:
-    """(K, P, 3) ground patch points at z0 (plus the grade beyond the track's ends) around the nodes `xy` and
-    (K, P) whether each lies inside the mesh."""
+def _patch_points(road_map: RoadMap, xy: np.ndarray, settings: SweepSettings, ends: TrackEnds | None,
+                  surface: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(K, P, 3) ground patch points around the nodes `xy` on the vertex heights `surface` (None: at z0 plus the
+    grade beyond the track's ends) and (K, P) whether each lies inside the mesh."""
     n = settings.patch_samples
     offsets = (np.arange(n) - (n - 1) / 2) * (settings.patch_m / max(n - 1, 1))
     ox, oy = np.meshgrid(offsets, offsets, indexing="ij")
     p = xy[:, None, :] + np.stack([ox.ravel(), oy.ravel()], 1)[None]
     ids, w, ok = locate(road_map.mesh, p.reshape(-1, 2))
-    z0 = np.where(ok, (road_map.mesh.z0[np.where(ok[:, None], ids, 0)] * w).sum(1), np.nan)
-    if ends is not None:
-        z0 = z0 + ends.offset(p.reshape(-1, 2))
-    return np.concatenate([p, z0.reshape(len(xy), -1, 1)], 2), ok.reshape(len(xy), -1)
+    z = road_map.mesh.z0 if surface is None else surface
+    z = np.where(ok, (z[np.where(ok[:, None], ids, 0)] * w).sum(1), np.nan)
+    if ends is not None and surface is None:
+        z = z + ends.offset(p.reshape(-1, 2))
+    return np.concatenate([p, z.reshape(len(xy), -1, 1)], 2), ok.reshape(len(xy), -1)
 
 
 def grey_image(keyframe: Keyframe) -> np.ndarray:
@@ -209,10 +218,17 @@ def _sweep_views(ids: np.ndarray, block_s: np.ndarray, points: np.ndarray, heigh
 
 
 def sweep_heights(road_map: RoadMap, lattice: LatticeNodes, keyframes: list[Keyframe],
-                  keyframe_s: np.ndarray, cameras: dict[str, CameraModel], settings: SweepSettings) -> SweepResult:
+                  keyframe_s: np.ndarray, cameras: dict[str, CameraModel], settings: SweepSettings,
+                  surface: np.ndarray | None = None) -> SweepResult:
     """The plane sweep at every node of `lattice` over the `keyframes` (their along-track positions
-    `keyframe_s`); see the module docstring."""
+    `keyframe_s`), centred on z0 (and the grade beyond the track's ends) or on the vertex heights `surface`; the
+    residuals are over the nodes' z0 either way. See the module docstring."""
     heights = np.arange(-settings.span_m, settings.span_m + 1e-9, settings.step_m)
+    if surface is None:
+        centre = lattice.ends.offset(lattice.xy) if lattice.ends is not None else np.zeros(len(lattice.xy), np.float32)
+    else:
+        ids, w, _ = locate(road_map.mesh, lattice.xy)  # the nodes lie on the mesh (lattice_nodes)
+        centre = ((surface[ids] * w).sum(1) - lattice.z0).astype(np.float32)
     n = settings.patch_samples ** 2
     k = len(lattice.xy)
     residual, confidence = np.zeros(k, np.float32), np.zeros(k, np.float32)
@@ -224,7 +240,7 @@ def sweep_heights(road_map: RoadMap, lattice: LatticeNodes, keyframes: list[Keyf
         block = order[(lattice.s[order] >= lo) & (lattice.s[order] < lo + BLOCK_M)]
         if not len(block):
             continue
-        points, inside = _patch_points(road_map, lattice.xy[block], settings, lattice.ends)
+        points, inside = _patch_points(road_map, lattice.xy[block], settings, lattice.ends, surface)
         points[~inside.all(1)] = np.nan
         s_lo, s_hi = lattice.s[block].min(), lattice.s[block].max()
         reach = np.flatnonzero((keyframe_s + settings.ahead_m >= s_lo) & (keyframe_s - settings.behind_m <= s_hi))
@@ -244,7 +260,7 @@ def sweep_heights(road_map: RoadMap, lattice: LatticeNodes, keyframes: list[Keyf
         best, peak, second, inner = _peaks(ncc, valid, heights, distinct)
         has = valid.any(1) & inner  # a best height on the range's edge is no maximum: the truth may lie beyond
         second = np.where(np.isfinite(second), second, 0.0)
-        prior = lattice.ends.offset(lattice.xy[block]) if lattice.ends is not None else 0.0
+        prior = centre[block]
         residual[block] = np.where(has, best + prior, prior)
         confidence[block] = np.where(has, np.clip(peak - np.maximum(second, 0.0), 0.0, None), 0.0)
         peak_ncc[block] = np.where(has, peak, 0.0)

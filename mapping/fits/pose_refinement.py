@@ -14,8 +14,11 @@ against the map; a gain and offset per view take the cameras' and exposures' dif
 knot towards zero and a smoothness term between neighbouring knots. Pixels a mask marks as obstacles or unlabelled
 are not used; views without a mask use every pixel (the robust loss bounds what a car in view can pull).
 
-The map is then observed with the corrected poses (mapping.fits.fast_fit.observe). The Lidar ground and the
-camera-only elevation keep the poses they were made with.
+The map is then observed with the corrected poses (mapping.fits.fast_fit.observe). With Lidar ground points and
+their firing times, their registration (mapping.fits.lidar_registration) has already fitted each knot's height,
+roll and pitch and re-placed the ground before the surface fit: the knots start from it and hold those three axes,
+only x, y and yaw are fitted here. Without them (`lidar_registration` off, no Lidar, the live and fleet windows)
+the Lidar ground and the camera-only elevation keep the poses they were made with.
 """
 
 from __future__ import annotations
@@ -76,7 +79,7 @@ def corrected(keyframes: list[Keyframe], trajectory: HorizontalTrack, correction
         return []
     times = np.array([kf.timestamp for kf in keyframes])
     position, rotation = corrections.at(trajectory.horizontal_distance_at(times))
-    reference = _reference_points(trajectory, times)
+    reference = reference_points(trajectory, times)
     rotations = cv2_rodrigues_batch(rotation)
     out = []
     for kf, dp, dR, ref in zip(keyframes, position, rotations, reference, strict=True):
@@ -87,7 +90,8 @@ def corrected(keyframes: list[Keyframe], trajectory: HorizontalTrack, correction
     return out
 
 
-def _reference_points(trajectory: HorizontalTrack, times: np.ndarray) -> np.ndarray:
+def reference_points(trajectory: HorizontalTrack, times: np.ndarray) -> np.ndarray:
+    """The vehicle's reference point (M, 3) at `times` (s), which the corrections turn about."""
     return np.stack([np.interp(times, trajectory.times, trajectory.positions[:, k]) for k in range(3)], 1)
 
 
@@ -246,20 +250,37 @@ def _fit_round(knots: torch.Tensor, knot_s: np.ndarray, views: list[Keyframe], s
     return descent.losses()
 
 
+def knot_positions(trajectory: HorizontalTrack, spacing_m: float) -> np.ndarray:
+    """The corrections' knots along the track: evenly from its start to its end, at most `spacing_m` apart."""
+    length = float(trajectory.horizontal_distance()[-1])
+    return np.linspace(0.0, length, max(2, int(np.ceil(length / spacing_m)) + 1))
+
+
+HELD_BY_LIDAR = np.array([0, 0, 1, 1, 1, 0], bool)  # dz, roll, pitch: what the Lidar ground registration fits
+
+
 def refine_poses(road_map: RoadMap, train: list[Keyframe], holdout: list[Keyframe],
                  cameras: dict[str, CameraModel], trajectory: HorizontalTrack, settings: PoseRefinementConfig,
-                 behind_m: float, ahead_m: float, timings: dict[str, float]
+                 behind_m: float, ahead_m: float, timings: dict[str, float], lidar: PoseCorrections | None = None
                  ) -> tuple[list[Keyframe], list[Keyframe], PoseCorrections, dict]:
     """The corrections fitted to the training keyframes (module docstring), and the training and held-out
-    keyframes with them applied; figures for the metrics (`pose_refinement`)."""
+    keyframes with them applied; figures for the metrics (`pose_refinement`). `lidar`: the Lidar ground
+    registration's corrections (mapping.fits.lidar_registration, on the same knots): their height, roll and
+    pitch are held, only x, y and yaw are fitted."""
     started = time.perf_counter()
     windows = WindowIndex.of(road_map.mesh)
     times = np.array([kf.timestamp for kf in train])
     s = trajectory.horizontal_distance_at(times)
-    length = float(trajectory.horizontal_distance()[-1])
-    knot_s = np.linspace(0.0, length, max(2, int(np.ceil(length / settings.knot_spacing_m)) + 1))
-    reference = _reference_points(trajectory, times)
-    knots = torch.zeros((len(knot_s), 6), dtype=torch.float64, requires_grad=True)
+    knot_s = knot_positions(trajectory, settings.knot_spacing_m)
+    reference = reference_points(trajectory, times)
+    initial = np.zeros((len(knot_s), 6))
+    if lidar is not None:
+        initial[:, :3], initial[:, 3:] = lidar.position_m / METRE_UNIT, lidar.rotation_rad / RADIAN_UNIT
+        held = torch.from_numpy(HELD_BY_LIDAR)
+        initial[:, ~HELD_BY_LIDAR] = 0.0
+    knots = torch.tensor(initial, dtype=torch.float64, requires_grad=True)
+    if lidar is not None:
+        knots.register_hook(lambda grad: torch.where(held, torch.zeros_like(grad), grad))
     losses = []
     rng = np.random.default_rng(0)
     for blur in settings.blur_px:

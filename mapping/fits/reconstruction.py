@@ -24,6 +24,7 @@ from daemon.spine.local_frame import LocalFrame
 from daemon.spine.mapper_config import MapperConfig
 from mapping.fits import faithful_fit, fast_fit
 from mapping.fits.lidar_occlusion import OcclusionTest
+from mapping.fits.lidar_registration import re_placed, register_ground
 from mapping.fits.pose_refinement import PoseCorrections, refine_poses
 from mapping.localization.keyframe_spacing import spaced_by_distance
 from mapping.localization.trajectory import HorizontalTrack
@@ -120,13 +121,16 @@ def reconstruct(
     lidar_standing: StandingPoints | None | Future[StandingPoints | None] = None,
     origin: LocalFrame | None = None,
     phase: Callable[[str], None] = lambda _: None,
+    lidar_ground_times: np.ndarray | None | Future[np.ndarray | None] = None,
 ) -> ReconstructionResult:
     """Reconstruct the road surface seen by `keyframes` along `trajectory`; evaluate; export if out_dir.
     `keyframes`, `lidar_ground_points` and `lidar_standing` may be Futures (inputs still loading): the mesh is
     built first, the Lidar waited for by the elevation fit, the keyframes after it. `lidar_standing`: what the
     Lidar saw standing on the road, which the keyframes without semantics are tested against
     (mapping.fits.lidar_occlusion; None: they are used whole). `origin`: the geodetic origin of the trajectory's
-    ENU frame, which places the exported map on the earth (None: unknown). `phase` is told each phase as it ends."""
+    ENU frame, which places the exported map on the earth (None: unknown). `phase` is told each phase as it ends.
+    `lidar_ground_times`: each ground point's firing time (s from the track's start), which the pose refinement's
+    Lidar registration needs (None: photometric refinement only)."""
     start = time.perf_counter()
     runtime, model, windows = config.runtime, config.model, config.windows
     torch.set_num_threads(runtime.torch_threads_faithful_fit if faithful else runtime.torch_threads_fast_fit)
@@ -154,6 +158,17 @@ def reconstruct(
     try:
         truth_at = side.submit(Located.of, mesh, truth_cells(gt)[2]) if gt is not None else None
         have_lidar = lidar_ground_points is not None and len(lidar_ground_points) > 0
+        lidar_corrections, lidar_figures = None, None
+        refine = config.pose_refinement
+        if not faithful and refine.enabled and refine.lidar_registration and have_lidar \
+                and variant.lidar_supervision:
+            ground_times = _waited_for(lidar_ground_times, timings, "lidar_times_wait_s")
+            if ground_times is not None and len(ground_times) == len(lidar_ground_points):
+                lidar_corrections, lidar_figures = register_ground(lidar_ground_points, ground_times, trajectory,
+                                                                   refine, timings)
+                lidar_ground_points = re_placed(lidar_ground_points, ground_times, trajectory, lidar_corrections)
+                supervision = lidar_ground_points
+                phase(f"Lidar ground registered ({lidar_figures['position_rms_cm']:.1f} cm RMS height correction)")
         lidar_at = Located.of(mesh, lidar_ground_points[:, :2]) if have_lidar else None
         if not faithful:  # the elevation needs the Lidar only: it is fitted while the images may still be decoding
             elevation_first_last = fast_fit.fit_surface(road_map, supervision, lidar_at, config, rng, timings,
@@ -174,7 +189,7 @@ def reconstruct(
         if not faithful and config.pose_refinement.enabled:  # the corrected poses observe and are evaluated
             train, holdout, corrections, pose_figures = refine_poses(
                 road_map, train, holdout, cameras, trajectory, config.pose_refinement, config.fast_fit.behind_m,
-                config.fast_fit.ahead_m, timings)
+                config.fast_fit.ahead_m, timings, lidar_corrections)
             phase(f"poses refined ({pose_figures['position_rms_cm']:.1f} cm RMS correction)")
         semantics = semantics_status(train, road_map, config)
         if semantics.startswith("unavailable"):  # nothing to train them on: no semantics, not untrained logits
@@ -235,6 +250,7 @@ def reconstruct(
         drive_s=drive_s,
         **(maskless_figures(*tested, occlusion) if maskless else {}),
         **({"pose_refinement": pose_figures} if pose_figures is not None else {}),
+        **({"lidar_registration": lidar_figures} if lidar_figures is not None else {}),
     )
     if out_dir is not None:
         path = Path(out_dir) / "metrics.json"

@@ -10,7 +10,9 @@ close to the lowest point of their cell or on a flat patch at most a curb's heig
 other things standing on the road are dropped. The trajectory's ground height is rasterised once per drive
 (TrajectoryGround): each `ground_cell_m` cell within the corridor holds the height of the trajectory point nearest
 to the cell's centre, so that the filter looks each point up in its cell instead of searching for its nearest
-trajectory point (a k-d tree query per point was a large part of loading a drive).
+trajectory point (a k-d tree query per point was a large part of loading a drive); past the trajectory's first and
+last points it follows their grade (a 4 % grade drops 48 cm over the 12 m a front camera maps beyond the end of a
+drive, more than the band: that road's points were all dropped and its labels placed on an extrapolated surface).
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ from mapping.method.scene_data import StandingPoints
 TILE_CELLS = 64  # the ground raster is stored as square tiles of this many cells a side, only near the trajectory
 TILES_PER_QUERY = 256  # tiles whose cell centres are looked up in the trajectory k-d tree at once
 STANDING_VOXEL_M = 0.2  # standing points are thinned to one per voxel: ~2,600 a scan on the city drive
+END_GRADE_M = 5.0  # beyond the trajectory's ends the road's height follows the grade of its last metres
 
 
 def keeps_scan(packet_index: int, packets_per_scan: int, every_n_scans: int) -> bool:
@@ -187,16 +190,17 @@ def cloud_scan_points(cloud: PointCloud) -> ScanPoints:
 
 
 def lidar_world_points(scan: ScanPoints, clock: ClockMap, T_vehicle_lidar: np.ndarray, trajectory: Trajectory,
-                       settings: GroundFilter) -> np.ndarray:
+                       settings: GroundFilter) -> tuple[np.ndarray, np.ndarray]:
     """World points (N, 3) of one scan, motion compensated, in the scan's order: those in the range band (distance
     from the Lidar frame's origin) fired within the trajectory's time span, each moved with the pose at its time
-    composed with the Lidar mounting (T_world_vehicle(t) @ T_vehicle_lidar)."""
+    composed with the Lidar mounting (T_world_vehicle(t) @ T_vehicle_lidar); and each point's firing time (N,)
+    in seconds from the trajectory's start."""
     times = clock.to_host(scan.times_ns)
     inside = (times >= trajectory.times_ns[0]) & (times <= trajectory.times_ns[-1])
     rng = np.linalg.norm(scan.xyz, axis=1)
     flat = np.flatnonzero((rng > settings.min_range_m) & (rng < settings.max_range_m) & inside[scan.time_index])
     if not len(flat):
-        return np.zeros((0, 3))
+        return np.zeros((0, 3)), np.zeros(0)
     used, point_time = np.unique(scan.time_index[flat], return_inverse=True)
     positions, quats = trajectory.interpolate(times[used])
     R_world_vehicle = Rotation.from_quat(quats)
@@ -204,7 +208,8 @@ def lidar_world_points(scan: ScanPoints, clock: ClockMap, T_vehicle_lidar: np.nd
     t = positions + R_world_vehicle.apply(T_vehicle_lidar[:3, 3])  # (T, 3)
     xyz = scan.xyz[flat].astype(np.float64)  # (N, 3) Lidar frame
     R, t = R[point_time.ravel()], t[point_time.ravel()]
-    return (R[:, :, 0] * xyz[:, 0:1] + R[:, :, 1] * xyz[:, 1:2] + R[:, :, 2] * xyz[:, 2:3]) + t
+    seconds = (np.asarray(times, np.int64)[scan.time_index[flat]] - int(trajectory.times_ns[0])) / 1e9
+    return (R[:, :, 0] * xyz[:, 0:1] + R[:, :, 1] * xyz[:, 1:2] + R[:, :, 2] * xyz[:, 2:3]) + t, seconds
 
 
 def _tile_key(tiles: np.ndarray) -> np.ndarray:
@@ -217,7 +222,9 @@ class TrajectoryGround:
 
     Cell (i, j) covers [i, i + 1) x [j, j + 1) times `cell_m` in x and y; tile (a, b) holds cells
     (a * TILE_CELLS + u, b * TILE_CELLS + v). Cells whose centre lies further than the corridor half-width
-    from every trajectory point hold NaN; tiles without any cell in the corridor are not stored."""
+    from every trajectory point hold NaN; tiles without any cell in the corridor are not stored. A cell whose
+    nearest trajectory point is the first or the last holds that point's height plus its grade (end_grade) times
+    the cell's distance beyond it."""
 
     cell_m: float
     tile_keys: np.ndarray  # (T,) sorted int64 keys of the stored tiles (_tile_key)
@@ -239,13 +246,18 @@ class TrajectoryGround:
         tiles = candidates[first]
         uv = np.stack(np.meshgrid(np.arange(TILE_CELLS), np.arange(TILE_CELLS), indexing="ij"), -1) + 0.5
         heights = np.full((len(tiles), TILE_CELLS, TILE_CELLS), np.nan, np.float32)
+        ends = [end_grade(ground, at_start) for at_start in (True, False)]
         for start in range(0, len(tiles), TILES_PER_QUERY):
             part = slice(start, start + TILES_PER_QUERY)
-            centres = (tiles[part, None, None, :] * TILE_CELLS + uv[None]) * cell_m
-            dist, idx = tree.query(centres.reshape(-1, 2), distance_upper_bound=corridor_half_width_m)
+            centres = ((tiles[part, None, None, :] * TILE_CELLS + uv[None]) * cell_m).reshape(-1, 2)
+            dist, idx = tree.query(centres, distance_upper_bound=corridor_half_width_m)
             near = np.isfinite(dist)
             z = np.full(len(dist), np.nan, np.float32)
             z[near] = ground[idx[near], 2]
+            for at, outward, grade in ends:
+                past = near & (idx == at)  # beyond the trajectory's end: the road goes on at the end's grade
+                beyond = np.maximum((centres[past] - ground[at, :2]) @ outward, 0.0)
+                z[past] = ground[at, 2] + grade * beyond
             heights[part] = z.reshape(-1, TILE_CELLS, TILE_CELLS)
         stored = ~np.isnan(heights).all((1, 2))
         return TrajectoryGround(cell_m, keys[stored], heights[stored])
@@ -261,6 +273,24 @@ class TrajectoryGround:
         out = self.heights[pos, within[:, 0], within[:, 1]]
         out[~found] = np.nan
         return out
+
+
+def end_grade(ground: np.ndarray, first: bool) -> tuple[int, np.ndarray, float]:
+    """At the first (or last) point of a trajectory's ground `ground` (N, 3): its index, the unit horizontal
+    direction out of the trajectory there and the road's grade along it (rise over run; 0 when the ends' last
+    END_GRADE_M are travelled less than a metre), over the last END_GRADE_M of horizontal travel."""
+    step = np.linalg.norm(np.diff(ground[:, :2], axis=0), axis=1)
+    travelled = np.concatenate([[0.0], np.cumsum(step)])
+    if first:
+        at, other = 0, int(np.searchsorted(travelled, END_GRADE_M))
+    else:
+        at, other = len(ground) - 1, int(np.searchsorted(travelled, travelled[-1] - END_GRADE_M, side="right")) - 1
+    other = min(max(other, 0), len(ground) - 1)
+    chord = ground[at, :2] - ground[other, :2]
+    run = float(np.linalg.norm(chord))
+    if run < 1.0:
+        return at, np.zeros(2), 0.0
+    return at, chord / run, float(ground[at, 2] - ground[other, 2]) / run
 
 
 def _cell_key(cells: np.ndarray) -> np.ndarray:
@@ -304,16 +334,18 @@ def _on_ground(pts: np.ndarray, settings: GroundFilter) -> np.ndarray:
 
 def ground_points(world: np.ndarray, road: TrajectoryGround, settings: GroundFilter) -> np.ndarray:
     """The points of `world` that lie on the road surface (see the module docstring)."""
-    if len(world) == 0:
-        return world
+    return world[ground_index(world, road, settings)]
+
+
+def ground_index(world: np.ndarray, road: TrajectoryGround, settings: GroundFilter) -> np.ndarray:
+    """Which points of `world` (increasing indices) lie on the road surface (see the module docstring)."""
     with np.errstate(invalid="ignore"):  # NaN: outside the corridor, not kept
-        near = np.abs(world[:, 2] - road.height_at(world[:, :2])) < settings.band_m
-    pts = world[near]
-    if len(pts) == 0:
-        return pts
-    pts = pts[_on_ground(pts, settings)]
-    first, _ = _first_per_cell(np.floor(pts / settings.voxel_m).astype(np.int64))
-    return pts[np.sort(first)]
+        near = np.flatnonzero(np.abs(world[:, 2] - road.height_at(world[:, :2])) < settings.band_m)
+    if len(near) == 0:
+        return near
+    near = near[_on_ground(world[near], settings)]
+    first, _ = _first_per_cell(np.floor(world[near] / settings.voxel_m).astype(np.int64))
+    return near[np.sort(first)]
 
 
 def standing_points(world: np.ndarray, road: TrajectoryGround, min_m: float, max_m: float,
@@ -381,9 +413,10 @@ def lidar_scans(packets: list[LidarPacket], clouds: list[PointCloud],
 
 def scans_ground(scans: LidarScans, clock: ClockMap, config: CarConfig, trajectory: Trajectory,
                  settings: GroundFilter, standing_t0_ns: int | None = None, progress: bool = False
-                 ) -> tuple[np.ndarray, StandingPoints | None]:
-    """Ground points of the scans, in scan order, and with `standing_t0_ns` the points standing on the road scan by
-    scan (heights: `mapper.maskless`), each scan at the host time of its middle firing in seconds from
+                 ) -> tuple[np.ndarray, np.ndarray, StandingPoints | None]:
+    """Ground points of the scans, in scan order, their firing times (seconds from the trajectory's start: what
+    mapping.fits.lidar_registration re-places them with), and with `standing_t0_ns` the points standing on the
+    road scan by scan (heights: `mapper.maskless`), each scan at the host time of its middle firing in seconds from
     standing_t0_ns (the keyframes' clock), else None. The scans are shared out over
     `mapper.runtime.lidar_ground_threads` threads (numpy releases the GIL in its array work); `progress`: a bar of
     the scans with its ETA on stderr."""
@@ -394,20 +427,22 @@ def scans_ground(scans: LidarScans, clock: ClockMap, config: CarConfig, trajecto
 
     bar = tqdm(total=len(scans.scans), desc="lidar ground", unit="scan", disable=not progress, mininterval=0.5)
 
-    def scan_points(scan: object) -> tuple[np.ndarray, tuple[float, np.ndarray] | None]:
+    def scan_points(scan: object) -> tuple[np.ndarray, np.ndarray, tuple[float, np.ndarray] | None]:
         bar.update()
         points = scans.decode(scan)
-        world = lidar_world_points(points, clock, T_vl, trajectory, settings)
+        world, seconds = lidar_world_points(points, clock, T_vl, trajectory, settings)
+        on_ground = ground_index(world, road, settings)
         if standing_t0_ns is None or len(points.times_ns) == 0:
-            return ground_points(world, road, settings), None
+            return world[on_ground], seconds[on_ground], None
         middle = int(clock.to_host([int(points.times_ns[len(points.times_ns) // 2])])[0])
-        return ground_points(world, road, settings), ((middle - standing_t0_ns) / 1e9, standing_points(
+        return world[on_ground], seconds[on_ground], ((middle - standing_t0_ns) / 1e9, standing_points(
             world, road, heights.standing_min_m, heights.standing_max_m))
 
     with ThreadPoolExecutor(config.mapper.runtime.lidar_ground_threads, thread_name_prefix="lidar-ground") as pool:
         out = list(pool.map(scan_points, scans.scans))
     bar.close()
-    ground = np.concatenate([g for g, _ in out]) if out else np.zeros((0, 3))
+    ground = np.concatenate([g for g, _, _ in out]) if out else np.zeros((0, 3))
+    times = np.concatenate([t for _, t, _ in out]) if out else np.zeros(0)
     if standing_t0_ns is None:
-        return ground, None
-    return ground, StandingPoints.of(sorted((s for _, s in out if s is not None), key=lambda s: s[0]))
+        return ground, times, None
+    return ground, times, StandingPoints.of(sorted((s for _, _, s in out if s is not None), key=lambda s: s[0]))

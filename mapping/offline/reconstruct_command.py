@@ -9,7 +9,8 @@ A log without masks (and no segmentation model configured) still maps: colour an
 no semantics (`miou_pct` null, `semantics` says why, no bev_semantics.* files), and a warning on stderr naming
 the frames without a mask. When only some frames have masks, the semantics come from those.
 
-`--pose-refinement on|off` switches the fast fit's pose corrections (mapper.pose_refinement). `--pose-noise-m` /
+`--pose-refinement on|off|photometric` switches the fast fit's pose corrections (mapper.pose_refinement;
+photometric: without the Lidar ground registration first). `--pose-noise-m` /
 `--pose-noise-deg` (benches) inject a smooth random error into the trajectory before anything is placed with it
 (mapping.localization.pose_noise); metrics `pose_noise` then give it and what the corrections left of it.
 """
@@ -150,7 +151,7 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
                          config.mapper, config.vehicle.reference_height_m, out_dir=out, ablation=ablation,
                          gt=truth.elevation if truth else None, faithful=faithful, progress=progress,
                          lidar_standing=loading.lidar_standing, origin=loading.trajectory.local_frame,
-                         phase=phase)
+                         phase=phase, lidar_ground_times=loading.lidar_ground_times)
     drive = loading.result()
     lidar = drive.lidar_ground_points
     metrics = result.metrics
@@ -188,10 +189,14 @@ def pose_noise_figures(noise: PoseNoise, result: ReconstructionResult, drive: Dr
 
 
 def with_pose_refinement(car: CarConfig, setting: str | None) -> CarConfig:
-    """The car config with mapper.pose_refinement.enabled from `--pose-refinement on|off` (None: as it is)."""
+    """The car config with mapper.pose_refinement from `--pose-refinement on|off|photometric` (None: as it is;
+    photometric: on without the Lidar ground registration)."""
     if setting is None:
         return car
-    refinement = car.mapper.pose_refinement.model_copy(update={"enabled": setting == "on"})
+    update = {"enabled": setting != "off"}
+    if setting != "off":
+        update["lidar_registration"] = setting == "on"
+    refinement = car.mapper.pose_refinement.model_copy(update=update)
     return car.model_copy(update={"mapper": car.mapper.model_copy(update={"pose_refinement": refinement})})
 
 
@@ -210,9 +215,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", choices=DEVICES,
                         help="torch device of the fit: auto (cuda when there is a GPU), cpu or cuda (default: the "
                              "config's mapper.device)")
-    parser.add_argument("--pose-refinement", choices=("on", "off"),
+    parser.add_argument("--pose-refinement", choices=("on", "off", "photometric"),
                         help="fit corrections of the poses to the map (fast path; default: the config's "
-                             "mapper.pose_refinement.enabled)")
+                             "mapper.pose_refinement.enabled); photometric: without the Lidar ground registration")
     parser.add_argument("--pose-noise-m", type=float, default=0.0,
                         help="benches: inject a smooth random pose error of this 3-D RMS (m) into the trajectory")
     parser.add_argument("--pose-noise-deg", type=float, default=0.0,

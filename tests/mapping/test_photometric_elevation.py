@@ -58,6 +58,28 @@ def test_the_sweep_recovers_the_crossfall_the_trajectory_cannot_see(scene):
     assert np.median(error) < 0.35 * np.abs(true[sure]).mean() and error.mean() < 0.5 * np.abs(true[sure]).mean()
 
 
+def test_a_sweep_centred_on_a_surface_reads_the_heights_around_it(scene):
+    """The second, narrow sweep: centred on a given surface (here the truth raised 5 cm, tilted by the crossfall
+    as the truth is), its patches on it, the heights come back over z0 and on the truth; a surface 25 cm off,
+    beyond the +-10 cm range, gives (almost) no heights rather than ones on the range's edge."""
+    road_map = _road_map(scene, 0.5)
+    lattice = lattice_nodes(road_map, 0.5)
+    mesh = road_map.mesh
+    true_vertex = SURFACE.height(mesh.xy[:, 0], mesh.xy[:, 1]).astype(np.float32)
+    true = SURFACE.height(lattice.xy[:, 0], lattice.xy[:, 1]) - lattice.z0
+    narrow = SweepSettings(span_m=0.1, step_m=0.02, patch_m=0.5, patch_samples=7, min_views=3)
+    near = sweep_heights(road_map, lattice, scene.keyframes, _keyframe_s(scene), scene.cameras, narrow,
+                         true_vertex + 0.05)
+    sure = near.confidence > 0
+    assert sure.mean() > 0.3
+    error = np.abs(near.residual[sure] - true[sure])
+    assert np.median(error) < 0.02 and error.mean() < 0.03, (np.median(error), error.mean())
+    assert np.allclose(near.residual[~sure], (true + 0.05)[~sure], atol=0.02)  # no height: the surface itself
+    far = sweep_heights(road_map, lattice, scene.keyframes, _keyframe_s(scene), scene.cameras, narrow,
+                        true_vertex + 0.25)
+    assert (far.confidence > 0).mean() < 0.2 * sure.mean()
+
+
 def test_camera_only_reconstruction_beats_the_flat_sheet(scene):
     runs = {ablation: reconstruct(scene.keyframes, scene.cameras, scene.trajectory, None, CONFIG,
                                   scene.reference_height_m, None, ablation=ablation, gt=scene.gt, holdout_every=5,

@@ -11,10 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from daemon.spine.config import load_config
 from daemon.spine.mapper_config import InputsConfig, MapperConfig, MeshConfig, WindowsConfig
 from mapping.fits.reconstruction import reconstruct
 from mapping.localization.pose_noise import PoseNoise, perturbed, residual_error
 from mapping.localization.trajectory import Trajectory
+from mapping.offline.reconstruct_command import with_pose_refinement
 from tests.mapping.synthetic_road_scene import make_scene
 
 REPO = Path(__file__).resolve().parents[2]
@@ -122,3 +124,20 @@ def test_reconstruct_with_injected_noise_reports_the_error_the_refinement_leaves
     assert 15.0 < before["position_rms_cm"] < 25.0  # the RMS over the trajectory's poses is 20 cm
     assert after["position_rms_cm"] < 0.9 * before["position_rms_cm"]
     assert m["pose_refinement"]["knots"] > 2 and m["pose_refinement_wall_s"] > 0
+
+    def vertical(error: dict) -> float:
+        return float(np.sqrt(max(error["position_rms_cm"] ** 2 - error["horizontal_rms_cm"] ** 2, 0.0)))
+
+    registration = m["lidar_registration"]  # the drive has Lidar: its ground registered the height first
+    assert registration["points"] > 10_000 and registration["points_skipped"] == 0
+    assert registration["knots"] == m["pose_refinement"]["knots"] and m["lidar_registration_wall_s"] > 0
+    assert vertical(after) < 0.5 * vertical(before)
+
+
+def test_the_refinement_switch_sets_the_photometric_only_path():
+    car = load_config(REPO / "configs" / "sim.yaml")
+    settings = {name: with_pose_refinement(car, name).mapper.pose_refinement for name in ("on", "off", "photometric")}
+    assert settings["on"].enabled and settings["on"].lidar_registration
+    assert settings["photometric"].enabled and not settings["photometric"].lidar_registration
+    assert not settings["off"].enabled
+    assert with_pose_refinement(car, None) is car

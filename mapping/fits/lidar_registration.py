@@ -1,0 +1,123 @@
+"""Lidar ground registration (the pose refinement's first stage when the Lidar ground is given,
+`mapper.pose_refinement.lidar_registration`): the height, roll and pitch of the vehicle's pose corrected along the
+track so that the ground points of every moment agree with the others' on the same patch of road.
+
+Each ground point was placed with the pose at its firing time. A correction (dz, droll, dpitch) at the knots of
+the photometric corrections (mapping.fits.pose_refinement: `knot_spacing_m` apart, linear between), applied on the
+left about the vehicle's reference point, moves the point's height by dz + wx * ry - wy * rx (small angles; r the
+point's offset from the reference point at its time). The points are binned into `lidar_cell_m` cells; the fit
+minimises the squared difference of each point's corrected height from its cell's height (one unknown per cell,
+eliminated in closed form: the normal equations are 3 per knot), each over `lidar_point_sigma_m`, plus the prior
+towards zero (`prior_m`, `prior_deg`: the whole map's height and tilt are not observable from the Lidar alone) and
+the smoothness between knots (`smooth_m`, `smooth_deg`). `lidar_rounds` rounds reweight each point (Huber at
+`lidar_huber_m`) so that kerbs' edges and what stands on the road count less. A cell seen at one moment only
+constrains nothing. x, y and yaw are left to the photometric fit, which then holds these three axes.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import scipy.sparse as sp
+
+from daemon.spine.mapper_config import PoseRefinementConfig
+from mapping.fits.pose_refinement import PoseCorrections, knot_positions, reference_points
+from mapping.localization.trajectory import HorizontalTrack
+
+GAUGE_WEIGHT = 1e12  # against the data's normal matrix (~1e9 per unit of correction): held at zero
+
+
+def register_ground(points: np.ndarray, seconds: np.ndarray, trajectory: HorizontalTrack,
+                    settings: PoseRefinementConfig, timings: dict[str, float]) -> tuple[PoseCorrections, dict]:
+    """The corrections (dz, roll, pitch; x, y, yaw zero) that make the ground points (N, 3), fired at `seconds`
+    from the track's start, agree (module docstring); figures for the metrics (`lidar_registration`). Points or
+    times that are not finite are left out and counted (`points_skipped`)."""
+    started = time.perf_counter()
+    knot_s = knot_positions(trajectory, settings.knot_spacing_m)
+    good = np.isfinite(points).all(1) & np.isfinite(seconds)
+    skipped = int((~good).sum())  # not finite: counted in the figures, left out
+    if good.sum() > settings.lidar_max_points:  # an even subsample: the fit needs overlap, not every point
+        good[np.flatnonzero(good)[np.random.default_rng(0).permutation(int(good.sum()))[settings.lidar_max_points:]]] \
+            = False
+    pts, t = points[good], seconds[good]
+    s = trajectory.horizontal_distance_at(t)
+    r = pts - reference_points(trajectory, t)
+    # per point: its knots and weights, and its height's derivative by (dz, wx, wy) of each knot
+    k0 = np.clip(np.searchsorted(knot_s, s, side="right") - 1, 0, len(knot_s) - 2)
+    frac = np.clip((s - knot_s[k0]) / (knot_s[k0 + 1] - knot_s[k0]), 0.0, 1.0)
+    local = np.stack([np.ones(len(s)), r[:, 1], -r[:, 0]], 1)  # (N, 3)
+    cols = np.concatenate([3 * k0[:, None] + np.arange(3), 3 * (k0 + 1)[:, None] + np.arange(3)], 1)  # (N, 6)
+    vals = np.concatenate([local * (1 - frac)[:, None], local * frac[:, None]], 1)  # (N, 6)
+    m = 3 * len(knot_s)
+    cell_xy = np.floor(pts[:, :2] / settings.lidar_cell_m).astype(np.int64)
+    _, cell = np.unique(cell_xy[:, 0] * 2_000_003 + cell_xy[:, 1], return_inverse=True)
+    cell = cell.ravel()
+    cells = int(cell.max()) + 1
+    scale = np.tile([settings.prior_m, np.deg2rad(settings.prior_deg), np.deg2rad(settings.prior_deg)], len(knot_s))
+    step = np.tile([settings.smooth_m, np.deg2rad(settings.smooth_deg), np.deg2rad(settings.smooth_deg)],
+                   len(knot_s) - 1)
+    D = sp.diags([-np.ones(m - 3), np.ones(m - 3)], [0, 3], shape=(m - 3, m))
+    fixed = np.diag(1.0 / scale ** 2) + (D.T @ sp.diags(1.0 / step ** 2) @ D).toarray() \
+        + _gauge_penalty(trajectory, knot_s, scale)  # prior, smoothness, gauge
+    pair = (cols[:, :, None] * m + cols[:, None, :]).ravel()  # (N * 36,) entries of the normal matrix
+    z = pts[:, 2]
+    theta = np.zeros(m)
+    weight = np.ones(len(s))
+    sigma2 = settings.lidar_point_sigma_m ** 2
+    spread = []
+    for _ in range(settings.lidar_rounds):
+        cell_w = np.maximum(np.bincount(cell, weight, cells), 1e-12)
+        wv = weight[:, None] * vals
+        AtWA = np.bincount(pair, (wv[:, :, None] * vals[:, None, :]).ravel(), m * m).reshape(m, m)
+        B = sp.csr_matrix((wv.ravel(), (np.repeat(cell, 6), cols.ravel())), shape=(cells, m))  # per cell: the
+        # weighted sum of its points' derivatives
+        BtB = (B.T @ sp.diags(1.0 / cell_w) @ B).toarray()
+        wz_cell = np.bincount(cell, weight * z, cells)
+        rhs = -(np.bincount(cols.ravel(), (wv * z[:, None]).ravel(), m) - B.T @ (wz_cell / cell_w)) / sigma2
+        theta = np.linalg.solve((AtWA - BtB) / sigma2 + fixed, rhs)
+        moved = z + (vals * theta[cols]).sum(1)
+        residual = moved - (np.bincount(cell, weight * moved, cells) / cell_w)[cell]
+        spread.append(float(np.sqrt(np.average(residual ** 2, weights=weight))))
+        weight = np.minimum(1.0, settings.lidar_huber_m / np.maximum(np.abs(residual), 1e-9))
+    knots = theta.reshape(-1, 3)
+    position = np.zeros((len(knot_s), 3))
+    rotation = np.zeros((len(knot_s), 3))
+    position[:, 2], rotation[:, :2] = knots[:, 0], knots[:, 1:]
+    corrections = PoseCorrections(knot_s, position, rotation)
+    timings["lidar_registration_wall_s"] = time.perf_counter() - started
+    return corrections, {"points": len(s), "points_skipped": skipped, "cells": cells,
+                         "residual_rms_cm": [100.0 * v for v in spread], **corrections.figures()}
+
+
+def _gauge_penalty(trajectory: HorizontalTrack, knot_s: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """A penalty (3K, 3K) that keeps the corrections free of what the ground cannot tell: a change of the whole
+    map's height, or a tilt of the whole map (a correction dz = a + b X + c Y at each knot with roll c, pitch -b
+    moves every point by a + b X + c Y, whatever the moment that saw it). The corrections are kept orthogonal to
+    these three, in the prior's metric (the smallest correction the ground allows)."""
+    seconds = np.interp(knot_s, trajectory.horizontal_distance(), trajectory.times)
+    xy = reference_points(trajectory, seconds)[:, :2]
+    xy = xy - xy.mean(0)
+    modes = np.zeros((3, len(knot_s), 3))
+    modes[0, :, 0] = 1.0
+    modes[1, :, 0], modes[1, :, 2] = xy[:, 0], -1.0
+    modes[2, :, 0], modes[2, :, 1] = xy[:, 1], 1.0
+    g = modes.reshape(3, -1) / scale ** 2  # prior-metric directions
+    g /= np.linalg.norm(g, axis=1, keepdims=True)
+    return GAUGE_WEIGHT * g.T @ g
+
+
+def re_placed(points: np.ndarray, seconds: np.ndarray, trajectory: HorizontalTrack,
+              corrections: PoseCorrections) -> np.ndarray:
+    """The ground points moved by the corrections at their firing times (as the vehicle's pose is)."""
+    position, rotation = corrections.at(trajectory.horizontal_distance_at(seconds))
+    reference = reference_points(trajectory, seconds)
+    # rotation vectors of a few degrees at most: first order plus the second-order term (Rodrigues)
+    theta = np.linalg.norm(rotation, axis=1, keepdims=True)
+    offset = points - reference
+    cross = np.cross(rotation, offset)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = np.where(theta > 0, np.sin(theta) / theta, 1.0)
+        b = np.where(theta > 0, (1 - np.cos(theta)) / theta ** 2, 0.5)
+    turned = offset + a * cross + b * np.cross(rotation, cross)
+    return reference + position + turned

@@ -1,0 +1,90 @@
+"""Lidar ground registration (mapping.fits.lidar_registration): ground points placed with a pose whose height,
+roll and pitch wander are registered back onto one surface; exact poses get no correction; bad points are
+counted and left out."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from daemon.spine.mapper_config import PoseRefinementConfig
+from mapping.fits.lidar_registration import re_placed, register_ground
+from mapping.localization.trajectory import HorizontalTrack
+
+SETTINGS = PoseRefinementConfig(enabled=True)
+SPEED = 8.0  # m/s along x
+SCAN_HZ = 10.0
+
+
+def _surface(xy: np.ndarray) -> np.ndarray:
+    """A crowned road with a 2 % grade and 15 cm kerbs at |y| > 5 m."""
+    return 0.02 * xy[:, 0] - 0.01 * np.abs(xy[:, 1]) + 0.15 * (np.abs(xy[:, 1]) > 5.0)
+
+
+def _drive(seconds: float, error_cm: float, rng: np.random.Generator):
+    """The vehicle's true track, the one it was placed with (a smooth height / roll / pitch error, and some
+    along-track and lateral error which the registration must not need), and ground points as that pose placed
+    them, with 1 cm of range noise: (track as placed, points, their times, the error's dz and roll/pitch at t)."""
+    t = np.arange(0.0, seconds, 0.01)
+    true = np.stack([SPEED * t, np.zeros_like(t), 0.02 * SPEED * t + 1.6], 1)
+    knots = np.arange(0.0, seconds + 0.5, 0.5)
+    draw = rng.standard_normal((len(knots), 6))
+    error = np.stack([np.interp(t, knots, draw[:, k]) for k in range(6)], 1)
+    error[:, :3] *= error_cm / 100.0 / np.sqrt(3)
+    error[:, 3:] *= np.deg2rad(0.1) * (error_cm > 0)
+    placed = true + error[:, :3]
+    track = HorizontalTrack(t, placed)
+    points, times = [], []
+    for scan_t in np.arange(0.0, seconds - 0.1, 1 / SCAN_HZ):
+        xy = rng.uniform([-25, -12], [25, 12], (3000, 2))
+        firing = scan_t + rng.uniform(0, 1 / SCAN_HZ, len(xy))
+        i = np.clip(np.searchsorted(t, firing), 0, len(t) - 1)
+        ground = np.concatenate([xy + true[i, :2], np.zeros((len(xy), 1))], 1)
+        ground[:, 2] = _surface(ground[:, :2]) + rng.normal(0, 0.01, len(xy))
+        turned = Rotation.from_rotvec(error[i, 3:]).apply(ground - true[i])
+        points.append(placed[i] + turned)
+        times.append(firing)
+    return track, np.concatenate(points), np.concatenate(times), error
+
+
+def _height_error_cm(points: np.ndarray) -> float:
+    """RMS of the points' height off the true surface, once the plane that fits that best is taken off (the whole
+    map's height and tilt are not observable from the ground alone)."""
+    off = points[:, 2] - _surface(points[:, :2])
+    plane = np.concatenate([np.ones((len(points), 1)), points[:, :2]], 1)
+    off = off - plane @ np.linalg.lstsq(plane, off, rcond=None)[0]
+    return 100.0 * float(np.sqrt((off ** 2).mean()))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_wandering_height_roll_and_pitch_are_registered_onto_one_surface(seed):
+    track, points, times, error = _drive(5.0, 20.0, np.random.default_rng(seed))
+    timings = {}
+    corrections, figures = register_ground(points, times, track, SETTINGS, timings)
+    moved = re_placed(points, times, track, corrections)
+    before, after = _height_error_cm(points), _height_error_cm(moved)
+    assert before > 3.0
+    assert after < 0.5 * before and after < 2.0  # the points' own noise is 1 cm
+    dz, _ = corrections.at(track.horizontal_distance_at(track.times))
+    found = np.corrcoef(dz[:, 2], -error[:, 2])[0, 1]
+    assert found > 0.9  # the correction follows the injected height error
+    assert np.abs(corrections.position_m[:, :2]).max() == 0 and np.abs(corrections.rotation_rad[:, 2]).max() == 0
+    assert figures["residual_rms_cm"][-1] < figures["residual_rms_cm"][0] or figures["residual_rms_cm"][0] < 2.0
+    assert figures["knots"] == len(corrections.knots_s) and timings["lidar_registration_wall_s"] > 0
+
+
+def test_exact_poses_get_no_correction():
+    track, points, times, _ = _drive(5.0, 0.0, np.random.default_rng(3))
+    corrections, figures = register_ground(points, times, track, SETTINGS, {})
+    assert figures["position_max_cm"] < 0.5 and figures["rotation_max_deg"] < 0.01
+    assert _height_error_cm(re_placed(points, times, track, corrections)) < 1.2
+
+
+def test_points_that_are_not_finite_are_counted_and_left_out():
+    track, points, times, _ = _drive(3.0, 20.0, np.random.default_rng(4))
+    points[::100, 2] = np.nan
+    times[1::100] = np.inf
+    clean = np.isfinite(points).all(1) & np.isfinite(times)
+    corrections, figures = register_ground(points, times, track, SETTINGS, {})
+    assert figures["points_skipped"] == int((~clean).sum()) > 0
+    assert figures["points"] == int(clean.sum())
+    assert np.isfinite(corrections.position_m).all() and np.isfinite(corrections.rotation_rad).all()
