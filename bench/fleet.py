@@ -62,14 +62,18 @@ QUICK_MAPPER = """mapper:
 
 
 def simulate(drives: Path, seconds: float, seed: int | None, visits: list[int]) -> list[Path]:
-    logs = []
+    """The visits' logs, each simulated (side by side, a process each) unless it is already in `drives`."""
+    logs, running = [], []
     for visit in visits:
         log = drives / f"city{'' if seed is None else seed}_{seconds:g}s_v{visit}.mcap"
         if not (log.exists() and log.with_name(log.stem + ".gt.npz").exists()):
-            subprocess.run([ROADLOG, "simulate", "--scenario", "city", "--seconds", str(seconds), "--visit",
-                            str(visit), "--out", str(log), *(["--seed", str(seed)] if seed is not None else [])],
-                           check=True, stdout=subprocess.DEVNULL)
+            running.append(subprocess.Popen(
+                [ROADLOG, "simulate", "--scenario", "city", "--seconds", str(seconds), "--visit", str(visit),
+                 "--out", str(log), *(["--seed", str(seed)] if seed is not None else [])], stdout=subprocess.DEVNULL))
         logs.append(log)
+    for proc in running:
+        if proc.wait() != 0:
+            raise subprocess.CalledProcessError(proc.returncode, proc.args)
     return logs
 
 

@@ -1,12 +1,13 @@
 """Many drives' windows in the tile store merged into one map: each drive's windows fused into its own layer
 (weighted by their confidences), each drive aligned to a reference drive (the one that mapped most) from their
 overlap, then all layers fused per cell with their confidences, so that what one drive saw (under another's
-parked car) fills the other's hole.
+parked car) fills the other's hole; each drive's cell counts by its supervising steps (DriveLayer.fusion_weight).
 
 Alignment, per drive: the horizontal shift (up to MAX_SHIFT_M, below a cell: estimate_shift) that best overlays
-its lane markings, curbs, manholes and road texture on the reference's, then the elevation offset (the weighted
-median height difference there); the drives' mean shift (to whole cells) and offset are taken out of all of them
-(the map lies where the drives agree on average, not where the reference drive's positioning put it). Class
+its lane markings, curbs, manholes and road texture on the reference's, then the height plane (offset and tilt:
+height_plane) between them there; the drives' consensus shift (to whole cells) and plane, each drive weighted by
+the inverse variance of its fixes' reported accuracy (consensus_weights), are taken out of all of them (the map
+lies where the drives agree, not where the reference drive's positioning put it). Class
 probabilities move by whole cells, heights by the exact fraction (moved). Per camera, the appearance: an affine
 colour map (3 x 4, least squares) from the drive's colours to the reference's in the overlap. That affine map
 stands in for the paper-style "one colour MLP per camera per drive over shared codes": each drive's own colour
@@ -31,6 +32,7 @@ from scipy.ndimage import gaussian_filter
 from scipy.ndimage import shift as nd_shift
 
 from daemon.spine.semantic_classes import NUM_MAP_CLASSES, SemanticClass
+from mapping.fleet.fleet_journal import FleetJournal
 from mapping.fleet.geodetic_grid import TILE_M, TileId, utm_crs
 from mapping.fleet.tile_store import TileStore, save_json, save_npz
 from mapping.live.map_images import atomic_png
@@ -44,6 +46,9 @@ FEATURE_SMOOTH_CELLS = 1.0  # Gaussian sigma of the features the sub-cell shift 
 TEXTURE_SCALE_M = 1.0  # the road texture of the shift's features: luminance less its mean over this sigma
 REFINE_STEPS = 8  # Gauss-Newton steps below a cell, at most
 PRIOR_SHIFT_M = 0.25  # sigma of the prior on a drive's shift (two drives' RTK fixes agree that well)
+PLANE_FITS = 3  # refits of the height plane between two drives without its outliers
+PLANE_OUTLIER_MADS = 3.0  # a cell further off the plane than this many median absolute deviations is left out
+GNSS_STD_FLOOR_M = 0.005  # a drive's reported GNSS accuracy counts no better than this in its consensus weight
 MIN_OVERLAP_CELLS = 2000  # fewer cells mapped by both: no alignment (the drive is fused as it is)
 COLOUR_SAMPLE = 200_000  # cells the colour maps are fitted on, at most
 
@@ -57,6 +62,14 @@ class DriveLayer:
     weight: np.ndarray  # (H, W) float32, 0 unmapped
     prob: np.ndarray | None  # (H, W, classes) float32 (zeros where unlabelled), None: no semantics
     rgb: dict[str, np.ndarray]  # camera -> (H, W, 3) float32 0..255
+    views: np.ndarray | None = None  # (H, W) float32 supervising steps (windows' exp(confidence) - 1, summed)
+    gnss_std_m: tuple[float, float] | None = None  # (horizontal, vertical) its fixes' reported 1-sigma
+
+    @property
+    def fusion_weight(self) -> np.ndarray:
+        """What the cell counts for in the fusion of drives: its supervising steps (the inverse variance of a mean
+        of that many observations), so a cell one drive saw often and another barely takes the first one's."""
+        return self.views if self.views is not None else self.weight
 
     @property
     def mapped(self) -> np.ndarray:
@@ -105,9 +118,10 @@ def drive_layers(store: TileStore) -> list[ZoneMosaic]:
             for info in store.contributions(tile):
                 part = store.read(tile, info)
                 acc = sums.setdefault(info.drive, {"w": np.zeros(shape, np.float32), "wh": np.zeros(shape),
-                                                   "wp": None, "wrgb": {}})
+                                                   "n": np.zeros(shape, np.float32), "wp": None, "wrgb": {}})
                 w = part.weight
                 acc["w"][at] += w
+                acc["n"][at] += np.expm1(w)
                 acc["wh"][at] += np.where(w > 0, w * np.nan_to_num(part.height), 0)
                 if part.class_prob is not None:
                     if acc["wp"] is None:
@@ -121,7 +135,10 @@ def drive_layers(store: TileStore) -> list[ZoneMosaic]:
             height = np.where(w > 0, acc["wh"] / safe, np.nan).astype(np.float32)
             prob = acc["wp"] / safe[..., None] if acc["wp"] is not None else None
             rgb = {cam: v / safe[..., None] for cam, v in acc["wrgb"].items()}
-            mosaic.layers[drive] = DriveLayer(drive, height, w, prob, rgb)
+            entry = FleetJournal(store.root).drive(drive) or {}
+            std = entry.get("gnss_std_m")
+            mosaic.layers[drive] = DriveLayer(drive, height, w, prob, rgb, acc["n"],
+                                              tuple(std) if std is not None else None)
         out.append(mosaic)
     return out
 
@@ -228,7 +245,7 @@ def estimate_shift(ref: DriveLayer, drive: DriveLayer, max_cells: int, resolutio
         gi, gj = np.gradient(bs, axis=(0, 1))
         g = np.stack([gi[m].ravel(), gj[m].ravel()], -1)  # d(moved b)/d(shift) = -gradient
         r = diff[m].ravel()
-        noise = float(np.mean(r * r)) * corr_cells
+        noise = max(float(np.mean(r * r)), 1e-12) * corr_cells  # a featureless overlap: the prior alone
         normal = g.T @ g + noise / prior_cells**2 * np.eye(2)
         step = np.linalg.solve(normal, -(g.T @ r) - noise / prior_cells**2 * d)
         d = np.clip(d + step, -max_cells, max_cells)
@@ -253,33 +270,56 @@ def colour_map(source: np.ndarray, target: np.ndarray) -> np.ndarray:
     return np.linalg.lstsq(x, target, rcond=None)[0]
 
 
-def moved(layer: DriveLayer, di: float, dj: float, dz: float = 0.0) -> DriveLayer:
-    """`layer` moved by (di, dj) cells and lifted by dz. Its class probabilities, weights and colours move by the
+def moved(layer: DriveLayer, di: float, dj: float) -> DriveLayer:
+    """`layer` moved by (di, dj) cells. Its class probabilities, weights and colours move by the
     nearest whole cells (exactly: resampling a 15 cm line's probabilities at 20 cm cells spreads it over two cells
     below what its argmax keeps, measured: lane-marking IoU 41 -> 27 %); its heights, smooth, by the exact
     fraction (bilinear, confidence-weighted), where the whole-cell move mapped."""
     i, j = int(np.rint(di)), int(np.rint(dj))
-    out = DriveLayer(layer.drive, shifted(layer.height, i, j, np.nan) + np.float32(dz),
+    out = DriveLayer(layer.drive, shifted(layer.height, i, j, np.nan),
                      shifted(layer.weight, i, j, 0.0),
                      shifted(layer.prob, i, j, 0.0) if layer.prob is not None else None,
-                     {c: shifted(v, i, j, 0.0) for c, v in layer.rgb.items()})
+                     {c: shifted(v, i, j, 0.0) for c, v in layer.rgb.items()},
+                     shifted(layer.views, i, j, 0.0) if layer.views is not None else None, layer.gnss_std_m)
     if float(di).is_integer() and float(dj).is_integer():
         return out
     w = layer.weight
     weight = nd_shift(w, (di, dj), order=1, cval=0.0)
     height = nd_shift(np.nan_to_num(layer.height) * w, (di, dj), order=1, cval=0.0) / np.where(weight > 0, weight, 1)
     fine = (weight > 1e-3 * max(float(w.max()), 1e-6)) & out.mapped
-    out.height[fine] = (height[fine] + dz).astype(np.float32)
+    out.height[fine] = height[fine].astype(np.float32)
     return out
 
 
-def height_offset(ref: DriveLayer, layer: DriveLayer) -> tuple[float | None, int]:
-    """The weighted median of ref's height less layer's where both mapped (None: too little overlap)."""
+def height_plane(ref: DriveLayer, layer: DriveLayer, origin: tuple[float, float]) -> np.ndarray | None:
+    """ref's height less layer's where both mapped, as a plane: (offset at `origin` (row, col), m; slope per row,
+    per column, m/cell), a least-squares fit weighted by the fusion weights, started at the weighted median and
+    refitted PLANE_FITS times without the cells off it by more than PLANE_OUTLIER_MADS median absolute deviations
+    (a curb's step half a cell apart, a parked car's edge); None: too little overlap."""
     both = ref.mapped & layer.mapped
     if both.sum() < MIN_OVERLAP_CELLS:
-        return None, int(both.sum())
-    w = np.minimum(ref.weight[both], layer.weight[both])
-    return weighted_median(ref.height[both] - layer.height[both], w), int(both.sum())
+        return None
+    rows, cols = np.nonzero(both)
+    diff = (ref.height[both] - layer.height[both]).astype(np.float64)
+    w = np.minimum(ref.fusion_weight[both], layer.fusion_weight[both]).astype(np.float64)
+    x = np.column_stack([np.ones(len(rows)), rows - origin[0], cols - origin[1]])
+    plane = np.array([weighted_median(diff, w), 0.0, 0.0])
+    for _ in range(PLANE_FITS):
+        residual = diff - x @ plane
+        keep = np.abs(residual) <= PLANE_OUTLIER_MADS * max(float(np.median(np.abs(residual))), 1e-4)
+        sw = np.sqrt(w[keep])
+        plane = np.linalg.lstsq(x[keep] * sw[:, None], diff[keep] * sw, rcond=None)[0]
+    return plane
+
+
+def consensus_weights(layers: list[DriveLayer], axis: int) -> np.ndarray:
+    """Each drive's say in where the map lies: the inverse variance of its fixes' reported accuracy (axis 0:
+    horizontal, 1: vertical), so a drive on an RTK fix outweighs one on a float or stand-alone fix; equal weights
+    where any drive reported none (nothing to weigh them by)."""
+    stds = [layer.gnss_std_m for layer in layers]
+    if any(s is None for s in stds):
+        return np.ones(len(layers))
+    return np.array([1.0 / max(s[axis], GNSS_STD_FLOOR_M) ** 2 for s in stds])
 
 
 def recoloured(ref: DriveLayer, layer: DriveLayer) -> tuple[DriveLayer, dict]:
@@ -303,9 +343,11 @@ def recoloured(ref: DriveLayer, layer: DriveLayer) -> tuple[DriveLayer, dict]:
 
 def aligned_layers(layers: dict[str, DriveLayer], reference: str, resolution_m: float
                    ) -> tuple[list[DriveLayer], list[dict]]:
-    """Every drive moved into the drives' consensus frame: each one's shift and height offset estimated against
-    the reference, then their mean over the drives (the reference's own: zero) taken out of all, so that no one
-    drive's positioning error becomes the map's (independent errors average out); colours onto the reference's."""
+    """Every drive moved into the drives' consensus frame: each one's shift and height plane (offset and tilt)
+    estimated against the reference, then their mean over the drives (the reference's own: zero), weighted by
+    consensus_weights, taken out of all, so that no one drive's positioning or attitude error becomes the map's
+    (independent errors average out) and a cell only one drive mapped carries the consensus tilt, not that
+    drive's; colours onto the reference's."""
     max_cells = int(np.ceil(MAX_SHIFT_M / resolution_m))
     shifts: dict[str, tuple[float, float] | None] = {reference: (0.0, 0.0)}
     reports = {reference: {"drive": reference, "reference": True, "shift": "reference"}}
@@ -316,22 +358,32 @@ def aligned_layers(layers: dict[str, DriveLayer], reference: str, resolution_m: 
                           "shift_cost_gain": found.cost_gain, "shift_std_m": list(found.std_m),
                           "least_constrained_direction_en": list(found.weak_direction_en),
                           "shift": "estimated" if found.shift else "not estimated: no semantics or too little overlap"}
-    known = np.array([s for s in shifts.values() if s is not None], float)
-    ci, cj = (int(v) for v in np.rint(known.mean(0)))  # whole cells: the reference is moved without resampling
+    known = [d for d in sorted(shifts) if shifts[d] is not None]
+    weights = consensus_weights([layers[d] for d in known], 0)
+    mean_shift = np.average(np.array([shifts[d] for d in known], float), axis=0, weights=weights)
+    ci, cj = (int(v) for v in np.rint(mean_shift))  # whole cells: the reference is moved without resampling
     placed = {}
     for drive, layer in layers.items():
         di, dj = shifts[drive] or (ci, cj)
         placed[drive] = moved(layer, di - ci, dj - cj)
         reports[drive]["shift_m"] = [(dj - cj) * resolution_m, (di - ci) * resolution_m]  # east, north
-    dz = {reference: 0.0}
+    rows, cols = np.nonzero(placed[reference].mapped)
+    origin = (float(rows.mean()), float(cols.mean())) if len(rows) else (0.0, 0.0)
+    planes = {reference: np.zeros(3)}
     for drive in sorted(set(layers) - {reference}):
-        dz[drive], _ = height_offset(placed[reference], placed[drive])
-    mean_dz = float(np.mean([v for v in dz.values() if v is not None]))
+        planes[drive] = height_plane(placed[reference], placed[drive], origin)
+    known = [d for d in sorted(planes) if planes[d] is not None]
+    weights = consensus_weights([layers[d] for d in known], 1)
+    mean_plane = np.average(np.array([planes[d] for d in known]), axis=0, weights=weights)
+    ii, jj = np.mgrid[0:placed[reference].height.shape[0], 0:placed[reference].height.shape[1]]
     out = []
     for drive in sorted(layers, key=lambda d: d != reference):
-        lift = (dz[drive] if dz[drive] is not None else mean_dz) - mean_dz
-        layer = moved(placed[drive], 0, 0, lift)
-        reports[drive]["dz_m"] = lift
+        plane = (planes[drive] if planes[drive] is not None else mean_plane) - mean_plane
+        layer = placed[drive]
+        layer.height = (layer.height + plane[0] + plane[1] * (ii - origin[0]) + plane[2] * (jj - origin[1])
+                        ).astype(np.float32)
+        reports[drive]["dz_m"] = float(plane[0])
+        reports[drive]["tilt_cm_per_m"] = [float(plane[2] / resolution_m * 100), float(plane[1] / resolution_m * 100)]
         if drive != reference:
             layer, reports[drive]["colour"] = recoloured(placed[reference], layer)
         out.append(layer)
@@ -359,13 +411,15 @@ def fuse(mosaic: ZoneMosaic) -> MergedMap:
     aligned, reports = aligned_layers(layers, reference, mosaic.resolution_m)
     shape = mosaic.shape
     w_sum = np.zeros(shape, np.float32)
+    confidence_sum = np.zeros(shape, np.float32)
     h_sum = np.zeros(shape)
     p_sum = np.zeros((*shape, NUM_MAP_CLASSES), np.float32)
     rgb_sum: dict[str, np.ndarray] = {}
     rgb_w: dict[str, np.ndarray] = {}
     for layer in aligned:
-        w = layer.weight
+        w = layer.fusion_weight
         w_sum += w
+        confidence_sum += layer.weight
         h_sum += np.where(w > 0, w * np.nan_to_num(layer.height), 0)
         if layer.prob is not None:
             p_sum += w[..., None] * layer.prob
@@ -382,7 +436,7 @@ def fuse(mosaic: ZoneMosaic) -> MergedMap:
     confidence = np.where(labelled, p_sum.max(-1) / np.where(labelled, p_total, 1), 0).astype(np.float32)
     rgb = {cam: np.clip(v / np.maximum(rgb_w[cam], 1e-6)[..., None] + 0.5, 0, 255).astype(np.uint8)
            for cam, v in rgb_sum.items()}
-    return MergedMap(mosaic, height, w_sum, labels, confidence, rgb, reports, reference)
+    return MergedMap(mosaic, height, confidence_sum, labels, confidence, rgb, reports, reference)
 
 
 def merge_drives(store: TileStore, out: Path) -> dict:

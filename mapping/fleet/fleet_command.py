@@ -85,7 +85,8 @@ def map_drive(logs: list[str], out: str, retries: int, device: str | None, mappe
     frame = drive.trajectory.local_frame
     journal.write_drive(name, {"logs": logs, "windows": windows, "load_s": load_s, "drive_s": drive.drive_s,
                                "origin_lat_lon_alt": [frame.lat_deg, frame.lon_deg, frame.alt_m],
-                               "cameras": sorted(drive.cameras), "inputs": drive.counts})
+                               "cameras": sorted(drive.cameras), "inputs": drive.counts,
+                               "gnss_std_m": drive.gnss_std_m})
     grid = GridSpec(config.mapper.mesh.side_m)
     stem = Path(logs[0]).stem
     summary.update(windows=windows, load_s=load_s, window_s=[])

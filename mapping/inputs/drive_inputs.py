@@ -67,6 +67,8 @@ class DriveInputs:
     counts: dict[str, int] = field(default_factory=dict)
     report: ReadReport | None = None
     lidar_standing: StandingPoints | None = None  # what stands on the road, for the keyframes without masks
+    lidar_ground_times: np.ndarray | None = None  # (N,) each ground point's firing time, s from the track's start
+    gnss_std_m: tuple[float, float] | None = None  # gnss_std_m(): its fixes' reported accuracy; None: no fixes
 
     @property
     def path(self) -> HorizontalTrack:
@@ -91,6 +93,8 @@ class LoadingDrive:
     counts: dict[str, int]
     report: ReadReport
     lidar_standing: Future[StandingPoints | None]  # None: no Lidar, or every keyframe has a mask
+    lidar_ground_times: Future[np.ndarray | None]  # (N,) each ground point's firing time, s from the track's start
+    gnss_std_m: tuple[float, float] | None = None
 
     @property
     def path(self) -> HorizontalTrack:
@@ -103,7 +107,7 @@ class LoadingDrive:
         if ground is not None:
             counts["lidar_ground_points"] = len(ground)
         return DriveInputs(self.cameras, keyframes, self.trajectory, ground, self.clocks, counts, self.report,
-                           self.lidar_standing.result())
+                           self.lidar_standing.result(), self.lidar_ground_times.result(), self.gnss_std_m)
 
 
 def camera_models(config: CarConfig) -> dict[str, CameraModel]:
@@ -130,6 +134,20 @@ def decode_mask(mask: SemanticMask) -> np.ndarray:
     if img is None:
         raise ValueError(f"cannot decode mask {mask.seq} of {mask.camera}")
     return img
+
+
+def gnss_std_m(gnss: list[GnssFix]) -> tuple[float, float] | None:
+    """(horizontal, vertical) 1-sigma the receiver reported for its fixes, the median over the drive (horizontal:
+    the RMS of east and north); None without fixes or without covariances (type unknown, or not positive)."""
+    cov = np.array([np.reshape(m.position_covariance, (3, 3)) for m in gnss
+                    if m.covariance_type != 0 and len(m.position_covariance) == 9])
+    if not len(cov):
+        return None
+    diag = np.diagonal(cov, axis1=1, axis2=2)
+    ok = np.all(np.isfinite(diag) & (diag > 0), axis=1)
+    if not ok.any():
+        return None
+    return (float(np.median(np.sqrt((diag[ok, 0] + diag[ok, 1]) / 2))), float(np.median(np.sqrt(diag[ok, 2]))))
 
 
 def _by_sensor_time(messages: list) -> list:
@@ -283,33 +301,33 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
     # a bad metadata or calibration file fails here, before the background work
     scans = lidar_scans(packets, clouds, lambda: configured_decoding(lidar, config_path or "."),
                         config.mapper.inputs.lidar_every_n_scans, view_clouds) if lidar else None
-    ground, standing_points = Future(), Future()
+    ground, ground_times, standing_points = Future(), Future(), Future()
     if scans is not None:
         occlusion = (counts["keyframes_without_mask"] > 0 and config.mapper.maskless.lidar_occlusion
                      if standing is None else standing)
         points = pool.submit(scans_ground, scans, clocks[scans.topic], config, trajectory,
                              GroundFilter(corridor_half_width_m=config.mapper.mesh.corridor_half_width_m),
                              int(trajectory.times_ns[0]) if occlusion else None, progress)
-        points.add_done_callback(lambda done: _split(done, ground, standing_points))
+        points.add_done_callback(lambda done: _split(done, ground, ground_times, standing_points))
         counts.update(scans.counts)
     else:
         ground.set_result(None)
+        ground_times.set_result(None)
         standing_points.set_result(None)
     keyframes = pool.submit(_decode_keyframes, chosen, segmenter, progress)
     pool.shutdown(wait=False)
     return LoadingDrive(camera_models(config), keyframes, trajectory, ground, clocks, counts, report,
-                        standing_points)
+                        standing_points, ground_times, gnss_std_m(gnss))
 
 
-def _split(done: Future, first: Future, second: Future) -> None:
-    """The two results of a finished future into two futures (its error into both)."""
+def _split(done: Future, *parts: Future) -> None:
+    """The results of a finished future (a tuple) into one future each (its error into all)."""
     if done.exception() is not None:
-        first.set_exception(done.exception())
-        second.set_exception(done.exception())
+        for part in parts:
+            part.set_exception(done.exception())
     else:
-        a, b = done.result()
-        first.set_result(a)
-        second.set_result(b)
+        for part, value in zip(parts, done.result(), strict=True):
+            part.set_result(value)
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ import rasterio
 
 from daemon.spine.semantic_classes import CLASS_COLOURS, NUM_MAP_CLASSES, SemanticClass
 from mapping.fleet.drive_merge import drive_layers, fuse, merge_drives, shifted
+from mapping.fleet.fleet_journal import FleetJournal
 from mapping.fleet.geodetic_grid import GridSpec, TileId
 from mapping.fleet.tile_store import Contribution, TileStore
 
@@ -155,3 +156,97 @@ def test_along_an_unbroken_line_nothing_fixes_the_along_road_shift_and_the_merge
     assert abs(weak_east) > 0.99  # the least constrained direction is along the road
     std_weak, std_strong = report["shift_std_m"]
     assert std_weak > 10 * std_strong
+
+
+def _plain_store(tmp_path, drives: dict[str, dict]) -> TileStore:
+    """A flat road (520 m, ROAD everywhere mapped) per drive, changed where `drives[name]` says: `patch` (rows and
+    columns slices) given `height`, `prob` (classes) and `steps` (supervising steps) there, `steps` elsewhere 20;
+    `gnss_std_m` into the drive's journal entry."""
+    store = TileStore(tmp_path / "plain")
+    rows, cols = np.mgrid[0:N, 0:N]
+    mapped = (rows >= 40) & (rows < 360) & (cols >= 20) & (cols < 380)
+    for drive, spec in drives.items():
+        height = np.where(mapped, 520.0 + spec.get("dz", 0.0), np.nan).astype(np.float32)
+        prob = np.zeros((N, N, NUM_MAP_CLASSES), np.float32)
+        prob[..., int(SemanticClass.ROAD)] = 1.0
+        steps = np.full((N, N), 20.0)
+        if "patch" in spec:
+            at = spec["patch"]
+            height[at] += np.float32(spec["height"])
+            prob[at] = spec["prob"]
+            steps[at] = spec["steps"]
+        store.write(TILE, Contribution(drive, 0, height, np.where(mapped, np.log1p(steps), 0).astype(np.float32),
+                                       np.where(mapped[..., None], prob * 255 + 0.5, 0).astype(np.uint8), {}))
+        FleetJournal(store.root).write_drive(drive, {"windows": 1, "gnss_std_m": spec.get("gnss_std_m")})
+    return store
+
+
+def test_a_cell_seen_often_by_one_drive_and_barely_by_the_other_takes_the_first_ones_height_and_class(tmp_path):
+    patch = (slice(150, 250), slice(150, 250))
+    mixed = np.zeros(NUM_MAP_CLASSES, np.float32)
+    mixed[int(SemanticClass.ROAD)], mixed[int(SemanticClass.LANE_MARKING)] = 0.6, 0.4
+    wrong = np.eye(NUM_MAP_CLASSES, dtype=np.float32)[int(SemanticClass.LANE_MARKING)]
+    store = _plain_store(tmp_path, {"a": {"patch": patch, "height": 0.0, "prob": mixed, "steps": 100},
+                                    "b": {"patch": patch, "height": 0.10, "prob": wrong, "steps": 2}})
+    (mosaic,) = drive_layers(store)
+    merged = fuse(mosaic)
+    # a mean by log(1 + steps) gives b a fifth of the say: +1.9 cm, and the lane marking (2.94 against 2.77)
+    assert np.nanmax(np.abs(merged.height[patch] - 520.0)) < 0.005
+    assert (merged.labels[patch] == SemanticClass.ROAD).all()
+    outside = np.isfinite(merged.height) & ~np.pad(np.ones((100, 100), bool), ((150, 150), (150, 150)))
+    assert np.abs(merged.height[outside] - 520.0).max() < 1e-3
+
+
+@pytest.mark.parametrize("precise", ["a", "b"])
+def test_the_map_lies_where_the_drive_with_the_better_reported_gnss_fix_put_it(tmp_path, precise):
+    # b's map 0.27 m east, 0.04 m north and 5 cm above a's: one of the two drives reports an RTK fix (1 cm), the
+    # other a stand-alone one (1 m); the merge moves the imprecise drive onto the precise one, not both halfway
+    store = _soft_store(tmp_path, 0.04, 0.27, dashes=True)
+    for drive in ("a", "b"):
+        FleetJournal(store.root).write_drive(drive, {"windows": 1,
+                                                     "gnss_std_m": [0.01, 0.02] if drive == precise else [1.0, 2.0]})
+        if drive == "b":  # b's heights 5 cm up
+            info = store.contributions(TILE)[1]
+            part = store.read(TILE, info)
+            part.height += np.float32(0.05)
+            store.write(TILE, part)
+    (mosaic,) = drive_layers(store)
+    merged = fuse(mosaic)
+    report = {r["drive"]: r for r in merged.alignment}
+    other = "b" if precise == "a" else "a"
+    # the consensus is to whole cells (the class probabilities are not resampled): the precise drive moves by
+    # less than half a cell, where halfway would be 0.14 m
+    assert np.hypot(*report[precise]["shift_m"]) < GRID.resolution_m / 2 + 0.01
+    assert np.subtract(report["b"]["shift_m"], report["a"]["shift_m"]) == pytest.approx([-0.27, -0.04], abs=0.02)
+    assert report[precise]["dz_m"] == pytest.approx(0.0, abs=0.002)
+    assert report[other]["dz_m"] == pytest.approx(-0.05 if other == "b" else 0.05, abs=0.002)
+
+
+def test_two_drives_tilted_apart_meet_at_their_mean_tilt_also_where_only_one_of_them_mapped(tmp_path):
+    # b's map rises 1 cm per m towards north against a's (another roll error) and sits 3 cm higher; each drive has
+    # a hole the other fills. Fused cell by cell alone, the holes would keep the filling drive's own tilt: a step
+    # at their edges. Aligned, every cell lies on the mean plane of the two.
+    store = TileStore(tmp_path / "tilted")
+    rows, cols = np.mgrid[0:N, 0:N]
+    mapped = (rows >= 40) & (rows < 360) & (cols >= 20) & (cols < 380)
+    holes = {"a": (rows >= 100) & (rows < 160) & (cols >= 100) & (cols < 160),
+             "b": (rows >= 260) & (rows < 320) & (cols >= 240) & (cols < 300)}
+    north_m = rows * GRID.resolution_m
+    tilt = {"a": 0.0, "b": 0.01}
+    for drive in ("a", "b"):
+        seen = mapped & ~holes[drive]
+        height = 520.0 + tilt[drive] * (north_m - 20.0) + (0.03 if drive == "b" else 0.0)
+        prob = np.zeros((N, N, NUM_MAP_CLASSES), np.uint8)
+        prob[seen, int(SemanticClass.ROAD)] = 255
+        store.write(TILE, Contribution(drive, 0, np.where(seen, height, np.nan).astype(np.float32),
+                                       np.where(seen, 2.0, 0.0).astype(np.float32), prob, {}))
+    (mosaic,) = drive_layers(store)
+    merged = fuse(mosaic)
+    report = {r["drive"]: r for r in merged.alignment}
+    relative = np.subtract(report["b"]["tilt_cm_per_m"], report["a"]["tilt_cm_per_m"])  # (east, north)
+    assert relative == pytest.approx([0.0, -1.0], abs=0.02)  # b's tilt taken out against a's
+    fitted = merged.height[mapped]
+    x = np.column_stack([np.ones(mapped.sum()), north_m[mapped], cols[mapped]])
+    plane, *_ = np.linalg.lstsq(x, fitted.astype(np.float64), rcond=None)
+    assert plane[1] == pytest.approx(0.005, abs=2e-4)  # the mean of the two tilts
+    assert np.abs(fitted - x @ plane).max() < 0.002  # holes included: no step where one drive filled the other

@@ -8,7 +8,8 @@ from scipy.spatial.transform import Rotation
 
 from daemon.log_format.writer import LogWriter
 from daemon.spine.config import ConfigError, load_config
-from mapping.inputs.drive_inputs import load_drive
+from daemon.spine.messages import GnssFix
+from mapping.inputs.drive_inputs import gnss_std_m, load_drive
 from mapping.inputs.lidar_ground import TILE_CELLS, GroundFilter, TrajectoryGround, ground_points
 from mapping.localization.trajectory import Trajectory
 from mapping.offline.reconstruct_command import DriveTruth, config_from_logs
@@ -46,6 +47,22 @@ def test_fused_trajectory_matches_the_truth(drive):
     assert np.degrees(rot_err.magnitude()).mean() < 0.5
 
 
+def test_the_drive_carries_its_fixes_reported_accuracy(drive):
+    inputs, _, _ = drive
+    # the simulated receiver reports an RTK fix's 1.4 cm horizontal and 2 cm vertical (sim/sensors/gnss_sim.py)
+    assert inputs.gnss_std_m == pytest.approx((0.014, 0.02), rel=0.01)
+
+
+def test_fixes_without_a_known_covariance_give_no_accuracy():
+    def fix(east: float, up: float, kind: int = 2) -> GnssFix:
+        return GnssFix(position_covariance=(east, 0, 0, 0, east, 0, 0, 0, up), covariance_type=kind)
+
+    assert gnss_std_m([fix(0.01, 0.04), fix(0.04, 0.09), fix(0.09, 0.16)]) == pytest.approx((0.2, 0.3))
+    assert gnss_std_m([fix(0.0, 0.0, kind=0)]) is None  # covariance type unknown
+    assert gnss_std_m([fix(0.0, 0.0), fix(np.nan, 0.04)]) is None  # none positive and finite
+    assert gnss_std_m([]) is None
+
+
 def test_keyframes_and_lidar_ground(drive):
     inputs, truth, _ = drive
     assert inputs.counts["keyframes"] >= 3 * 20  # every ~1 m, three cameras
@@ -64,6 +81,15 @@ def test_keyframes_and_lidar_ground(drive):
     # 2.5 cm at -0.08 deg since the start's prior pins the antenna, 3.5 cm at -0.23 deg before)
     assert np.mean(np.abs(dz)) < 0.03
     assert np.percentile(np.abs(dz), 99) < 0.15
+    # each ground point's firing time (the pose refinement's Lidar registration re-places them with it): within
+    # the drive, and the vehicle then within the ground filter's range of the point
+    seconds = inputs.lidar_ground_times
+    assert seconds.shape == (len(g),) and 0 <= seconds.min() and seconds.max() <= inputs.drive_s
+    track = inputs.path
+    at = np.stack([np.interp(seconds, track.times, track.positions[:, k]) for k in range(2)], 1)
+    reach = np.linalg.norm(g[:, :2] - at, axis=1)
+    assert reach.max() < GroundFilter().max_range_m + 1.0
+    assert np.median(reach) > GroundFilter().min_range_m
 
 
 def _bend_trajectory() -> Trajectory:
@@ -76,17 +102,28 @@ def _bend_trajectory() -> Trajectory:
 
 
 def test_trajectory_ground_raster_holds_the_nearest_trajectory_height():
+    """Each cell holds the height of the trajectory point nearest to it; past the trajectory's ends the road goes
+    on at the ends' grade (4 % here: 60 cm over the corridor's 15 m, more than the ground filter's band)."""
     traj = _bend_trajectory()
     road = TrajectoryGround.of(traj, 1.5, corridor_half_width_m=15.0, cell_m=0.25)
     ground = traj.positions - [0.0, 0.0, 1.5]
     rng = np.random.default_rng(0)
     xy = ground[rng.integers(0, len(ground), 20_000), :2] + rng.uniform(-25, 25, (20_000, 2))
+    xy = np.concatenate([xy, ground[[0, -1], :2].repeat(2_000, 0) + rng.uniform(-15, 15, (4_000, 2))])
     centres = (np.floor(xy / 0.25) + 0.5) * 0.25
     dist, idx = cKDTree(ground[:, :2]).query(centres)
     heights = road.height_at(xy)
     inside = dist < 15.0
-    assert inside.sum() > 5_000 and (~inside).sum() > 5_000
-    np.testing.assert_allclose(heights[inside], ground[idx[inside], 2], atol=1e-5)
+    ends = inside & ((idx == 0) | (idx == len(ground) - 1))
+    middle = inside & ~ends
+    assert middle.sum() > 5_000 and (~inside).sum() > 5_000 and ends.sum() > 1_000
+    np.testing.assert_allclose(heights[middle], ground[idx[middle], 2], atol=1e-5)
+    angle = 10.0 * 19.99 / 60.0  # the bend's heading at its last point; its first is 0 (east)
+    outward = np.where((idx[ends] == 0)[:, None], [[-1.0, 0.0]], [[np.cos(angle), np.sin(angle)]])
+    beyond = np.maximum(((centres[ends] - ground[idx[ends], :2]) * outward).sum(1), 0.0)
+    grade = np.where(idx[ends] == 0, -0.04, 0.04)  # climbing: the road falls behind its start, rises past its end
+    np.testing.assert_allclose(heights[ends], ground[idx[ends], 2] + grade * beyond, atol=0.03)
+    assert (heights[ends] - ground[idx[ends], 2]).max() > 0.4 and (heights[ends] - ground[idx[ends], 2]).min() < -0.4
     assert np.isnan(heights[~inside]).all()
     assert road.heights.shape[1:] == (TILE_CELLS, TILE_CELLS)
     assert (~np.isnan(road.heights)).any((1, 2)).all()  # only tiles holding part of the corridor are stored
@@ -111,6 +148,28 @@ def test_ground_filter_keeps_the_road_and_drops_a_car_on_it():
     assert cKDTree(far).query(kept)[0].min() > 1e-6  # none of the points beyond the corridor
     dist = cKDTree(ground[:, :2]).query(kept[:, :2])[0]
     assert dist.max() < 15.0 + 0.25
+
+
+def test_ground_filter_keeps_the_road_past_the_trajectory_end_on_a_grade():
+    """The cameras map the road up to 12 m beyond where a drive ends: on the bend's 4 % climb that road is up to
+    60 cm above the trajectory's last ground height, and its Lidar points are kept (all were dropped by the
+    35 cm band when the raster held the last point's height there)."""
+    traj = _bend_trajectory()
+    road = TrajectoryGround.of(traj, 1.5, corridor_half_width_m=15.0)
+    ground = traj.positions - [0.0, 0.0, 1.5]
+    angle = 10.0 * 19.99 / 60.0
+    forward, left = np.array([np.cos(angle), np.sin(angle)]), np.array([-np.sin(angle), np.cos(angle)])
+    rng = np.random.default_rng(3)
+    ahead, across = rng.uniform(8.0, 14.0, 20_000), rng.uniform(-4.0, 4.0, 20_000)
+    xy = ground[-1, :2] + np.outer(ahead, forward) + np.outer(across, left)
+    points = np.column_stack([xy, ground[-1, 2] + 0.04 * ahead + rng.normal(0.0, 0.005, len(ahead))])
+    kept = ground_points(points, road, GroundFilter())  # at most one point per 10 cm voxel
+
+    def cells(p: np.ndarray) -> set:  # the 0.5 m cells, in the road's own axes, that hold a point
+        local = (p[:, :2] - ground[-1, :2]) @ np.column_stack([forward, left])
+        return set(map(tuple, np.floor(local / 0.5).astype(int).tolist()))
+
+    assert len(cells(kept)) > 0.95 * len(cells(points))
 
 
 def test_ground_filter_keeps_a_curb_top_in_cells_that_straddle_the_curb():
