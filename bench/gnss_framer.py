@@ -3,7 +3,10 @@
 Each stream is fed in reads of READ_BYTES, as the serial driver gets them, and its cost is given in CPU seconds
 per second of input at 460800 baud (46,080 bytes/s): the real u-blox logs of /work/shared/data/gnss_pyubx2, and
 streams made to cost the most: false UBX headers (a UBX sync, a real class, a claimed length up to the maximum,
-every 8 bytes), a flood of UBX syncs, a flood of '$', short NMEA sentences with bad checksums, random bytes.
+every 8 bytes; and every 6 bytes each claiming the maximum, so that one waits for 8 KiB at every read), a flood of
+UBX syncs, a flood of '$', short NMEA sentences with bad checksums, the shortest candidates one after another ("$\n",
+"$" cut short by a UBX sync, "\xb5$"), sentences cut short behind a false header that holds 8 KiB in the buffer,
+random bytes.
 `worst_over_real` is the costliest hostile stream over the real one (the aim: within 10x).
 
     python bench/gnss_framer.py [--quick] [--baseline OLD_STREAM_FRAMER.py]
@@ -40,8 +43,17 @@ def hostile_streams(n: int, rng: random.Random) -> dict[str, bytes]:
     while len(false_headers) < n:
         length = rng.randrange(0, 8193)
         false_headers += b"\xb5\x62\x01" + bytes((rng.randrange(256), length & 0xFF, length >> 8)) + rng.randbytes(2)
+    def repeated(unit: bytes) -> bytes:
+        return (unit * (n // len(unit) + 1))[:n]
+
     return {
         "false_ubx_headers": bytes(false_headers[:n]),
+        "max_ubx_headers_every_6": repeated(b"\xb5\x62\x01\x07\xff\x1f"),
+        "sentences_behind_a_false_header": repeated(b"\xb5\x62\x01\x07\x00\x20" + b"$A" * 29),
+        "dollar_newline": repeated(b"$\n"),
+        "dollar_before_ubx_sync": repeated(b"$\xb5\x62"),
+        "b5_dollar": repeated(b"\xb5$"),
+        "tiny_bad_checksum_sentences": repeated(b"$*01\n"),
         "ubx_sync_flood": b"\xb5\x62" * (n // 2),
         "dollar_flood": b"$" * n,
         "bad_checksum_sentences": b"$A*00\r\n" * (n // 7),

@@ -99,12 +99,20 @@ class HealthBoard:
             return dict(self._latest)
 
 
-def _detail(health: DriverHealth) -> dict:
+def _detail(health: DriverHealth) -> dict | None:
+    """A health detail as JSON: {} when it is not JSON (plain text), None when it looks like JSON but cannot be read
+    (cut off, a number past Python's digit limit, nested past the recursion limit)."""
+    if not health.detail.startswith("{"):
+        return {}
     try:
-        value = json.loads(health.detail) if health.detail.startswith("{") else {}
-    except json.JSONDecodeError:
-        value = {}
-    return value
+        return json.loads(health.detail)
+    except (ValueError, RecursionError):  # JSONDecodeError is a ValueError
+        return None
+
+
+def _number(value: object) -> float | None:
+    """A number as a float; None for another shape, or an integer past a float."""
+    return float(value) if isinstance(value, float) or type(value) is int and abs(value) <= sys.float_info.max else None
 
 
 def _numbers(value: object) -> tuple[dict[str, float], int]:
@@ -112,7 +120,8 @@ def _numbers(value: object) -> tuple[dict[str, float], int]:
     of another shape counts as one): those are skipped, counted, and do not cost the other metrics."""
     if not isinstance(value, dict):
         return {}, 1
-    good = {str(k): float(v) for k, v in value.items() if isinstance(v, int | float) and not isinstance(v, bool)}
+    numbers = {str(k): _number(v) for k, v in value.items()}
+    good = {k: v for k, v in numbers.items() if v is not None}
     return good, len(value) - len(good)
 
 
@@ -227,7 +236,8 @@ class _BoardCollector:
             for k, fam in counters.items():
                 fam.add_metric([name], getattr(h, k))
             detail = _detail(h)
-            bad = 0
+            bad = 0 if detail is not None else 1  # one that cannot be read counts once, and shows nothing
+            detail = detail or {}
             if name == "recorder":
                 recorder_seen = True
                 for family, key in ((lost, "lost"), (written, "written")):
@@ -246,7 +256,8 @@ class _BoardCollector:
                 for figure, n in figures.items():
                     policy.add_metric([figure], n)
             if name == "supervisor":
-                figures, bad = _restarts(detail)
+                figures, wrong = _restarts(detail)
+                bad += wrong
                 for proc, n in figures.items():
                     restarts.add_metric([proc], n)
             malformed.add_metric([name], bad)

@@ -36,8 +36,8 @@ class HealthCounters:
         self.errors += 1
         self.last_error = what
 
-    def count_rejected(self, what: str) -> None:
-        self.rejected += 1
+    def count_rejected(self, what: str, n: int = 1) -> None:
+        self.rejected += n
         self.last_error = what
 
     def rate_hz(self, now_ns: int | None = None, window_s: float = 2.0) -> float:

@@ -1,7 +1,8 @@
 """Reading one YAML document from untrusted bytes: UTF-8 text, nesting and alias expansion bounded, any failure one
 `UnusableYaml` error saying where. A car config holds a few hundred values; PyYAML would otherwise build a
 billion-laugh alias bomb in microseconds (aliases are shared references) and hand it to a validator that walks it for
-hours, overflow the stack on deep nesting, or raise plain ValueError on a 5,000-digit integer."""
+hours, compose a few MiB of plain values for tens of seconds, overflow the stack on deep nesting, or raise plain
+ValueError on a 5,000-digit integer."""
 
 from __future__ import annotations
 
@@ -50,6 +51,22 @@ def _check_expansion(root: yaml.Node) -> None:
                 stack.append((child, False))
 
 
+class _BoundedLoader(yaml.SafeLoader):
+    """SafeLoader that stops composing past MAX_EXPANDED_NODES values (each alias counts one): a plain document of
+    a few MiB of values took PyYAML tens of seconds to compose before the expansion check refused it."""
+
+    def __init__(self, text: str) -> None:
+        super().__init__(text)
+        self.composed = 0
+
+    def compose_node(self, parent, index):
+        self.composed += 1
+        if self.composed > MAX_EXPANDED_NODES:
+            line = self.peek_event().start_mark.line + 1
+            raise UnusableYaml(f"holds more than {MAX_EXPANDED_NODES} values (line {line}): not a car config")
+        return super().compose_node(parent, index)
+
+
 def load_yaml(data: bytes) -> object:
     """The document in `data` (None when it is empty); UnusableYaml for anything we will not read."""
     if len(data) > MAX_BYTES:
@@ -60,7 +77,7 @@ def load_yaml(data: bytes) -> object:
         raise UnusableYaml(f"not UTF-8 text (byte {exc.start}: 0x{data[exc.start]:02x})") from None
     loader = None
     try:
-        loader = yaml.SafeLoader(text)  # its reader refuses control characters at once
+        loader = _BoundedLoader(text)  # its reader refuses control characters at once
         node = loader.get_single_node()
         if node is None:
             return None

@@ -199,6 +199,31 @@ def test_metrics_answer_despite_badly_shaped_health_details(served):
     assert 'roadlog_published_total{process="recorder"}' in text
 
 
+@pytest.mark.parametrize("detail, gnss_written", [
+    ('{"written": {"imu": 1' + "0" * 400 + ', "gnss": 3}}', 3.0),  # past a float: OverflowError in float()
+    ('{"disk_policy": {"deleted_bytes": -1' + "0" * 400 + '}, "written": {"gnss": 3}}', 3.0),
+    ('{"written": {"imu": 1' + "0" * 5000 + ', "gnss": 3}}', None),  # past int's digit limit: ValueError in json
+    ('{"a": ' * 100_000 + "1" + "}" * 100_000, None),  # RecursionError in json
+    ('{"written": {"gnss": 3}', None),  # cut off: not JSON (was taken as an empty detail, uncounted)
+], ids=["int-past-float", "negative-past-float", "past-digit-limit", "nested-past-recursion-limit", "cut-off"])
+def test_metrics_and_status_answer_despite_a_detail_json_cannot_take(served, detail, gnss_written):
+    """A detail with a number past a float, one past Python's digit limit or nested past the recursion limit made
+    /metrics (and /status) close with no answer: the entry, or the detail that cannot be read, is skipped and
+    counted like other bad shapes, and the rest is answered."""
+    cfg, board, base, _ = served
+    board.update(_healthy("recorder", detail=detail))
+    code, _, body = _get(base + "/metrics")
+    text = body.decode()
+    assert code == 200
+    assert 'roadlog_status_malformed_details_total{process="recorder"} 1.0' in text
+    if gnss_written is None:  # nothing of a detail that cannot be read
+        assert 'roadlog_recorder_written_messages_total{topic="gnss"}' not in text
+    else:
+        assert f'roadlog_recorder_written_messages_total{{topic="gnss"}} {gnss_written}' in text
+    code, _, body = _get(base + "/status")
+    assert code == 200 and "recorder" in json.loads(body)["processes"]
+
+
 def test_idle_connections_are_closed_and_many_clients_are_served(tmp_path):
     cfg, _ = private_config(tmp_path)
     board = HealthBoard(cfg)

@@ -1,8 +1,9 @@
 """The framer on the shared real u-blox logs and on hostile streams: every real message framed, every false
 candidate rejected and counted by reason, and what a false UBX header costs bounded by work, not by time: the
 bytes the per-frame checksum walks stay within a small multiple of the input (it walked each false header's
-claimed length, up to 8 KiB, for every 8 bytes of such a stream), and the buffer's prefix sums are made at most
-once per read (bench/gnss_framer.py gives the CPU figures)."""
+claimed length, up to 8 KiB, for every 8 bytes of such a stream), the running sums walk each byte once (they were
+made again over the whole buffer at each read), and candidates that fail on sight are not looked at one by one
+(bench/gnss_framer.py gives the CPU figures)."""
 
 from __future__ import annotations
 
@@ -80,28 +81,94 @@ def test_hostile_bytes_between_real_messages_are_rejected_by_reason_and_cost_no_
     assert dict(framer.counts) == expected and health.rejected == sum(expected.values())
 
 
-def test_false_ubx_headers_cost_work_in_proportion_to_the_input(monkeypatch):
-    walked = {"checksum_bytes": 0, "prefix_sums": 0}
-    direct, prefix = stream_framer.ubx_checksum, getattr(stream_framer, "_PrefixSums", None)
+class _CountedNumpy:
+    """numpy as the framer sees it, counting the bytes its cumulative sums walk."""
+
+    def __init__(self, real):
+        self.real, self.summed = real, 0
+
+    def __getattr__(self, name):
+        return getattr(self.real, name)
+
+    def cumsum(self, a, *args, **kwargs):
+        self.summed += len(a)
+        return self.real.cumsum(a, *args, **kwargs)
+
+
+def counted_work(monkeypatch) -> tuple[dict, _CountedNumpy]:
+    """Count the bytes the per-frame checksum walks, the sums' walks, and the candidates looked at one by one."""
+    walked = {"checksum_bytes": 0, "candidates": 0}
+    direct = stream_framer.ubx_checksum
 
     def counted_checksum(body):
         walked["checksum_bytes"] += len(body)
         return direct(body)
 
-    def counted_prefix_sums(buf):
-        walked["prefix_sums"] += 1
-        return prefix(buf)
+    def counted_candidate(function):
+        def candidate(*args):
+            walked["candidates"] += 1
+            return function(*args)
+        return candidate
 
+    numpy = _CountedNumpy(stream_framer.np)
+    monkeypatch.setattr(stream_framer, "np", numpy)
     monkeypatch.setattr(stream_framer, "ubx_checksum", counted_checksum)
-    monkeypatch.setattr(stream_framer, "_PrefixSums", counted_prefix_sums, raising=False)
+    for name in ("_nmea_candidate", "_ubx_candidate"):
+        monkeypatch.setattr(stream_framer, name, counted_candidate(getattr(stream_framer, name)))
+    return walked, numpy
+
+
+def repeated(unit: bytes, n: int = 100_000) -> bytes:
+    return (unit * (n // len(unit) + 1))[:n]
+
+
+def test_false_ubx_headers_cost_work_in_proportion_to_the_input(monkeypatch):
+    walked, numpy = counted_work(monkeypatch)
     rng = random.Random(18)
     stream = bytearray()
     while len(stream) < 200_000:  # a false header every 8 bytes, claiming up to the most a UBX frame may hold
         length = rng.randrange(0, stream_framer.UBX_MAX_PAYLOAD + 1)
         stream += b"\xb5\x62\x01" + bytes((rng.randrange(256), length & 0xFF, length >> 8)) + rng.randbytes(2)
     frames, framer = framed(bytes(stream))
-    reads = -(-len(stream) // READ) + 1
     assert frames == [] and sum(framer.counts.values()) >= len(stream) // 8 - 1
     assert framer.counts["ubx_bad_checksum"] > 20_000
     assert walked["checksum_bytes"] <= 2 * len(stream)  # the old framer: ~4 KiB for each of 25,000 headers
-    assert walked["prefix_sums"] <= reads
+    assert numpy.summed <= 2 * len(stream)  # the sums and the sums of sums: each byte once
+
+
+def test_a_false_header_waiting_for_8_kib_at_every_read_costs_each_byte_summed_once(monkeypatch):
+    """A header claiming 8191 bytes every 6 bytes: at each read one completes while the next waits, so the buffer
+    always holds 8 KiB. The running sums take each byte once (they were made again over the buffer at each read:
+    about 250 times the input)."""
+    walked, numpy = counted_work(monkeypatch)
+    stream = repeated(b"\xb5\x62\x01\x07\xff\x1f")
+    frames, framer = framed(stream)
+    assert frames == [] and framer.counts["ubx_bad_checksum"] > 15_000
+    assert numpy.summed <= 2 * len(stream)
+    assert walked["checksum_bytes"] == 0
+
+
+@pytest.mark.parametrize("unit, kinds", [
+    (b"$\n", {"nmea_no_checksum"}),
+    (b"$A", {"nmea_truncated"}),
+    (b"$\x00", {"nmea_truncated"}),
+    (b"$\xb5\x62", {"nmea_truncated", "ubx_too_long"}),
+    (b"\xb5$", {"nmea_truncated"}),
+    (b"$GPGGA,no checksum\r\n\x00", {"nmea_no_checksum"}),
+    (b"\xb5\x62\x01\x07\x00\x20" + b"$A" * 29, {"nmea_truncated", "ubx_bad_checksum"}),
+], ids=["dollar-newline", "dollar-A", "dollar-nul", "dollar-ubx-sync", "b5-dollar", "no-checksum", "behind-header"])
+def test_candidates_that_fail_on_sight_are_rejected_in_runs_each_counted(monkeypatch, unit, kinds):
+    """The shortest candidates one after another (a candidate every 2-3 bytes) cost one Python step each: 11-25 times
+    the real logs' CPU per byte (bench/gnss_framer.py). Rejected in runs, they are each still counted by reason, and
+    looked at one by one only where a read cuts a run."""
+    walked, _ = counted_work(monkeypatch)
+    stream = repeated(unit)
+    health = HealthCounters("gnss")
+    frames, framer = framed(stream, StreamFramer(health))
+    reads = -(-len(stream) // READ)
+    total = sum(framer.counts.values())
+    assert frames == [] and kinds <= set(framer.counts)
+    assert sum(framer.counts[k] for k in kinds) >= 0.99 * total  # the others: where the stream begins and ends
+    assert total == health.rejected >= stream.count(b"$") + stream.count(b"\xb5\x62") - 1
+    assert framer.skipped_bytes == len(stream) and framer.pending_bytes == 0
+    assert walked["candidates"] <= 3 * reads  # one by one: one for each '$' or UBX sync (11,000 to 50,000)
