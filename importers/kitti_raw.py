@@ -10,7 +10,7 @@ calib_imu_to_velo says.
 Frames carry their PNG bytes unchanged; every stamp is KITTI's UTC time, on one clock, with time anchors saying so.
 
 `--poses oxts` (the default) also writes the unit's own INS solution (its position and roll/pitch/yaw, KITTI's
-reference poses; the heights from its vertical velocity, as its GNSS altitude wanders: ins_heights) as the `pose`
+reference poses; the positions from its velocity, as its GNSS position wanders: ins_positions) as the `pose`
 topic, which `reconstruct` then uses instead of fusing; `--poses fusion` leaves it out. Measured on
 2011_09_26_drive_0005: our fusion of the 10 Hz OXTS fixes and IMU samples (no wheel speeds) is 0.13 m RMS from the
 INS positions but 4.0 deg RMS (8.2 deg at worst) from its heading, too far for a map.
@@ -51,7 +51,7 @@ CAMERA = "image_02"
 OXTS_FIELDS = ("lat lon alt roll pitch yaw vn ve vf vl vu ax ay az af al au wx wy wz wf wl wu pos_accuracy "
                "vel_accuracy navstat numsats posmode velmode orimode").split()
 _FIELD = {name: i for i, name in enumerate(OXTS_FIELDS)}
-ALTITUDE_TIME_CONSTANT_S = 20.0  # the poses' heights: the vertical velocity's within it, the GNSS altitude's beyond
+GNSS_TIME_CONSTANT_S = 20.0  # the poses' positions: the velocity's within it, the GNSS position's beyond
 
 
 def velodyne_scans(folder: Path) -> list[PointCloud]:
@@ -130,35 +130,40 @@ def oxts_messages(times: np.ndarray, records: np.ndarray) -> tuple[list[GnssFix]
     return fixes, samples
 
 
-def ins_heights(times: np.ndarray, records: np.ndarray) -> np.ndarray:
-    """(N,) altitudes (m) of the poses: the unit's vertical velocity `vu` integrated (trapezoids) for what changes
-    within ALTITUDE_TIME_CONSTANT_S, its GNSS altitude for what changes slower (a complementary filter: the
-    altitude less the integral, smoothed forward and backward by a first-order low-pass, added back).
+def ins_positions(times: np.ndarray, records: np.ndarray, frame: LocalFrame) -> np.ndarray:
+    """(N, 3) ENU positions (m) of the poses: the unit's velocity (`ve`, `vn`, `vu`) integrated (trapezoids) for
+    what changes within GNSS_TIME_CONSTANT_S, its GNSS position (lat, lon, alt) for what changes slower (a
+    complementary filter: the position less the integral, smoothed forward and backward by a first-order
+    low-pass, added back).
     On 2011_09_26_drive_0005 the recorded altitude rises 0.42 m over the first 3 s and falls back while `vu`
-    and the pitch both say the car descends steadily (-0.3 m over 33 m); the Velodyne ground 5-20 m ahead of the
-    first scans lies 20-34 cm below `altitude - 0.93 m` there, 7-10 cm from these heights."""
+    and the pitch both say the car descends steadily (-0.3 m over 33 m); and the recorded positions cover 32.6 m
+    where the velocity covers 34.0 m, 0.43 m short in the first 1.2 s alone (the camera placed by the Velodyne's
+    depths, PnP, is 24 cm ahead of them 1-2.5 s on, 8-17 cm behind the velocity's). Keyframes placed on those
+    positions are too close together, and a surface the plane sweep triangulates from them too near the
+    cameras: the camera-only map lay 21 cm above the Velodyne ground near the path (-4 cm on these)."""
     f = _FIELD
     t = (times - times[0]) * 1e-9
-    vu, altitude = records[:, f["vu"]], records[:, f["alt"]]
-    climbed = np.concatenate([[0.0], np.cumsum(0.5 * (vu[1:] + vu[:-1]) * np.diff(t))])
-    offset = altitude - climbed
+    velocity = records[:, [f["ve"], f["vn"], f["vu"]]]
+    moved = np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * (velocity[1:] + velocity[:-1]) * np.diff(t)[:, None],
+                                                        axis=0)])
+    offset = frame.geodetic_to_enu(records[:, f["lat"]], records[:, f["lon"]], records[:, f["alt"]]) - moved
     for order in (slice(None), slice(None, None, -1)):  # zero phase: forward, then backward
         smoothed, previous = offset[order].copy(), None
         for i, dt in enumerate(np.abs(np.diff(t[order], prepend=t[order][0]))):
             if previous is not None:
-                smoothed[i] = previous + (1.0 - np.exp(-dt / ALTITUDE_TIME_CONSTANT_S)) * (smoothed[i] - previous)
+                smoothed[i] = previous + (1.0 - np.exp(-dt / GNSS_TIME_CONSTANT_S)) * (smoothed[i] - previous)
             previous = smoothed[i]
         offset[order] = smoothed
-    return climbed + offset
+    return moved + offset
 
 
 def oxts_poses(times: np.ndarray, records: np.ndarray) -> list[VehiclePose]:
     """The OXTS unit's INS solution as vehicle poses in the ENU frame at its first position (KITTI's convention:
     R = Rz(yaw) Ry(pitch) Rx(roll), yaw 0 = east, pitch positive = front down, roll positive = left side up),
-    at the heights of ins_heights (its GNSS altitude wanders by decimetres within seconds)."""
+    at the positions of ins_positions (its GNSS position wanders by decimetres within seconds)."""
     f = _FIELD
     frame = LocalFrame(float(records[0, f["lat"]]), float(records[0, f["lon"]]), float(records[0, f["alt"]]))
-    positions = frame.geodetic_to_enu(records[:, f["lat"]], records[:, f["lon"]], ins_heights(times, records))
+    positions = ins_positions(times, records, frame)
     angles = records[:, [f["yaw"], f["pitch"], f["roll"]]]
     quaternions = Rotation.from_euler("ZYX", angles).as_quat()
     return [VehiclePose(seq=i, sensor_time_ns=t, host_mono_ns=t, frame_id="enu",

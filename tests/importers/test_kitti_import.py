@@ -18,7 +18,7 @@ from daemon.log_format.reader import read_log
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.point_cloud_codec import point_array
 from daemon.spine.topics import POSE, camera_topic
-from importers.kitti_raw import ins_heights, read_oxts
+from importers.kitti_raw import ins_positions, read_oxts
 from mapping.inputs.drive_inputs import start_loading_drive
 from mapping.offline.reconstruct_command import config_from_logs
 
@@ -118,8 +118,7 @@ def test_kitti_raw_imports_frames_oxts_and_a_calibration_that_projects_like_the_
     drive = start_loading_drive([str(log)], config, use_lidar=False)
     frame = LocalFrame(drive.trajectory.origin_lat_deg, drive.trajectory.origin_lon_deg,
                        drive.trajectory.origin_alt_m)
-    enu = frame.geodetic_to_enu(records[:, 0], records[:, 1], ins_heights(times, records))
-    np.testing.assert_allclose(drive.trajectory.positions, enu, atol=1e-6)
+    np.testing.assert_allclose(drive.trajectory.positions, ins_positions(times, records, frame), atol=1e-6)
     yaw = Rotation.from_quat(drive.trajectory.quaternions).as_euler("ZYX")[:, 0]
     np.testing.assert_allclose(np.unwrap(yaw), np.unwrap(records[:, 5]), atol=1e-9)
 
@@ -139,6 +138,45 @@ def test_kitti_raw_pose_heights_put_the_road_where_the_velodyne_sees_it(tmp_path
     for lo in (0.0, 5.0, 10.0, 15.0):
         band = (along >= lo) & (along < lo + 5.0) & (gap < 5.0)
         assert band.sum() > 200 and abs(np.median(below[band])) < 0.12, (lo, np.median(below[band]))
+
+
+def test_kitti_raw_poses_move_as_far_as_the_unit_velocity_says():
+    """The INS poses follow the unit's velocity from record to record, not its GNSS position: on 0005 the recorded
+    positions cover 3.66 m in the first 1.2 s where the velocity covers 4.09 m (PnP of the camera on the Velodyne's
+    depths agrees with the velocity within 8 cm there), and keyframes placed on them are too close together for
+    the plane sweep (bench/RESULTS.md, 2026-12-06). Over the drive they stay within the GNSS's wander (the
+    integral is 4 % longer than the recorded track: 2.1 m at most)."""
+    times, records = read_oxts(RAW)
+    frame = LocalFrame(*records[0, :3])
+    positions = ins_positions(times, records, frame)
+    t = (times - times[0]) * 1e-9
+    velocity = records[:, [7, 6, 10]]  # ve, vn, vu
+    step = 0.5 * (velocity[1:] + velocity[:-1]) * np.diff(t)[:, None]
+    np.testing.assert_allclose(np.diff(positions, axis=0), step, atol=2e-3)
+    recorded = frame.geodetic_to_enu(*records[:, :3].T)
+    assert np.abs(positions - recorded).max() < 2.5
+
+
+def test_kitti_raw_camera_only_map_lies_on_the_velodyne_ground(tmp_path, capsys):
+    """Issue 17 item 3: 0005 mapped camera only (the plane sweep) lies within 5 cm of its own Velodyne ground for
+    the first metres from the path (median signed gap 0-2 and 2-4 m: +21 / +17 cm with the poses on the recorded
+    GNSS positions, -3.5 / -4.0 cm on the velocity's). ~10 s."""
+    log, _ = imported(tmp_path, capsys, "kitti-raw", str(RAW))
+    out = tmp_path / "map"
+    assert roadlog(["reconstruct", str(log), "--out", str(out), "--no-lidar"]) == 0
+    config, _ = config_from_logs([str(log)])
+    drive = start_loading_drive([str(log)], config, standing=False)
+    ground, track = drive.lidar_ground_points.result(), drive.path
+    bev = json.loads((out / "bev.json").read_text())
+    z, step, (x0, y0) = np.load(out / "bev_elevation.npy"), bev["resolution_m"], bev["origin_xy"]
+    i, j = np.rint((ground[:, 1] - y0) / step).astype(int), np.rint((ground[:, 0] - x0) / step).astype(int)
+    inside = (i >= 0) & (i < z.shape[0]) & (j >= 0) & (j < z.shape[1])
+    gap = np.full(len(ground), np.nan)
+    gap[inside] = z[i[inside], j[inside]] - ground[inside, 2]
+    away = cKDTree(track.positions[:, :2]).query(ground[:, :2])[0]
+    for lo, hi in ((0.0, 2.0), (2.0, 4.0)):
+        band = gap[(away >= lo) & (away < hi) & np.isfinite(gap)]
+        assert len(band) > 1000 and abs(np.median(band)) < 0.05, (lo, np.median(band))
 
 
 def test_kitti_raw_without_its_ins_poses_is_mapped_through_pose_fusion(tmp_path, capsys):
