@@ -57,6 +57,9 @@ def files(tmp_path):
     (("replay", "{missing}", "--config", "{config}"), ("nope.mcap", "no such file")),
     (("replay", "{folder}", "--config", "{config}"), ("a folder",)),
     (("replay", "{junk}", "--config", "{config}"), ("is not an MCAP file",)),
+    (("replay", "{log}", "--config", "{config}", "--rate", "fast", "--output-dir", "{folder}/out"), ("--rate fast",)),
+    (("replay", "{log}", "--config", "{config}", "--rate", "0", "--output-dir", "{folder}/out"), ("--rate 0",)),
+    (("replay", "{log}", "--config", "{config}", "--rate", "nan", "--output-dir", "{folder}/out"), ("--rate nan",)),
     (("run", "--config", "{missing_config}"), ("nope.yaml",)),
     (("import", "kitti-raw", "{missing}", "--out", "{folder}/x.mcap"), ("nope.mcap",)),
 ])
