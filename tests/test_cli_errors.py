@@ -29,10 +29,13 @@ def test_version():
 def files(tmp_path):
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(os.urandom(4096))
+    bad_yaml, control = tmp_path / "bad.yaml", tmp_path / "control.yaml"
+    bad_yaml.write_text("vehicle:\n  frame: [base\n")  # the flow sequence never closed
+    control.write_text("vehicle: \x07\n")  # a control character: the YAML reader refuses it
     car, config = private_config(tmp_path)
     log = can_only_log(tmp_path / "drive.mcap", car)
     return {"missing": tmp_path / "nope.mcap", "junk": junk, "folder": tmp_path, "config": config, "log": log,
-            "missing_config": tmp_path / "nope.yaml", "junk_config": junk}
+            "missing_config": tmp_path / "nope.yaml", "junk_config": junk, "bad_yaml": bad_yaml, "control": control}
 
 
 @pytest.mark.parametrize(("args", "words"), [
@@ -48,6 +51,10 @@ def files(tmp_path):
     (("status-server", "--config", "{missing_config}"), ("nope.yaml",)),
     (("status-server", "--config", "{junk_config}"), ("junk.mcap",)),
     (("check-config", "{missing_config}"), ("nope.yaml",)),
+    (("check-config", "{bad_yaml}"), ("bad.yaml: not valid YAML: line 3, column 1: expected ',' or ']'",
+                                      "while parsing a flow sequence from line 2, column 10")),
+    (("check-config", "{control}"), ("control.yaml: not valid YAML: position 9: unacceptable character #x0007",)),
+    (("reconstruct", "{log}", "--out", "{folder}/map", "--config", "{bad_yaml}"), ("bad.yaml", "line 3, column 1")),
     (("simulate", "--scenario", "city", "--out", "{folder}/no/such/folder/x.mcap"), ("no folder",)),
     (("simulate", "--scenario", "city", "--out", "{folder}"), ("a folder",)),
     (("simulate", "--scenario", "nowhere", "--out", "{folder}/x.mcap"), ("unknown scenario 'nowhere'",)),
