@@ -50,6 +50,7 @@ def files(tmp_path):
     (("reconstruct", "{log}", "--out", "{junk}"), ("--out", "not a folder")),
     (("status-server", "--config", "{missing_config}"), ("nope.yaml",)),
     (("status-server", "--config", "{junk_config}"), ("junk.mcap",)),
+    (("status-server", "--config", "{config}", "--port", "99999"), (":99999", "port must be 0-65535")),
     (("check-config", "{missing_config}"), ("nope.yaml",)),
     (("check-config", "{bad_yaml}"), ("bad.yaml: not valid YAML: line 3, column 1: expected ',' or ']'",
                                       "while parsing a flow sequence from line 2, column 10")),
