@@ -48,6 +48,7 @@ def files(tmp_path):
     (("reconstruct", "{log}", "--out", "{folder}/map", "--gt", "{missing}"), ("--gt", "nope.mcap")),
     (("reconstruct", "{log}", "--out", "{folder}/map", "--gt", "{junk}"), ("--gt", "ground truth")),
     (("reconstruct", "{log}", "--out", "{junk}"), ("--out", "not a folder")),
+    (("reconstruct", "{log}", "--out", "{folder}/map", "--faithful", "--epochs", "0"), ("--epochs 0", ">= 1")),
     (("status-server", "--config", "{missing_config}"), ("nope.yaml",)),
     (("status-server", "--config", "{junk_config}"), ("junk.mcap",)),
     (("status-server", "--config", "{config}", "--port", "99999"), (":99999", "port must be 0-65535")),
