@@ -73,6 +73,8 @@ def files(tmp_path):
     (("replay", "{log}", "--config", "{config}", "--rate", "0", "--output-dir", "{folder}/out"), ("--rate 0",)),
     (("replay", "{log}", "--config", "{config}", "--rate", "nan", "--output-dir", "{folder}/out"), ("--rate nan",)),
     (("run", "--config", "{missing_config}"), ("nope.yaml",)),
+    (("demo", "--scenario", "nowhere", "--out", "{folder}/demo"), ("unknown scenario 'nowhere'",)),
+    (("demo", "--seconds", "0", "--out", "{folder}/demo"), ("--seconds 0",)),
     (("import", "kitti-raw", "{missing}", "--out", "{folder}/x.mcap"), ("nope.mcap",)),
 ])
 def test_a_bad_path_or_input_is_one_error_line_and_exit_2(files, args, words):
