@@ -7,7 +7,9 @@ recorded config), the Lidar's scans as PointCloud2 (`/lidar/points`: x, y, z, in
 in the Lidar frame; Ouster or vendor packets decoded with the recorded metadata as the mapper decodes them, or the
 log's point clouds), GNSS fixes as NavSatFix (`/gnss/fix`), IMU samples as Imu (`/imu/data`, the Lidar's IMU on
 `/lidar/imu`), `/tf_static` (base_link -> every sensor frame from the config's extrinsics) and the `pose` topic as
-nav_msgs Odometry (`/odom`) and `/tf`. Every other topic is listed with its count on stderr, never dropped silently.
+nav_msgs Odometry (`/odom`) and `/tf`; without a `pose` topic, the daemon's live pose (`vehicle/pose`, map -> vehicle)
+as `/tf` only (an Odometry would be imported as the drive's given trajectory, where the original's reconstruction fuses
+it from the sensors). Every other topic is listed with its count on stderr, never dropped silently.
 
 Clock: ROS time is UTC. A message's receive time is its host time in UTC, and header.stamp its sensor time in UTC: a
 sensor stamp already on UTC (GNSS, a PTP Lidar) as it is, any other put on the host clock as the mapper does
@@ -33,7 +35,16 @@ from daemon.log_format.reader import not_a_log, read_log
 from daemon.log_format.static_transforms import GNSS_FRAME, IMU_FRAME, LIDAR_FRAME, sensor_frames
 from daemon.spine.config import CarConfig, ConfigError, reports_config_errors
 from daemon.spine.messages import RAW_FORMAT_CHANNELS, CameraFrame, PointCloud, VehiclePose
-from daemon.spine.topics import GNSS_FIX, IMU, LIDAR_IMU, LIDAR_PACKETS, LIDAR_POINTS, POSE, TIME_ANCHOR
+from daemon.spine.topics import (
+    GNSS_FIX,
+    IMU,
+    LIDAR_IMU,
+    LIDAR_PACKETS,
+    LIDAR_POINTS,
+    POSE,
+    TIME_ANCHOR,
+    VEHICLE_POSE,
+)
 from exporters import ros2_messages as ros
 from mapping.inputs.lidar_ground import (
     LidarDecoding,
@@ -143,8 +154,11 @@ def export_bag(logs: list[Path], out: Path) -> tuple[dict[str, int], dict[str, s
     if not counts:
         raise ConfigError(f"{', '.join(map(str, logs))}: no messages")
     cameras = {f"camera/{c.name}": c for c in config.sensors.cameras}
-    exported = set(cameras) | set(ROS_TOPICS) | {POSE, LIDAR_PACKETS, LIDAR_POINTS}
+    poses = POSE if counts[POSE] or not counts[VEHICLE_POSE] else VEHICLE_POSE  # the one source of /tf
+    exported = set(cameras) | set(ROS_TOPICS) | {poses, LIDAR_PACKETS, LIDAR_POINTS}
     skipped = {t: f"not exported ({n})" for t, n in counts.items() if t not in exported and t != TIME_ANCHOR}
+    if poses == POSE and counts[VEHICLE_POSE]:
+        skipped[VEHICLE_POSE] = f"the `pose` topic gives /odom and /tf ({counts[VEHICLE_POSE]})"
     if TIME_ANCHOR in counts:
         skipped[TIME_ANCHOR] = f"used for the stamps' UTC clock, not exported ({counts[TIME_ANCHOR]})"
     work = out.with_name(out.name + ".partial")
@@ -161,7 +175,7 @@ def export_bag(logs: list[Path], out: Path) -> tuple[dict[str, int], dict[str, s
             for topic in (t for t in ROS_TOPICS if counts[t]):  # the car's IMU before the Lidar's: imported first
                 bag.connect(ROS_TOPICS[topic], ros.NAVSAT if topic == GNSS_FIX else ros.IMU_MSG)
             written["/tf_static"] += 1
-            for r in read_log(logs, topics=sorted(set(cameras) | set(ROS_TOPICS) | {POSE})):
+            for r in read_log(logs, topics=sorted(set(cameras) | set(ROS_TOPICS) | {poses})):
                 for topic, msgtype, msg in _convert(r, cameras, clocks, utc):
                     if msg is None:
                         unusable[r.topic] += 1
@@ -206,9 +220,11 @@ def _convert(r, cameras: dict, clocks: dict[str, ClockMap], utc: UtcClock) -> li
         pose = np.eye(4)
         pose[:3, :3] = Rotation.from_quat(m.orientation_xyzw).as_matrix()
         pose[:3, 3] = m.position_m
+        tf = ("/tf", ros.TF, ros.tf_message([ros.transform(m.frame_id, BASE_FRAME, pose, stamp)]))
+        if r.topic == VEHICLE_POSE:
+            return [tf]
         return [(ODOM_TOPIC, ros.ODOMETRY, ros.odometry(m.position_m, m.orientation_xyzw, stamp, m.frame_id,
-                                                        BASE_FRAME)),
-                ("/tf", ros.TF, ros.tf_message([ros.transform(m.frame_id, BASE_FRAME, pose, stamp)]))]
+                                                        BASE_FRAME)), tf]
     stamp = utc.stamp(clock, m.sensor_time_ns)
     if r.topic == GNSS_FIX:
         return [(ROS_TOPICS[r.topic], ros.NAVSAT, ros.nav_sat_fix(m, stamp, FRAME_OF[r.topic]))]

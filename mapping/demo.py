@@ -81,6 +81,11 @@ def map_truth_metrics(map_dir: Path, gt_path: Path) -> dict:
     return out
 
 
+def _roadlog(*args: str, **options) -> int:
+    """`roadlog ARGS` as a step of the demo: its exit status (a failed step has said why on stderr)."""
+    return subprocess.run([sys.executable, "-m", "daemon.commands.cli", *args], **options).returncode
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="roadlog demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenario", default="city")
@@ -99,14 +104,17 @@ def main(argv: list[str] | None = None) -> int:
 
     t0 = time.monotonic()
     print(f"[1/3] simulating a {args.seconds:.0f} s {args.scenario} drive -> {drive}", flush=True)
-    subprocess.run([sys.executable, "-m", "daemon.commands.cli", "simulate", "--scenario", args.scenario,
-                    "--seconds", str(args.seconds), "--out", str(drive)], check=True, stdout=subprocess.DEVNULL)
+    failed = _roadlog("simulate", "--scenario", args.scenario, "--seconds", f"{args.seconds:g}", "--out", str(drive),
+                      stdout=subprocess.DEVNULL)
+    if failed:  # it said why (a bad --scenario or --seconds: one error line, exit 2)
+        return failed
     timings["simulate_s"] = time.monotonic() - t0
 
     t0 = time.monotonic()
     print(f"[2/3] running the daemon in replay mode (recording + mapping) -> {data}", flush=True)
-    subprocess.run([sys.executable, "-m", "daemon.commands.cli", "replay", str(drive), "--config", str(SIM_CONFIG),
-                    "--rate", "max", "--output-dir", str(data)], check=True)
+    failed = _roadlog("replay", str(drive), "--config", str(SIM_CONFIG), "--rate", "max", "--output-dir", str(data))
+    if failed:
+        return failed
     timings["daemon_s"] = time.monotonic() - t0
 
     print("[3/3] checking the recorded log and the map", flush=True)

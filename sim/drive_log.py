@@ -464,7 +464,10 @@ def main(argv: list[str] | None = None) -> int:
     if not args.out.parent.is_dir() or args.out.is_dir():  # before the drive is rendered, not after
         raise ConfigError(f"--out {args.out}: " + ("a folder, not a PATH.mcap" if args.out.is_dir() else
                                                    f"no folder {args.out.parent}"))
-    scenario_for(args.scenario, args.seed, [cam.name for cam in config.sensors.cameras])  # an unknown one: exit 2
+    sc = scenario_for(args.scenario, args.seed, [cam.name for cam in config.sensors.cameras])  # unknown: exit 2
+    if args.seconds is not None and not args.seconds <= sc.max_seconds():  # simulate_drive's ValueError, said first
+        raise ConfigError(f"--seconds {args.seconds:g}: scenario {sc.name}'s road allows at most "
+                          f"{sc.max_seconds():.1f} s")
     summary = simulate_drive(args.scenario, args.seconds, args.out, config, args.seed,
                              config_dir=args.config.resolve().parent, workers=args.workers,
                              masks=not args.no_masks, visit_number=args.visit)

@@ -29,10 +29,13 @@ def test_version():
 def files(tmp_path):
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(os.urandom(4096))
+    bad_yaml, control = tmp_path / "bad.yaml", tmp_path / "control.yaml"
+    bad_yaml.write_text("vehicle:\n  frame: [base\n")  # the flow sequence never closed
+    control.write_text("vehicle: \x07\n")  # a control character: the YAML reader refuses it
     car, config = private_config(tmp_path)
     log = can_only_log(tmp_path / "drive.mcap", car)
     return {"missing": tmp_path / "nope.mcap", "junk": junk, "folder": tmp_path, "config": config, "log": log,
-            "missing_config": tmp_path / "nope.yaml", "junk_config": junk}
+            "missing_config": tmp_path / "nope.yaml", "junk_config": junk, "bad_yaml": bad_yaml, "control": control}
 
 
 @pytest.mark.parametrize(("args", "words"), [
@@ -45,19 +48,33 @@ def files(tmp_path):
     (("reconstruct", "{log}", "--out", "{folder}/map", "--gt", "{missing}"), ("--gt", "nope.mcap")),
     (("reconstruct", "{log}", "--out", "{folder}/map", "--gt", "{junk}"), ("--gt", "ground truth")),
     (("reconstruct", "{log}", "--out", "{junk}"), ("--out", "not a folder")),
+    (("reconstruct", "{log}", "--out", "{folder}/map", "--faithful", "--epochs", "0"), ("--epochs 0", ">= 1")),
     (("status-server", "--config", "{missing_config}"), ("nope.yaml",)),
     (("status-server", "--config", "{junk_config}"), ("junk.mcap",)),
+    (("status-server", "--config", "{config}", "--port", "99999"), (":99999", "port must be 0-65535")),
     (("check-config", "{missing_config}"), ("nope.yaml",)),
+    (("check-config", "{bad_yaml}"), ("bad.yaml: not valid YAML: line 3, column 1: expected ',' or ']'",
+                                      "while parsing a flow sequence from line 2, column 10")),
+    (("check-config", "{control}"), ("control.yaml: not valid YAML: position 9: unacceptable character #x0007",)),
+    (("reconstruct", "{log}", "--out", "{folder}/map", "--config", "{bad_yaml}"), ("bad.yaml", "line 3, column 1")),
     (("simulate", "--scenario", "city", "--out", "{folder}/no/such/folder/x.mcap"), ("no folder",)),
     (("simulate", "--scenario", "city", "--out", "{folder}"), ("a folder",)),
     (("simulate", "--scenario", "nowhere", "--out", "{folder}/x.mcap"), ("unknown scenario 'nowhere'",)),
     (("simulate", "--scenario", "random", "--seed", "-1", "--out", "{folder}/x.mcap"), ("--seed -1",)),
     (("simulate", "--scenario", "city", "--seconds", "0", "--out", "{folder}/x.mcap"), ("--seconds 0",)),
+    (("simulate", "--scenario", "city", "--seconds", "100", "--out", "{folder}/x.mcap"),
+     ("--seconds 100", "scenario city", "at most")),
+    (("simulate", "--scenario", "city", "--seconds", "inf", "--out", "{folder}/x.mcap"), ("--seconds inf",)),
     (("simulate", "--scenario", "city", "--config", "{missing_config}", "--out", "{folder}/x.mcap"), ("nope.yaml",)),
     (("replay", "{missing}", "--config", "{config}"), ("nope.mcap", "no such file")),
     (("replay", "{folder}", "--config", "{config}"), ("a folder",)),
     (("replay", "{junk}", "--config", "{config}"), ("is not an MCAP file",)),
+    (("replay", "{log}", "--config", "{config}", "--rate", "fast", "--output-dir", "{folder}/out"), ("--rate fast",)),
+    (("replay", "{log}", "--config", "{config}", "--rate", "0", "--output-dir", "{folder}/out"), ("--rate 0",)),
+    (("replay", "{log}", "--config", "{config}", "--rate", "nan", "--output-dir", "{folder}/out"), ("--rate nan",)),
     (("run", "--config", "{missing_config}"), ("nope.yaml",)),
+    (("demo", "--scenario", "nowhere", "--out", "{folder}/demo"), ("unknown scenario 'nowhere'",)),
+    (("demo", "--seconds", "0", "--out", "{folder}/demo"), ("--seconds 0",)),
     (("import", "kitti-raw", "{missing}", "--out", "{folder}/x.mcap"), ("nope.mcap",)),
 ])
 def test_a_bad_path_or_input_is_one_error_line_and_exit_2(files, args, words):

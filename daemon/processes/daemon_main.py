@@ -17,7 +17,7 @@ from daemon.processes.instance_lock import EXIT_ALREADY_RUNNING, AlreadyRunning,
 from daemon.processes.supervisor import Supervisor
 from daemon.spine.config import ConfigError, data_dir, load_config, reports_config_errors
 from daemon.spine.process_logging import LEVELS, LOG_LEVEL_ENV, setup_logging
-from daemon.spine.process_table import process_table
+from daemon.spine.process_table import playback_rate, process_table
 from daemon.spine.topics import topic_table
 
 REPLAY_OUTPUT_DIR = "roadlog-output"  # a replay's logs and map without --output-dir: in the current directory
@@ -97,6 +97,10 @@ def replay_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-record", action="store_true", help="do not record the replayed messages again")
     _add_log_level(parser)
     args = parser.parse_args(argv)
+    try:
+        playback_rate(args.rate)  # the player would refuse it, after the daemon started (and recorded) for nothing
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
     config = load_config(args.config)
     unusable = [why for why in map(not_a_log, args.logs) if why]
     if unusable:  # before any process starts: the player would refuse them, or play nothing, with the others up

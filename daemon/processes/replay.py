@@ -34,7 +34,7 @@ from daemon.spine.config import CarConfig, ConfigError, load_config, reports_con
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import HOST_CLOCK_WITHIN_NS
 from daemon.spine.process_logging import setup_logging
-from daemon.spine.process_table import required_drivers
+from daemon.spine.process_table import playback_rate, required_drivers
 from daemon.spine.topics import TIME_ANCHOR, health_topic, topic_table
 
 PROCESS = "replay"
@@ -226,12 +226,10 @@ def replay(config: CarConfig, paths: list[str | Path], *, rate: float | None = 1
 
 
 def _rate(text: str) -> float | None:
-    if text == "max":
-        return None
-    value = float(text)
-    if value <= 0:
-        raise argparse.ArgumentTypeError("rate must be > 0 or 'max'")
-    return value
+    try:
+        return playback_rate(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 @reports_config_errors

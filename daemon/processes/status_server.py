@@ -481,9 +481,9 @@ def main(argv: list[str] | None = None) -> int:
     port = config.status.port if args.port is None else args.port
     try:
         server = make_server(config, board, data_dir(config, args.output_dir), port)
-    except OSError as exc:  # the port is taken, the address is not this host's: not retried (exit 2)
+    except (OSError, OverflowError) as exc:  # the port is taken or not 0-65535 (--port), the address not this host's
         raise ConfigError(f"{args.config}: status endpoint {config.status.bind_address}:{port}: "
-                          f"{exc.strerror or exc}") from None
+                          f"{getattr(exc, 'strerror', None) or exc}") from None
     board.start()
     signal.signal(signal.SIGTERM, lambda *_: threading.Thread(target=server.shutdown).start())
     log.info("status endpoint on http://%s:%s", *server.server_address[:2])

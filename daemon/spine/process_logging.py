@@ -74,5 +74,7 @@ def _logged_crash(kind, value, traceback) -> None:
 
 
 def error_line(text: str) -> str:
-    """`error: text` as a line for stderr, with the error priority under the journal (outside logging)."""
-    return ("<3>" if under_journal() else "") + f"error: {text}"
+    """`error: text` as a line for stderr, with the error priority under the journal (outside logging); a text of
+    several lines (an invalid config: a line per bad key) has the priority on each, as JournalFormatter does."""
+    lines = f"error: {text}".splitlines()
+    return "\n".join("<3>" + line for line in lines) if under_journal() else "\n".join(lines)

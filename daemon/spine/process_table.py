@@ -5,6 +5,7 @@ Adding a sensor means editing this table and the topic table (daemon/spine/topic
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -55,6 +56,21 @@ def driver_processes(config: CarConfig, config_path: str) -> list[ProcessSpec]:
         table.append(ProcessSpec("can", "drivers.can.can_driver", cfg, required=True,
                                  check="drivers.can.can_driver:check_config"))
     return table
+
+
+def playback_rate(text: str) -> float | None:
+    """A replay's `--rate`: a speed factor (finite, > 0), or None for `max` (as fast as the consumers take it); any
+    other text is a ValueError saying so. `roadlog replay` checks it before it starts any process, and the player
+    reads it the same way."""
+    if text == "max":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"--rate {text}: a playback speed factor > 0, or 'max'")
+    return value
 
 
 def process_table(

@@ -67,6 +67,21 @@ class _BoundedLoader(yaml.SafeLoader):
         return super().compose_node(parent, index)
 
 
+def _where(exc: yaml.YAMLError) -> str:
+    """PyYAML's error on one line: where (line and column from 1, or the character's position) and what; its own
+    message spans several (the document's name, an excerpt, a caret)."""
+    if isinstance(exc, yaml.MarkedYAMLError) and exc.problem_mark is not None:
+        mark = exc.problem_mark
+        text = f"line {mark.line + 1}, column {mark.column + 1}: {exc.problem or exc.context}"
+        if exc.problem and exc.context:
+            since = exc.context_mark
+            text += f" ({exc.context}" + (f" from line {since.line + 1}, column {since.column + 1})" if since else ")")
+        return text
+    if isinstance(exc, yaml.reader.ReaderError) and isinstance(exc.character, int):
+        return f"position {exc.position}: unacceptable character #x{exc.character:04x}: {exc.reason}"
+    return " ".join(str(exc).split())
+
+
 def load_yaml(data: bytes) -> object:
     """The document in `data` (None when it is empty); UnusableYaml for anything we will not read."""
     if len(data) > MAX_BYTES:
@@ -86,7 +101,7 @@ def load_yaml(data: bytes) -> object:
     except UnusableYaml:
         raise
     except yaml.YAMLError as exc:
-        raise UnusableYaml(f"not valid YAML: {exc}") from None
+        raise UnusableYaml(f"not valid YAML: {_where(exc)}") from None
     except RecursionError:
         raise UnusableYaml("nested too deeply") from None
     except ValueError as exc:  # PyYAML's constructors: an integer of too many digits, a bad timestamp, ...

@@ -228,6 +228,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.pose_noise_m < 0 or args.pose_noise_deg < 0 or args.pose_noise_every_s <= 0:
         raise ConfigError("--pose-noise-m and --pose-noise-deg must be >= 0, --pose-noise-every-s > 0")
+    if args.epochs is not None and args.epochs < 1:  # as mapper.faithful_fit.epochs (model_copy does not validate)
+        raise ConfigError(f"--epochs {args.epochs}: must be >= 1")
     noise = (PoseNoise(args.pose_noise_m, args.pose_noise_deg, args.pose_noise_every_s, args.pose_noise_seed)
              if args.pose_noise_m > 0 or args.pose_noise_deg > 0 else None)
     given = load_config(args.config) if args.config else None  # the config's own error first, as every process

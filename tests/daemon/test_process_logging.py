@@ -107,6 +107,18 @@ def test_a_crash_under_the_journal_is_logged_at_critical_priority_line_by_line()
     assert all(line.startswith("<2>") for line in lines) and lines[-1] == "<2>IndexError: list index out of range"
 
 
+def test_every_line_of_a_configuration_error_is_at_error_priority_under_the_journal(tmp_path):
+    """A config with several bad keys is reported as one `error:` line and a line per key: journald takes each line
+    as an entry of its own, so every one carries the error priority (not only the first, the rest at info)."""
+    path = tmp_path / "car.yaml"
+    path.write_text("vehicle: {frame: 3}\nrecorder: {segment_secs: 60}\n")
+    run = roadlog("check-config", str(path), env=_env(journal=True))
+    lines = run.stderr.splitlines()
+    assert run.returncode == 2 and lines[0].startswith("<3>error: ") and len(lines) > 2, run.stderr
+    assert all(line.startswith("<3>") for line in lines), lines
+    assert any("vehicle.frame" in line for line in lines) and any("recorder.segment_secs" in line for line in lines)
+
+
 def test_every_process_the_daemon_runs_sets_up_its_logging_the_one_way(tmp_path):
     """No process keeps a logging set-up of its own (basicConfig with its timestamps): each main() calls
     setup_logging, itself or through the camera processes' or the viewing processes' common main."""

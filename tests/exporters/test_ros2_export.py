@@ -21,7 +21,18 @@ from daemon.log_format.static_transforms import sensor_frames
 from daemon.log_format.writer import LogWriter
 from daemon.spine.messages import VehiclePose
 from daemon.spine.point_cloud_codec import point_array
-from daemon.spine.topics import GNSS_FIX, IMU, LIDAR_PACKETS, LIDAR_POINTS, POSE, TIME_ANCHOR, camera_topic
+from daemon.spine.topics import (
+    GNSS_FIX,
+    IMU,
+    LIDAR_PACKETS,
+    LIDAR_POINTS,
+    MAP_FRAME,
+    POSE,
+    TIME_ANCHOR,
+    VEHICLE_POSE,
+    camera_topic,
+)
+from exporters.ros2_bag import ODOM_TOPIC
 from exporters.ros2_messages import TYPESTORE
 from importers.ros2_messages import matrix
 from mapping.inputs.lidar_ground import configured_decoding, packet_scans
@@ -233,3 +244,49 @@ def test_a_vendor_lidars_packets_are_exported_as_the_mapper_decodes_them(tmp_pat
         start = int(points.times_ns.min())
         np.testing.assert_allclose(got[:, 4], ((points.times_ns - start) * 1e-9)[points.time_index], rtol=1e-6,
                                    atol=1e-9)
+
+
+def _bag_messages(bag: Path, topic: str) -> list:
+    with AnyReader([bag], default_typestore=TYPESTORE) as reader:
+        conns = [c for c in reader.connections if c.topic == topic]  # none: messages() would give every topic's
+        return [(t, reader.deserialize(raw, c.msgtype)) for c, t, raw in reader.messages(connections=conns)] \
+            if conns else []
+
+
+def test_a_recorded_logs_live_pose_moves_base_link_on_tf(city_drive, tmp_path, capsys):
+    """A log the daemon recorded holds its live pose (`vehicle/pose`, map -> vehicle): the bag has it as /tf
+    map -> base_link, so the car moves in RViz or Foxglove, and no Odometry (which the importer would take as the
+    drive's given trajectory, the `pose` topic, instead of fusing it from the sensors as the original's
+    reconstruction does). Beside a `pose` topic (which gives /odom and /tf) the live pose is listed, not exported."""
+    config, config_path = config_from_logs([str(city_drive)])  # with the path, a log records the Lidar's metadata
+    # stamped as vehicle_pose stamps them: sensor and host time both the time it is the pose of
+    live = [VehiclePose(seq=k, sensor_time_ns=4 * 10**9 + k * 100_000_000, host_mono_ns=4 * 10**9 + k * 100_000_000,
+                        frame_id=MAP_FRAME, position_m=(2.0 * k, -0.5 * k, 0.02 * k),
+                        orientation_xyzw=tuple(Rotation.from_euler("z", 0.03 * k).as_quat())) for k in range(15)]
+    with LogWriter(tmp_path / "live.mcap", config, config_path=config_path, log_time_offset_ns=0) as writer:
+        for pose in live:
+            writer.write(VEHICLE_POSE, pose)
+    assert roadlog(["export", "ros2", str(tmp_path / "live.mcap"), "--out", str(tmp_path / "bag")]) == 0
+    tfs = _bag_messages(tmp_path / "bag", "/tf")
+    assert [t for t, _ in tfs] == [p.host_mono_ns for p in live]  # no anchors: the host clock (said on stderr)
+    assert not _bag_messages(tmp_path / "bag", ODOM_TOPIC)
+    for (_, msg), pose in zip(tfs, live, strict=True):
+        [tf] = msg.transforms
+        assert (tf.header.frame_id, tf.child_frame_id) == (MAP_FRAME, "base_link")
+        assert tf.header.stamp.sec * 10**9 + tf.header.stamp.nanosec == pose.sensor_time_ns
+        expected = np.eye(4)
+        expected[:3, :3] = Rotation.from_quat(pose.orientation_xyzw).as_matrix()
+        expected[:3, 3] = pose.position_m
+        np.testing.assert_allclose(matrix(tf.transform.translation, tf.transform.rotation), expected, atol=1e-12)
+    given = [VehiclePose(seq=k, sensor_time_ns=p.sensor_time_ns, host_mono_ns=p.host_mono_ns, frame_id="enu",
+                         position_m=p.position_m, orientation_xyzw=p.orientation_xyzw) for k, p in enumerate(live)]
+    with LogWriter(tmp_path / "given.mcap", config, config_path=config_path, log_time_offset_ns=0) as writer:
+        for pose in given:
+            writer.write(POSE, pose)
+    capsys.readouterr()
+    assert roadlog(["export", "ros2", str(tmp_path / "live.mcap"), str(tmp_path / "given.mcap"),
+                    "--out", str(tmp_path / "both")]) == 0
+    assert {msg.transforms[0].header.frame_id for _, msg in _bag_messages(tmp_path / "both", "/tf")} == {"enu"}
+    assert len(_bag_messages(tmp_path / "both", ODOM_TOPIC)) == len(given)
+    assert f"not exported {VEHICLE_POSE}: the `pose` topic gives /odom and /tf ({len(live)})" in \
+        capsys.readouterr().err
