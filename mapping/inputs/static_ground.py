@@ -35,15 +35,22 @@ def static_index(points: np.ndarray, scan: np.ndarray, settings: StaticGround = 
     cell_id = cell_id.ravel()
     low = np.full(int(cell_id.max()) + 1, np.inf)
     np.minimum.at(low, cell_id, points[:, 2])
-    keep = points[:, 2] - low[cell_id] < settings.tolerance_m
     z = (points[:, 2] - low[cell_id]) / settings.tolerance_m  # >= 0
-    _, scan_id = np.unique(scan, return_inverse=True)
+    keep = z < 1.0
+    # the others need points of other scans at their height: only points at least half a bin up share a bin
+    # with them, so only those are counted (most points lie at their cell's lowest)
+    pool = np.flatnonzero(z >= 0.5)
+    if not len(pool):
+        return np.flatnonzero(keep)
+    _, scan_id = np.unique(scan[pool], return_inverse=True)
     scan_id = scan_id.ravel().astype(np.int64)
     n_scans = int(scan_id.max()) + 1
+    supported = np.zeros(len(pool), bool)
     for offset in (0.0, 0.5):  # height bins of tolerance_m, and the same shifted by half a bin
-        level = np.floor(z + offset).astype(np.int64)
-        key = cell_id * (int(level.max()) + 1) + level
+        level = np.floor(z[pool] + offset).astype(np.int64)
+        key = cell_id[pool] * (int(level.max()) + 1) + level
         pairs = np.unique(key * n_scans + scan_id)  # each (bin, scan) once
         keys, scans_per_key = np.unique(pairs // n_scans, return_counts=True)
-        keep |= scans_per_key[np.searchsorted(keys, key)] >= settings.min_scans
+        supported |= scans_per_key[np.searchsorted(keys, key)] >= settings.min_scans
+    keep[pool[supported]] = True
     return np.flatnonzero(keep)
