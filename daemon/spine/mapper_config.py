@@ -119,8 +119,8 @@ class FastFitConfig(StrictModel):
     smoothness_loss_weight: float = Field(1.0, ge=0)  # weight of the neighbour smoothness loss in it
     lidar_detail_passes: int = Field(8, ge=0)  # Jacobi passes of the Lidar detail (mapping.fits.lidar_detail),
     # the per-vertex height the smooth MLP cannot hold; 0: no detail
-    lidar_detail_prior: float = Field(0.03, ge=0)  # points' worth of zero detail at each vertex (few points:
-    # the vertex keeps the smooth surface)
+    lidar_detail_prior: float = Field(0.03, ge=0)  # points' worth of the neighbours' mean detail at each vertex
+    # (few points: the vertex follows its neighbours; mapping.fits.lidar_detail)
     photometric_elevation: bool = True  # with no Lidar ground (none, --no-lidar): the residual MLP fitted to the
     # heights of a plane sweep at the lattice nodes (mapping.fits.photometric_elevation); False: z = z0 there
     photometric_span_m: float = Field(0.4, gt=0)  # the sweep's candidate heights: z0 - span .. z0 + span (m) ...

@@ -42,7 +42,8 @@ def fit_surface(road_map: RoadMap, supervision: np.ndarray | None, lidar_at: Loc
     if road_map.elevation is not None and supervision is not None and len(supervision) and fast.lidar_detail_passes:
         started = time.perf_counter()
         detail = fit_lidar_detail(road_map.z_now, lidar_at, supervision[:, 2], fast.lidar_detail_passes,
-                                  fast.lidar_detail_prior, config.runtime.lidar_detail_threads, progress)
+                                  fast.lidar_detail_prior, config.runtime.lidar_detail_threads, progress,
+                                  road_map.mesh.neighbours)
         timings["lidar_detail_wall_s"] = time.perf_counter() - started
         timings["lidar_detail_mean_cm"] = 100.0 * float(np.abs(detail).mean())
     return elevation_first_last

@@ -6,8 +6,13 @@ colour read through a surface that is 2 cm too high lands 13 cm short at 10 m fr
 curbs come out twice as wide and lane markings lose their edges. This step (beyond the paper's model, which
 has no per-vertex elevation) adds to every vertex a detail height so that the mesh's piecewise-linear
 surface passes through the Lidar ground points under it, by least squares over the points' barycentric
-weights, solved by a few Jacobi passes; a vertex with few points keeps the smooth surface (a prior of
-`prior` points at zero detail), and there is no smoothness term: it would round the curb again.
+weights, solved by a few Jacobi passes. A vertex with few points is held by a prior of `prior` points: at
+its neighbours' mean detail when `neighbours` is given (the fast fit), else at zero detail (the smooth surface).
+Where the Lidar's points are sparse (a far lane, the road ahead of a drive's end: one point per several
+vertices) the zero prior left a vertex without a point of its own on the smooth surface between vertices pulled
+to their points, centimetres off, and labels read through it landed off by several times that; the neighbours'
+prior carries the points' detail across those vertices (world 1: lane IoU 80.3 -> 84.4 %). It weighs 0.03 of a
+point, so there is no smoothness term where points are: it would round the curb again.
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ from mapping.method.mesh_location import Located
 
 
 def fit_lidar_detail(z: np.ndarray, located: Located, heights: np.ndarray, passes: int, prior: float,
-                     threads: int, progress: bool = False) -> np.ndarray:
+                     threads: int, progress: bool = False, neighbours: np.ndarray | None = None) -> np.ndarray:
     """Add the detail to the vertex elevations `z` (N,) in place, for the Lidar ground points placed by
     `located` with heights `heights` (M,); returns the detail (N,). Each pass's sums are split over the points
     into `threads` parts (numpy's gathers and bincount run partly without the GIL), added in a fixed order.
@@ -44,7 +49,15 @@ def fit_lidar_detail(z: np.ndarray, located: Located, heights: np.ndarray, passe
     with ThreadPoolExecutor(threads, thread_name_prefix="lidar-detail") as pool:
         total = (sum(pool.map(support, parts)) + prior).astype(np.float32)
         for _ in tqdm(range(passes), desc="lidar detail", unit="pass", disable=not progress, mininterval=0.5):
-            step = ((sum(pool.map(pull, parts)) - prior * detail) / total).astype(np.float32)
+            toward = 0.0 if neighbours is None else _neighbour_mean(detail, neighbours)
+            step = ((sum(pool.map(pull, parts)) - prior * (detail - toward)) / total).astype(np.float32)
             detail += step
             z += step
     return detail
+
+
+def _neighbour_mean(detail: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+    """(N,) mean detail of each vertex's neighbours (N, 6; -1: none), 0 for a vertex without any."""
+    present = neighbours >= 0
+    values = np.where(present, detail[np.maximum(neighbours, 0)], 0.0).sum(1)
+    return (values / np.maximum(present.sum(1), 1)).astype(np.float32)

@@ -39,6 +39,7 @@ from drivers.lidar.ouster_metadata import OusterMetadata, configured_metadata
 from drivers.lidar.ouster_packet_layout import OusterPacketLayout, packet_layout
 from drivers.lidar.ouster_xyz import make_xyz_lut
 from drivers.lidar.packet_decoding import PacketDecoder
+from mapping.inputs.static_ground import StaticGround, static_index
 from mapping.localization.sensor_time import ClockMap
 from mapping.localization.trajectory import Trajectory
 from mapping.method.scene_data import StandingPoints
@@ -72,6 +73,8 @@ class GroundFilter:
     flat_min_points: int = 4
     raised_max_m: float = 0.2
     voxel_m: float = 0.1  # at most one point per voxel of this size (per scan)
+    static: StaticGround | None = StaticGround()  # then only the points the scans agree on
+    # (mapping.inputs.static_ground: a passing car's lowest points are dropped); None: every scan's on its own
     ground_cell_m: float = 0.25  # cell of the trajectory ground raster (TrajectoryGround)
 
 
@@ -443,6 +446,10 @@ def scans_ground(scans: LidarScans, clock: ClockMap, config: CarConfig, trajecto
     bar.close()
     ground = np.concatenate([g for g, _, _ in out]) if out else np.zeros((0, 3))
     times = np.concatenate([t for _, t, _ in out]) if out else np.zeros(0)
+    if settings.static is not None:
+        scan = np.repeat(np.arange(len(out)), [len(g) for g, _, _ in out])
+        static = static_index(ground, scan, settings.static)
+        ground, times = ground[static], times[static]
     if standing_t0_ns is None:
         return ground, times, None
     return ground, times, StandingPoints.of(sorted((s for _, _, s in out if s is not None), key=lambda s: s[0]))
