@@ -170,8 +170,9 @@ def test_worker_maps_as_data_arrives_survives_kill_9_and_writes_the_final_map(ci
             f.write(b'{"window": {"index": 99, "sta')
         procs.append(_start_worker(config_path, log))
         player.join()
-        _wait_for(lambda: (m := health.latest()) is not None and m.host_mono_ns > killed_ns, 120,
-                  "the restarted worker's health", procs[1])  # it is up and handles SIGTERM
+        # it is up and handles SIGTERM: its own health, not the `starting` one sent before torch loads
+        _wait_for(lambda: (m := health.latest()) is not None and m.host_mono_ns > killed_ns
+                  and "starting" not in json.loads(m.detail), 300, "the restarted worker's health", procs[1])
         restarted = json.loads(health.latest().detail)
         assert restarted["errors"] >= 1 and "journal: 1 unreadable line" in restarted["last_error"]
         procs[1].send_signal(signal.SIGTERM)
