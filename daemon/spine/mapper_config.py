@@ -140,6 +140,9 @@ class FastFitConfig(StrictModel):
     behind_m: float = Field(3.0, ge=0)  # a keyframe observes the vertices from this far (m) behind its
     # trajectory point ...
     ahead_m: float = Field(12.0, gt=0)  # ... to this far (m) ahead: farther views blur
+    edge_min_views: int = Field(1, ge=1)  # a vertex is mapped when at least this many views supervised it ...
+    edge_opening_m: float = Field(1.0, ge=0)  # ... and a disc of this radius (m) inside the mapped area reaches it:
+    # the teeth of the views' reach (one per keyframe) left out (mapping.fits.mapped_area); 0: every seen vertex
     label_sharp_m: float | None = Field(0.01, gt=0)  # a pixel's label counts fully where the pixel covers at
     # most this much ground (m) along the line of sight, in proportion beyond (far views count less;
     # mapping.fits.vertex_observations.label_weights); None: every label counts 1
