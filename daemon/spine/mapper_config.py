@@ -197,6 +197,10 @@ class MasklessConfig(StrictModel):
     # its cell, the cells either side and every cell below (it stands on the ground)
     margin_m: float = Field(0.5, ge=0)  # a surface point is hidden when a standing point is this much nearer (m)
     max_gap_s: float = Field(0.25, gt=0)  # a view with no Lidar scan this close in time keeps every pixel (counted)
+    consensus: bool = True  # fast fit: a vertex's colour from such views is their consensus, not their mean: the
+    # views within consensus_tolerance of the one of weighted median brightness (mapping.fits.colour_consensus)
+    consensus_tolerance: float = Field(0.08, gt=0)  # mean absolute RGB ([0, 1]) within which a view agrees
+    consensus_near_m: float = Field(5.0, gt=0)  # a view weighs 1 / (1 + (d / this)^2) at a vertex d metres away
 
     @model_validator(mode="after")
     def _heights_in_order(self) -> MasklessConfig:
