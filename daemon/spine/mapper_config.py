@@ -140,6 +140,9 @@ class FastFitConfig(StrictModel):
     behind_m: float = Field(3.0, ge=0)  # a keyframe observes the vertices from this far (m) behind its
     # trajectory point ...
     ahead_m: float = Field(12.0, gt=0)  # ... to this far (m) ahead: farther views blur
+    edge_min_views: int = Field(1, ge=1)  # a vertex is mapped when at least this many views supervised it ...
+    edge_opening_m: float = Field(1.0, ge=0)  # ... and a disc of this radius (m) inside the mapped area reaches it:
+    # the teeth of the views' reach (one per keyframe) left out (mapping.fits.mapped_area); 0: every seen vertex
     label_sharp_m: float | None = Field(0.01, gt=0)  # a pixel's label counts fully where the pixel covers at
     # most this much ground (m) along the line of sight, in proportion beyond (far views count less;
     # mapping.fits.vertex_observations.label_weights); None: every label counts 1
@@ -194,6 +197,10 @@ class MasklessConfig(StrictModel):
     # its cell, the cells either side and every cell below (it stands on the ground)
     margin_m: float = Field(0.5, ge=0)  # a surface point is hidden when a standing point is this much nearer (m)
     max_gap_s: float = Field(0.25, gt=0)  # a view with no Lidar scan this close in time keeps every pixel (counted)
+    consensus: bool = True  # fast fit: a vertex's colour from such views is their consensus, not their mean: the
+    # views within consensus_tolerance of the one of weighted median brightness (mapping.fits.colour_consensus)
+    consensus_tolerance: float = Field(0.08, gt=0)  # mean absolute RGB ([0, 1]) within which a view agrees
+    consensus_near_m: float = Field(5.0, gt=0)  # a view weighs 1 / (1 + (d / this)^2) at a vertex d metres away
 
     @model_validator(mode="after")
     def _heights_in_order(self) -> MasklessConfig:

@@ -19,6 +19,7 @@ from tqdm import tqdm
 from daemon.spine.mapper_config import FastFitConfig, MapperConfig
 from mapping.fits.lidar_detail import fit_lidar_detail
 from mapping.fits.lidar_occlusion import OcclusionTest
+from mapping.fits.mapped_area import mapped_vertices
 from mapping.fits.observation_fit import fit_colours, fit_elevation, fit_lattice, semantic_logits_from_counts
 from mapping.fits.photometric_elevation import SweepSettings, lattice_nodes, sweep_heights
 from mapping.fits.vertex_observations import MeshFootprint, VertexObservations, observe_keyframe
@@ -106,24 +107,28 @@ def fit_surface_from_images(road_map: RoadMap, train: list[Keyframe], cameras: d
 def observe(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraModel], trajectory: HorizontalTrack,
             config: MapperConfig, progress: bool, timings: dict[str, float],
             occlusion: OcclusionTest | None = None) -> VertexObservations:
-    """Every keyframe's view of every vertex in reach; sets the vertices' observation counts and semantics (of
-    the vertices a keyframe with semantics labelled). `occlusion`: the test the views without semantics pass
-    their vertices through (mapping.fits.lidar_occlusion)."""
+    """Every keyframe's view of every vertex in reach; sets the vertices' observation counts (of the vertices the
+    mapped-area rule keeps: mapping.fits.mapped_area) and semantics (of the vertices a keyframe with semantics
+    labelled); the colours of views without semantics are their consensus (mapping.fits.colour_consensus).
+    `occlusion`: the test the views without semantics pass their vertices through (mapping.fits.lidar_occlusion)."""
     started = time.perf_counter()
     fast, threads = config.fast_fit, config.runtime.observe_threads
     mesh = road_map.mesh
     windows = WindowIndex.of(mesh)
     bar = tqdm(total=len(train), desc="observe", disable=not progress, unit="frame")
 
+    maskless = config.maskless
+
     def observe_part(keyframes: list[Keyframe]) -> VertexObservations:
-        part = VertexObservations.empty(mesh.num_vertices, road_map.decoder.camera_names)
+        part = VertexObservations.empty(mesh.num_vertices, road_map.decoder.camera_names, maskless.consensus)
         footprint = MeshFootprint.of(mesh.neighbours)
         for kf in keyframes:
             s = float(trajectory.horizontal_distance_at(kf.timestamp))
             a, b = np.searchsorted(windows.vertex_s, [s - fast.behind_m, s + fast.ahead_m])
             ids = windows.vertex_order[a:b]
             points = np.concatenate([mesh.xy[ids], road_map.z_now[ids, None].astype(np.float64)], 1)
-            observe_keyframe(part, ids, points, kf, cameras[kf.camera], footprint, fast.label_sharp_m, occlusion)
+            observe_keyframe(part, ids, points, kf, cameras[kf.camera], footprint, fast.label_sharp_m, occlusion,
+                             maskless.consensus_near_m)
             bar.update()
         return part
 
@@ -135,8 +140,15 @@ def observe(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraM
     obs = parts[0]
     for part in parts[1:]:
         obs.add(part)
-    seen = obs.seen
-    road_map.observed[seen] = obs.colour_count[seen].sum(1).astype(np.int32)
+    kept = len(obs.consensus_reads) if obs.consensus_reads is not None else 0
+    obs.fold_consensus(maskless.consensus_tolerance)
+    if kept:
+        timings["maskless_disagreeing_pct"] = 100.0 * obs.consensus_rejected / kept
+    area_started = time.perf_counter()
+    views = obs.colour_count.sum(1)
+    mapped = np.flatnonzero(mapped_vertices(mesh, views, fast.edge_min_views, fast.edge_opening_m))
+    road_map.observed[mapped] = views[mapped].astype(np.int32)
+    timings["mapped_area_wall_s"] = time.perf_counter() - area_started
     if road_map.semantic_logits is not None:
         labelled = np.nonzero(obs.label_counts.sum(1) > 0)[0]
         road_map.semantic_logits[torch.from_numpy(labelled)] = semantic_logits_from_counts(obs.label_counts[labelled])

@@ -81,16 +81,26 @@ def semantics_status(train: list[Keyframe], road_map: RoadMap, config: MapperCon
     return f"partial: {why}; semantics from the other {len(train) - missing}"
 
 
-def maskless_figures(reads: int, hidden: int, unchecked: int, occlusion: OcclusionTest | None) -> dict:
+CONSENSUS_WORDS = ("; colours: the consensus of the views (mapping.fits.colour_consensus), the views that disagree "
+                   "with it left out")
+
+
+def maskless_figures(reads: int, hidden: int, unchecked: int, occlusion: OcclusionTest | None,
+                     consensus: bool = False) -> dict:
     """What was left out of the views without semantics (metrics): `maskless_rejection` in words,
     `maskless_hidden_pct` of their colour reads (pixels, faithful) found hidden by what the Lidar saw standing
-    on the road, `maskless_views_unchecked`: those with no Lidar scan near enough in time to test."""
+    on the road, `maskless_views_unchecked`: those with no Lidar scan near enough in time to test. `consensus`:
+    the fast fit took their colours' consensus (the share left out: `maskless_disagreeing_pct`)."""
+    words = CONSENSUS_WORDS if consensus else ""
     if occlusion is None:
         return {"maskless_rejection": "none: no Lidar standing points (no Lidar, --no-lidar, or "
                                       "mapper.maskless.lidar_occlusion false): what stands on the road in view "
-                                      "reaches the colours", "maskless_hidden_pct": None, "maskless_views_unchecked": 0}
+                                      "reaches the colours" + (" unless the other views disagree" + words
+                                                               if consensus else ""),
+                "maskless_hidden_pct": None, "maskless_views_unchecked": 0}
     return {"maskless_rejection": "lidar occlusion: surface points hidden in a view by what the Lidar scan nearest "
-                                  "in time saw standing on the road (mapping.fits.lidar_occlusion) are left out",
+                                  "in time saw standing on the road (mapping.fits.lidar_occlusion) are left out"
+                                  + words,
             "maskless_hidden_pct": 100.0 * hidden / reads if reads else None, "maskless_views_unchecked": unchecked}
 
 
@@ -248,7 +258,7 @@ def reconstruct(
         **timings,
         step_mean_s=(train_s - timings["setup_wall_s"]) / max(1, len(history)),
         drive_s=drive_s,
-        **(maskless_figures(*tested, occlusion) if maskless else {}),
+        **(maskless_figures(*tested, occlusion, not faithful and config.maskless.consensus) if maskless else {}),
         **({"pose_refinement": pose_figures} if pose_figures is not None else {}),
         **({"lidar_registration": lidar_figures} if lidar_figures is not None else {}),
     )

@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from daemon.spine.semantic_classes import NUM_MAP_CLASSES
+from mapping.fits.colour_consensus import ColourReads, consensus, proximity_weight
 from mapping.method.mesh_renderer import max_r2, to_camera
 from mapping.method.scene_data import CameraModel, Keyframe
 
@@ -47,12 +48,16 @@ class VertexObservations:
     maskless_reads: int = 0  # colour reads of the views without semantics, before the occlusion test
     maskless_hidden: int = 0  # of them, left out as hidden by what the Lidar saw standing on the road
     maskless_unchecked: int = 0  # views without semantics with no Lidar scan near enough in time to test
+    consensus_reads: ColourReads | None = None  # those views' colour reads kept for their consensus
+    # (mapping.fits.colour_consensus) instead of summed; None: summed as a mask's road pixels are
+    consensus_rejected: int = 0  # of the reads kept, those that disagreed with their vertex's consensus
 
     @staticmethod
-    def empty(num_vertices: int, camera_names: list[str]) -> VertexObservations:
+    def empty(num_vertices: int, camera_names: list[str], consensus: bool = False) -> VertexObservations:
         c = len(camera_names)
         return VertexObservations(list(camera_names), np.zeros((num_vertices, NUM_MAP_CLASSES), np.float32),
-                                  np.zeros((num_vertices, c, 3), np.float32), np.zeros((num_vertices, c), np.float32))
+                                  np.zeros((num_vertices, c, 3), np.float32), np.zeros((num_vertices, c), np.float32),
+                                  consensus_reads=ColourReads() if consensus else None)
 
     @property
     def seen(self) -> np.ndarray:
@@ -69,6 +74,23 @@ class VertexObservations:
         self.maskless_reads += other.maskless_reads
         self.maskless_hidden += other.maskless_hidden
         self.maskless_unchecked += other.maskless_unchecked
+        if other.consensus_reads is not None:
+            if self.consensus_reads is None:
+                self.consensus_reads = ColourReads()
+            self.consensus_reads.extend(other.consensus_reads)
+
+    def fold_consensus(self, tolerance: float) -> None:
+        """The kept reads' consensus colours (mapping.fits.colour_consensus) into the colour sums, each weighing as
+        many views as agreed with it."""
+        reads, self.consensus_reads = self.consensus_reads, None
+        if reads is None or not len(reads):
+            return
+        c = len(self.camera_names)
+        agreed = consensus(reads, c, tolerance)
+        vertex, camera = agreed.key // c, agreed.key % c
+        self.colour_sum[vertex, camera] += agreed.colour * agreed.inliers[:, None]
+        self.colour_count[vertex, camera] += agreed.inliers
+        self.consensus_rejected += int((agreed.reads - agreed.inliers).sum())
 
     def colour_mean(self, ids: np.ndarray) -> np.ndarray:
         return self.colour_sum[ids] / np.maximum(self.colour_count[ids], 1.0)[..., None]
@@ -184,22 +206,30 @@ def _label_half_edges(obs: VertexObservations, seen: np.ndarray, uv: np.ndarray,
 
 def observe_keyframe(obs: VertexObservations, ids: np.ndarray, points_world: np.ndarray, keyframe: Keyframe,
                      camera: CameraModel, footprint: MeshFootprint | None = None,
-                     label_sharp_m: float | None = None, occlusion: OcclusionTest | None = None) -> int:
+                     label_sharp_m: float | None = None, occlusion: OcclusionTest | None = None,
+                     consensus_near_m: float = 5.0) -> int:
     """Add one keyframe's view of the vertices `ids` (unique; world positions `points_world`), the labels
     over their footprints if `footprint` is given, weighted by label_weights(..., label_sharp_m); returns how
     many vertices it labelled at their centre. A keyframe without semantics adds the colours of every vertex
-    in view that `occlusion` (if given) does not find hidden, and no labels."""
+    in view that `occlusion` (if given) does not find hidden, and no labels: into the sums, or into
+    `obs.consensus_reads` (if kept) weighted by proximity_weight(distance, consensus_near_m)."""
     uv, ok = project_points(points_world, camera, keyframe.T_world_camera)
     ids, uv = ids[ok], uv[ok]
     if keyframe.semantics is None:  # no mask: no labels, and every vertex in view not hidden reads its colour
         obs.maskless_reads += len(ids)
         hidden = occlusion.hidden(keyframe, camera, uv, points_world[ok]) if occlusion is not None else None
+        kept = ~hidden if hidden is not None else np.ones(len(ids), bool)
         if hidden is not None:
             obs.maskless_hidden += int(hidden.sum())
-            ids, uv = ids[~hidden], uv[~hidden]
+            ids, uv = ids[kept], uv[kept]
         elif occlusion is not None:
             obs.maskless_unchecked += 1
-        _add_colours(obs, ids, uv, keyframe, camera)
+        if obs.consensus_reads is None:
+            _add_colours(obs, ids, uv, keyframe, camera)
+            return 0
+        distance = np.linalg.norm(points_world[ok][kept] - keyframe.T_world_camera[:3, 3], axis=1)
+        obs.consensus_reads.append(ids, obs.camera_names.index(camera.name), bilinear(keyframe.image, uv) / 255.0,
+                                   proximity_weight(distance, consensus_near_m))
         return 0
     weight = label_weights(points_world[ok], camera, keyframe.T_world_camera, label_sharp_m)
     if footprint is not None:
