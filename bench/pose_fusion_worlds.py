@@ -1,11 +1,12 @@
-"""Fused roll and pitch against the truth on the roadlog simulator's worlds: random worlds 1..N and the seeded city
-drive (seed 3), 8 s each (--quick: worlds 1-3 and the city, 4 s).
+"""Fused roll, pitch, yaw and lateral position against the truth on the roadlog simulator's worlds: random worlds
+1..N and the seeded city drive (seed 3), 8 s each (--quick: worlds 1-3 and the city, 4 s).
 
 The GNSS, IMU and CAN streams are the ones `roadlog simulate` logs (the same stream builders in sim/drive_log.py,
 through the GNSS and CAN drivers' decoders, with the sensors' clocks), fused by
 mapping/inputs/drive_inputs.fuse_log_trajectory as the mapper does; no camera or Lidar is rendered.
-Per world: mean and worst roll and pitch error (deg); over the worlds: the median and worst of the mean |error|
-and the worst error.
+Per world: mean and worst roll, pitch and yaw error (deg) and lateral position error (cm, across the true heading),
+and the lateral error's spread within 1 s (cm: its RMS after a 1 s running mean is taken out, the part that differs
+between the views of one spot); over the worlds: the median and worst of the mean |error| and the worst error.
 
     .venv/bin/python bench/pose_fusion_worlds.py [--quick] [--worlds 5] [--seconds 8]
 
@@ -54,15 +55,26 @@ def fused_errors(name: str, seed: int, seconds: float) -> dict[str, float]:
            for t, ms in by_topic.items()}
     trajectory = fuse_log_trajectory(by_topic[GNSS_FIX], by_topic[IMU], by_topic[WHEEL_SPEEDS], scene.config, frame,
                                      fit)
-    _, quat = trajectory.interpolate(trajectory.times_ns)
+    position, quat = trajectory.interpolate(trajectory.times_ns)
     true_s = (trajectory.times_ns - HOST_MONO_AT_START_NS) * 1e-9
+    true_rotation, true_position = scene.ego.pose(true_s)
+    left = true_rotation[:, :, 1]  # the vehicle's y axis (left) in ENU
+    lateral_cm = 100.0 * np.einsum("ij,ij->i", position - true_position, left)
+    window = max(1, int(round(1.0 / float(np.median(np.diff(true_s))))))
+    lateral_fast_cm = lateral_cm - np.convolve(lateral_cm, np.ones(window) / window, mode="same")
+    lateral_fast_cm = lateral_fast_cm[window:-window] if len(lateral_cm) > 3 * window else lateral_fast_cm
     error = (Rotation.from_quat(quat).as_euler("ZYX", degrees=True)
              - Rotation.from_matrix(scene.ego.sample("rotation", true_s)).as_euler("ZYX", degrees=True))
     error = (error + 180.0) % 360.0 - 180.0
     return {"roll_mean_deg": round(float(error[:, 2].mean()), 3),
             "roll_worst_deg": round(float(np.abs(error[:, 2]).max()), 3),
             "pitch_mean_deg": round(float(error[:, 1].mean()), 3),
-            "pitch_worst_deg": round(float(np.abs(error[:, 1]).max()), 3)}
+            "pitch_worst_deg": round(float(np.abs(error[:, 1]).max()), 3),
+            "yaw_mean_deg": round(float(error[:, 0].mean()), 3),
+            "yaw_worst_deg": round(float(np.abs(error[:, 0]).max()), 3),
+            "lateral_mean_cm": round(float(lateral_cm.mean()), 2),
+            "lateral_worst_cm": round(float(np.abs(lateral_cm).max()), 2),
+            "lateral_1s_rms_cm": round(float(np.sqrt(np.mean(lateral_fast_cm ** 2))), 3)}
 
 
 def main() -> None:
@@ -78,11 +90,12 @@ def main() -> None:
         figures[f"{name}_{seed}"] = fused_errors(name, seed, seconds)
         print(f"{name}_{seed}", figures[f"{name}_{seed}"], flush=True)
     per_world = [figures[f"{name}_{seed}"] for name, seed in runs]
-    for angle in ("roll", "pitch"):
-        means = [abs(w[f"{angle}_mean_deg"]) for w in per_world]
-        figures[f"{angle}_abs_mean_deg_median"] = round(statistics.median(means), 3)
-        figures[f"{angle}_abs_mean_deg_worst"] = round(max(means), 3)
-        figures[f"{angle}_worst_deg"] = round(max(w[f"{angle}_worst_deg"] for w in per_world), 3)
+    for angle, unit in (("roll", "deg"), ("pitch", "deg"), ("yaw", "deg"), ("lateral", "cm")):
+        means = [abs(w[f"{angle}_mean_{unit}"]) for w in per_world]
+        figures[f"{angle}_abs_mean_{unit}_median"] = round(statistics.median(means), 3)
+        figures[f"{angle}_abs_mean_{unit}_worst"] = round(max(means), 3)
+        figures[f"{angle}_worst_{unit}"] = round(max(w[f"{angle}_worst_{unit}"] for w in per_world), 3)
+    figures["lateral_1s_rms_cm_worst"] = max(w["lateral_1s_rms_cm"] for w in per_world)
     print(json.dumps(figures))
 
 
