@@ -1,6 +1,7 @@
 """The live map of a drive (daemon replay with the mapping worker) against `roadlog reconstruct` on the
-log the daemon recorded: within 0.5 dB PSNR (views both trained on) and 0.5 cm elevation error (Lidar
-ground points and the simulator's truth). Runs bench/live_vs_reconstruct.py on a 3 s city drive."""
+log the daemon recorded: within 0.5 dB PSNR (views both trained on), 0.5 cm elevation error (Lidar ground points
+and the simulator's truth) and 5 points of bird's-eye mIoU, both maps in the live map's frame. Runs
+bench/live_vs_reconstruct.py on a 3 s city drive."""
 
 import json
 import subprocess
@@ -23,4 +24,5 @@ def test_live_map_matches_the_offline_reconstruction_of_the_recorded_log():
     assert abs(figures["psnr_train_db_gap"]) <= 0.5
     assert abs(figures["elev_error_cm_gap"]) <= 0.5
     assert abs(figures["elev_mae_gt_cm_gap"]) <= 0.5
+    assert abs(figures["miou_pct_gap"]) <= 5.0
     assert figures["within_tolerance"]

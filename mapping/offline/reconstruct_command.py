@@ -62,6 +62,26 @@ class DriveTruth:
     def semantic(self) -> np.ndarray:
         return self.elevation.semantic
 
+    def in_frame(self, frame: LocalFrame, tolerance_m: float = 0.001) -> DriveTruth:
+        """The same truth in another local frame near this one (a map's own, its origin the drive's first fix):
+        the grids and points moved by the offset between the two origins. Two ENU frames a few hundred metres
+        apart differ by a rotation of about their distance over the earth's radius; where that would move a
+        corner of the grid by more than `tolerance_m`, a ValueError."""
+        if frame == self.origin:
+            return self
+        gt = self.elevation
+        offset = frame.geodetic_to_enu(*self.origin.enu_to_geodetic(np.zeros((1, 3))))[0]
+        h, w = gt.elevation_m.shape
+        corners = np.array([[gt.origin_xy[0] + x * gt.resolution_m, gt.origin_xy[1] + y * gt.resolution_m, 0.0]
+                            for x in (0, w - 1) for y in (0, h - 1)])
+        error = np.abs(frame.geodetic_to_enu(*self.origin.enu_to_geodetic(corners)) - (corners + offset)).max()
+        if error > tolerance_m:
+            raise ValueError(f"the truth moved into {frame} is off by {100 * error:.1f} cm at its corners: the "
+                             f"frames are too far apart for a translation")
+        moved = GroundTruth(gt.elevation_m + np.float32(offset[2]), (gt.origin_xy[0] + offset[0],
+                            gt.origin_xy[1] + offset[1]), gt.resolution_m, gt.semantic)
+        return DriveTruth(frame, moved, self.lidar_points + offset)
+
     @staticmethod
     def load(path: str | Path) -> DriveTruth:
         """The truth file; one that is missing or not a simulated drive's truth is a ConfigError."""
