@@ -214,24 +214,23 @@ def observe_keyframe(obs: VertexObservations, ids: np.ndarray, points_world: np.
     in view that `occlusion` (if given) does not find hidden, and no labels: into the sums, or into
     `obs.consensus_reads` (if kept) weighted by proximity_weight(distance, consensus_near_m)."""
     uv, ok = project_points(points_world, camera, keyframe.T_world_camera)
-    ids, uv = ids[ok], uv[ok]
+    ids, uv, points = ids[ok], uv[ok], points_world[ok]
     if keyframe.semantics is None:  # no mask: no labels, and every vertex in view not hidden reads its colour
         obs.maskless_reads += len(ids)
-        hidden = occlusion.hidden(keyframe, camera, uv, points_world[ok]) if occlusion is not None else None
-        kept = ~hidden if hidden is not None else np.ones(len(ids), bool)
+        hidden = occlusion.hidden(keyframe, camera, uv, points) if occlusion is not None else None
         if hidden is not None:
             obs.maskless_hidden += int(hidden.sum())
-            ids, uv = ids[kept], uv[kept]
+            ids, uv, points = ids[~hidden], uv[~hidden], points[~hidden]
         elif occlusion is not None:
             obs.maskless_unchecked += 1
         if obs.consensus_reads is None:
             _add_colours(obs, ids, uv, keyframe, camera)
             return 0
-        distance = np.linalg.norm(points_world[ok][kept] - keyframe.T_world_camera[:3, 3], axis=1)
+        distance = np.linalg.norm(points - keyframe.T_world_camera[:3, 3], axis=1)
         obs.consensus_reads.append(ids, obs.camera_names.index(camera.name), bilinear(keyframe.image, uv) / 255.0,
                                    proximity_weight(distance, consensus_near_m))
         return 0
-    weight = label_weights(points_world[ok], camera, keyframe.T_world_camera, label_sharp_m)
+    weight = label_weights(points, camera, keyframe.T_world_camera, label_sharp_m)
     if footprint is not None:
         _label_half_edges(obs, ids, uv, weight, keyframe, footprint)
     label = label_at(keyframe, uv)
