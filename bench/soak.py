@@ -50,7 +50,7 @@ sys.path.insert(0, str(ROOT))
 
 from daemon.bus.pubsub import unlink_all  # noqa: E402
 from daemon.log_format.reader import read_log, read_metadata, summary_message_counts  # noqa: E402
-from daemon.processes.supervisor import die_with_parent  # noqa: E402
+from daemon.processes import child_launch  # noqa: E402
 from daemon.spine.config import load_config  # noqa: E402
 from daemon.spine.topics import health_topic  # noqa: E402
 from drivers.can.can_bus import open_can_bus  # noqa: E402
@@ -251,9 +251,9 @@ def main(argv: list[str] | None = None) -> int:
     daemon_log = open(work / "daemon.log", "wb")
     started = time.monotonic()
     # the daemon is stopped (SIGTERM) however this process ends: killed (the kernel's death signal) or told to stop
-    daemon = subprocess.Popen([sys.executable, "-m", "daemon.commands.cli", "run", "--config", str(config_path)],
-                              cwd=ROOT, start_new_session=True, stdout=daemon_log, stderr=subprocess.STDOUT,
-                              preexec_fn=die_with_parent(os.getpid(), signal.SIGTERM))
+    daemon = subprocess.Popen(child_launch.command("daemon.commands.cli", ["run", "--config", str(config_path)],
+                                                   sig=signal.SIGTERM),
+                              cwd=ROOT, start_new_session=True, stdout=daemon_log, stderr=subprocess.STDOUT)
     for sig in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, lambda signum, _: sys.exit(128 + signum))  # the `finally` below stops the daemon
     sampler = ProcessSampler(daemon.pid)

@@ -1,19 +1,19 @@
 """The supervisor: starts every process of the table, restarts crashed or hung ones, shuts down cleanly.
 
-Each process runs as `python -m module`. A process that exits is restarted with exponential backoff
-(each restart recorded); one whose health topic stops updating for its `heartbeat_s` is considered
-hung, killed and restarted. SIGTERM/SIGINT stop everything within each process's `stop_timeout_s`
+Each process runs as `python -m module` (through `child_launch`, which ties its life to the supervisor's). A
+process that exits is restarted with exponential backoff (each restart recorded); one whose health topic stops
+updating for its `heartbeat_s` is considered hung, killed and restarted. SIGTERM/SIGINT stop everything within each process's `stop_timeout_s`
 (SIGTERM first, SIGKILL after), so open log files are closed properly. The supervisor's own state is
 published as JSON in the `detail` of its health topic. A dead or crash-looping sensor degrades the daemon, it
 never stops it: systemd gets READY=1 once the recorder runs (not waiting for every driver; or once it failed on its
 configuration, which no restart mends), a STATUS= line naming
 what is missing or crash-looping whenever that changes, and WATCHDOG=1 for as long as this loop runs. A child
-dies with the supervisor (PR_SET_PDEATHSIG), however the supervisor ends.
+dies with the supervisor (PR_SET_PDEATHSIG, asked for by the child: daemon/processes/child_launch.py), however the
+supervisor ends.
 """
 
 from __future__ import annotations
 
-import ctypes
 import json
 import logging
 import os
@@ -25,6 +25,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+from daemon.processes import child_launch
 from daemon.spine.config import EXIT_CONFIG_ERROR, CarConfig
 from daemon.spine.health import HealthCounters
 from daemon.spine.process_table import RESTARTS_ENV, ProcessSpec
@@ -62,22 +63,6 @@ def watchdog_interval_s() -> float | None:
     if not usec or (pid and int(pid) != os.getpid()):
         return None
     return int(usec) / 2e6
-
-
-PR_SET_PDEATHSIG = 1  # prctl(2): the signal a process gets when the thread that started it dies
-_libc = ctypes.CDLL(None, use_errno=True)
-
-
-def die_with_parent(parent_pid: int, sig: int = signal.SIGKILL):
-    """A child's preexec_fn: `sig` to it when its parent (the supervisor) dies (a killed daemon leaves no orphan
-    holding its rings, ports and segments; the open segment is recovered at the next start, as after a power cut)."""
-
-    def preexec() -> None:
-        _libc.prctl(PR_SET_PDEATHSIG, sig, 0, 0, 0)
-        if os.getppid() != parent_pid:  # the supervisor died before prctl: no signal will come
-            os._exit(1)
-
-    return preexec
 
 
 @dataclass
@@ -119,11 +104,11 @@ class Supervisor:
 
     # --- process control -----------------------------------------------------------------------
     def _start(self, child: Child) -> None:
-        cmd = [sys.executable, "-m", child.spec.module, *child.spec.args]
+        cmd = child_launch.command(child.spec.module, list(child.spec.args))
         if child.spec.nice:  # coreutils `nice` execs the process: its pid and parent stay the same
             cmd = ["nice", "-n", str(child.spec.nice), *cmd]
         child.popen = subprocess.Popen(cmd, env=dict(self.env, **{RESTARTS_ENV: str(child.restarts)}),
-                                       pass_fds=self.inherit_fds, preexec_fn=die_with_parent(os.getpid()))
+                                       pass_fds=self.inherit_fds)
         child.state = "running"
         child.started_at = time.monotonic()
 
