@@ -1,15 +1,14 @@
 """The supervisor: starts every process of the table, restarts crashed or hung ones, shuts down cleanly.
 
-Each process runs as `python -m module` (through `child_launch`, which ties its life to the supervisor's). A
-process that exits is restarted with exponential backoff (each restart recorded); one whose health topic stops
-updating for its `heartbeat_s` is considered hung, killed and restarted. SIGTERM/SIGINT stop everything within each process's `stop_timeout_s`
-(SIGTERM first, SIGKILL after), so open log files are closed properly. The supervisor's own state is
-published as JSON in the `detail` of its health topic. A dead or crash-looping sensor degrades the daemon, it
+Each process runs as `python -m module` (through `child_launch`, which ties its life to the supervisor's). A process
+that exits is restarted with exponential backoff (each restart recorded); one whose health topic stops updating for
+its `heartbeat_s` is considered hung, killed and restarted. SIGTERM/SIGINT stop everything within each process's
+`stop_timeout_s` (SIGTERM first, SIGKILL after), so open log files are closed properly. The supervisor's own state
+is published as JSON in the `detail` of its health topic. A dead or crash-looping sensor degrades the daemon, it
 never stops it: systemd gets READY=1 once the recorder runs (not waiting for every driver; or once it failed on its
-configuration, which no restart mends), a STATUS= line naming
-what is missing or crash-looping whenever that changes, and WATCHDOG=1 for as long as this loop runs. A child
-dies with the supervisor (PR_SET_PDEATHSIG, asked for by the child: daemon/processes/child_launch.py), however the
-supervisor ends.
+configuration, which no restart mends), a STATUS= line naming what is missing or crash-looping whenever that
+changes, and WATCHDOG=1 for as long as this loop runs. A child dies with the supervisor (PR_SET_PDEATHSIG, asked for
+by the child: daemon/processes/child_launch.py), however the supervisor ends.
 """
 
 from __future__ import annotations
