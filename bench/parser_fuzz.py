@@ -61,7 +61,7 @@ from daemon.log_format.recovery import recover_log  # noqa: E402
 from daemon.log_format.writer import LogWriter  # noqa: E402
 from daemon.spine.config import ConfigError, load_config  # noqa: E402
 from daemon.spine.health import HealthCounters  # noqa: E402
-from daemon.spine.messages import CameraFrame, CanFrame, GnssFix, ImuSample, LidarPacket, TimeAnchor  # noqa: E402
+from daemon.spine.messages import CameraFrame, CanFrame, GnssFix, GnssVelocity, ImuSample, LidarPacket, TimeAnchor  # noqa: E402
 from daemon.spine.topics import CAN_FRAMES  # noqa: E402
 from drivers.can.can_driver import run_can_driver  # noqa: E402
 from drivers.can.wheel_speed_codec import encode_wheel_speeds, load_dbc  # noqa: E402
@@ -449,6 +449,7 @@ def check_gnss(case, counts: Counter) -> str:
         counts["bytes_unaccounted"] += 1
     for m in published:
         values = ([m.latitude_deg, m.longitude_deg, m.altitude_m, *m.position_covariance] if isinstance(m, GnssFix)
+                  else [*m.velocity_enu_mps, *m.velocity_covariance] if isinstance(m, GnssVelocity)
                   else [*m.accel_mps2, *m.gyro_rps])
         if not all(math.isfinite(v) for v in values) or (isinstance(m, GnssFix) and (
                 abs(m.latitude_deg) > 90 or abs(m.longitude_deg) > 180)):

@@ -29,9 +29,9 @@ from scipy.spatial.transform import Rotation
 from daemon.log_format.metadata_records import POSE_ENU_ORIGIN_KEY
 from daemon.spine.config import POINT_CLOUD_LIDAR, reports_config_errors
 from daemon.spine.local_frame import LocalFrame
-from daemon.spine.messages import GnssFix, ImuSample, PointCloud, TimeAnchor, VehiclePose
+from daemon.spine.messages import GnssFix, GnssVelocity, ImuSample, PointCloud, TimeAnchor, VehiclePose
 from daemon.spine.point_cloud_codec import pack_points
-from daemon.spine.topics import GNSS_FIX, IMU, LIDAR_POINTS, POSE, TIME_ANCHOR
+from daemon.spine.topics import GNSS_FIX, GNSS_VELOCITY, IMU, LIDAR_POINTS, POSE, TIME_ANCHOR
 from importers.imported_log import ImportSummary, imported_log
 from importers.kitti_files import (
     DatasetError,
@@ -113,21 +113,28 @@ def read_oxts(folder: Path) -> tuple[np.ndarray, np.ndarray]:
     return times, np.array(records)
 
 
-def oxts_messages(times: np.ndarray, records: np.ndarray) -> tuple[list[GnssFix], list[ImuSample]]:
-    """Each OXTS record as a GNSS fix (position accuracy as a diagonal covariance) and an IMU sample (x, y, z:
-    the vehicle's front, left and top; the af/al/au and wf/wl/wu columns are the levelled ones, not used)."""
+def oxts_messages(times: np.ndarray, records: np.ndarray
+                  ) -> tuple[list[GnssFix], list[GnssVelocity], list[ImuSample]]:
+    """Each OXTS record as a GNSS fix (position accuracy as a diagonal covariance), a GNSS velocity (ve, vn, vu; the
+    unit's velocity accuracy, given for north/east, taken for up too) and an IMU sample (x, y, z: the vehicle's
+    front, left and top; the af/al/au and wf/wl/wu columns are the levelled ones, not used)."""
     f = _FIELD
-    fixes, samples = [], []
+    fixes, velocities, samples = [], [], []
     for i, (t, r) in enumerate(zip(times.tolist(), records, strict=True)):
         sigma2 = max(float(r[f["pos_accuracy"]]), 0.01) ** 2
         fixes.append(GnssFix(seq=i, sensor_time_ns=t, host_mono_ns=t, latitude_deg=float(r[f["lat"]]),
                              longitude_deg=float(r[f["lon"]]), altitude_m=float(r[f["alt"]]),
                              position_covariance=(sigma2, 0.0, 0.0, 0.0, sigma2, 0.0, 0.0, 0.0, sigma2),
                              covariance_type=2))
+        v2 = max(float(r[f["vel_accuracy"]]), 0.01) ** 2
+        velocities.append(GnssVelocity(seq=i, sensor_time_ns=t, host_mono_ns=t,
+                                       velocity_enu_mps=tuple(float(r[f[k]]) for k in ("ve", "vn", "vu")),
+                                       velocity_covariance=(v2, 0.0, 0.0, 0.0, v2, 0.0, 0.0, 0.0, v2),
+                                       covariance_type=2))
         samples.append(ImuSample(seq=i, sensor_time_ns=t, host_mono_ns=t,
                                  accel_mps2=tuple(float(r[f[k]]) for k in ("ax", "ay", "az")),
                                  gyro_rps=tuple(float(r[f[k]]) for k in ("wx", "wy", "wz"))))
-    return fixes, samples
+    return fixes, velocities, samples
 
 
 def ins_positions(times: np.ndarray, records: np.ndarray, frame: LocalFrame) -> np.ndarray:
@@ -179,7 +186,7 @@ def import_raw(folder: Path, out: Path, *, reference_height_m: float = 0.93, pos
     if len(frame_times) != len(images):
         raise DatasetError(f"{folder / CAMERA}: {len(images)} images for {len(frame_times)} timestamps")
     oxts_times, records = read_oxts(folder)
-    fixes, samples = oxts_messages(oxts_times, records)
+    fixes, velocities, samples = oxts_messages(oxts_times, records)
     width, height = png_file_size(images[0])
     rate_hz = float((len(frame_times) - 1) / ((frame_times[-1] - frame_times[0]) * 1e-9))
     camera = recorded_camera(CAMERA, width, height, k, np.linalg.inv(t_cam_imu), round(rate_hz, 3), "png")
@@ -197,8 +204,9 @@ def import_raw(folder: Path, out: Path, *, reference_height_m: float = 0.93, pos
         start, end = int(min(frame_times[0], oxts_times[0])), int(max(frame_times[-1], oxts_times[-1]))
         for i, t in enumerate(range(start, end + 1_000_000_000, 1_000_000_000)):
             writer.write(TIME_ANCHOR, TimeAnchor(seq=i, sensor_time_ns=t, host_mono_ns=t, utc_ns=t))
-        for fix, sample in zip(fixes, samples, strict=True):
+        for fix, velocity, sample in zip(fixes, velocities, samples, strict=True):
             writer.write(GNSS_FIX, fix)
+            writer.write(GNSS_VELOCITY, velocity)
             writer.write(IMU, sample)
         for pose in oxts_poses(oxts_times, records) if poses == "oxts" else ():
             writer.write(POSE, pose)

@@ -4,7 +4,7 @@ log has no mask topics (a car without a segmenter); its images are the same as w
 
 Camera frames and Lidar scans are rendered in worker processes; GNSS/IMU bytes go through the GNSS
 driver's own framer and decoder and CAN frames through the CAN driver's decoder, the Lidar's own IMU
-through its LEGACY packets and the Lidar driver's decoder, so the logged fixes, IMU samples and wheel
+through its LEGACY packets and the Lidar driver's decoder, so the logged fixes, velocities, IMU samples and wheel
 speeds are exactly what those drivers would have published.
 
 Ground truth (PATH.gt.npz), all in the scenario's local ENU frame:
@@ -41,8 +41,7 @@ from daemon.spine.local_frame import LocalFrame
 from daemon.spine.messages import CameraFrame, CanFrame, ImuSample, LidarPacket, SemanticMask, TimeAnchor
 from daemon.spine.topics import (
     CAN_FRAMES,
-    GNSS_FIX,
-    IMU,
+    GNSS_TOPIC_BY_TYPE,
     LIDAR_IMU,
     LIDAR_PACKETS,
     TIME_ANCHOR,
@@ -177,7 +176,7 @@ def _event_times(rate_hz: float, phase_s: float, seconds: float) -> np.ndarray:
 
 def _gnss_imu_messages(scene: Scene, clocks: dict[str, SensorClock], frame: LocalFrame, rng: np.random.Generator
                        ) -> list[tuple[int, str, object]]:
-    """Fixes and IMU samples as the GNSS driver decodes them from the receiver's byte stream."""
+    """Fixes, velocities and IMU samples as the GNSS driver decodes them from the receiver's byte stream."""
     gnss = scene.config.sensors.gnss
     utc0 = utc_start_ns(scene.scenario)
     fix_s = _event_times(gnss.rate_hz, 1.0 / gnss.rate_hz - (utc0 % 100_000_000) / 1e9, scene.seconds)
@@ -197,7 +196,7 @@ def _gnss_imu_messages(scene: Scene, clocks: dict[str, SensorClock], frame: Loca
     for host_ns, data in chunks:
         for fr in framer.feed(data):
             for msg in decoder.decode(fr, host_ns):
-                out.append((host_ns, GNSS_FIX if type(msg).__name__ == "GnssFix" else IMU, msg))
+                out.append((host_ns, GNSS_TOPIC_BY_TYPE[type(msg)], msg))
     return out
 
 

@@ -32,8 +32,8 @@ import numpy as np
 from daemon.log_format.reader import read_log, read_metadata
 from daemon.spine.config import CarConfig, load_config, resolve_path
 from daemon.spine.local_frame import LocalFrame
-from daemon.spine.messages import CanFrame, GnssFix, ImuSample, LidarPacket
-from daemon.spine.topics import CAN_FRAMES, GNSS_FIX, IMU, LIDAR_IMU, LIDAR_PACKETS
+from daemon.spine.messages import CanFrame, GnssFix, GnssVelocity, ImuSample, LidarPacket
+from daemon.spine.topics import CAN_FRAMES, GNSS_FIX, GNSS_VELOCITY, IMU, LIDAR_IMU, LIDAR_PACKETS
 from drivers.can.can_bus import open_can_bus
 from drivers.lidar.ouster_encoder import packet_frame_id, renumbered_packet
 from drivers.lidar.ouster_imu import encode_imu_packet
@@ -85,25 +85,31 @@ def open_gnss_pty() -> GnssPty:
 
 
 class _GnssBytes:
-    """Remakes the receiver's byte stream from logged fixes and IMU samples."""
+    """Remakes the receiver's byte stream from logged fixes, velocities and IMU samples (a fix's velocity: the one
+    logged for its epoch, else the difference of the last two fixes)."""
 
-    def __init__(self) -> None:
+    def __init__(self, velocities: dict[int, GnssVelocity]) -> None:
         self._frame: LocalFrame | None = None
         self._last: tuple[int, np.ndarray] | None = None
+        self._velocities = velocities  # by the epoch's sensor time in ms (of the drive's first pass)
+        self.shift_ns = 0  # this pass's sensor time shift
 
     def fix(self, fix: GnssFix) -> bytes:
         if self._frame is None:
             self._frame = LocalFrame(fix.latitude_deg, fix.longitude_deg, fix.altitude_m)
         enu = self._frame.geodetic_to_enu(fix.latitude_deg, fix.longitude_deg, fix.altitude_m)
-        velocity = np.zeros(3)
-        if self._last is not None and fix.sensor_time_ns > self._last[0]:
+        velocity, s_acc = np.zeros(3), 0.05
+        logged = self._velocities.get(round((fix.sensor_time_ns - self.shift_ns) / 1e6))
+        if logged is not None:
+            velocity, s_acc = np.array(logged.velocity_enu_mps), float(np.sqrt(max(logged.velocity_covariance[0], 0)))
+        elif self._last is not None and fix.sensor_time_ns > self._last[0]:
             velocity = (enu - self._last[1]) / ((fix.sensor_time_ns - self._last[0]) / 1e9)
         self._last = (fix.sensor_time_ns, enu)
         cov = fix.position_covariance
         h_acc = float(np.sqrt(max(cov[0], cov[4], 1e-6)))
         v_acc = float(np.sqrt(max(cov[8], 1e-6)))
         epoch = gnss_sim.GnssEpoch(fix.sensor_time_ns, fix.latitude_deg, fix.longitude_deg, fix.altitude_m,
-                                   tuple(map(float, velocity)), h_acc, v_acc, h_acc < RTK_SIGMA_M)
+                                   tuple(map(float, velocity)), h_acc, v_acc, h_acc < RTK_SIGMA_M, s_acc_m_s=s_acc)
         return gnss_sim.epoch_bytes(epoch)
 
     @staticmethod
@@ -134,13 +140,16 @@ def run_live_drive(drive_mcap: Path, *, lidar_address: tuple[str, int] | None = 
     topics = [t for t, on in ((LIDAR_PACKETS, lidar_address), (LIDAR_IMU, lidar_imu_address), (GNSS_FIX, gnss_fd),
                               (IMU, gnss_fd), (CAN_FRAMES, can_bus)) if on is not None]
     stats = LiveDriveStats()
-    gnss = _GnssBytes()
+    velocities = {round(rec.message.sensor_time_ns / 1e6): rec.message
+                  for rec in read_log([drive_mcap], topics=[GNSS_VELOCITY])} if gnss_fd is not None else {}
+    gnss = _GnssBytes(velocities)
     udp = lidar_address is not None or lidar_imu_address is not None
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM) if udp else None
     frame_ids: set[int] = set()  # the first pass's, to number the next passes' frames on
     try:
         for k in range(passes) if passes else itertools.count():
             shift = _PassShift(k * period_ns, k * len(frame_ids), lidar_layout)
+            gnss.shift_ns = shift.time_ns
             for record in read_log([drive_mcap], topics=topics):
                 due = start + int((record.log_time_ns + shift.time_ns - origin) / rate)
                 while (wait := due - time.monotonic_ns()) > 0:

@@ -191,7 +191,7 @@ def _runnable(tmp: Path, bus: dict | None = None, output_dir: str | None = None)
     ("unknown topic", {"ring_bytes": {"lidar/pakets": 1 << 20}}, {},
      "bus.ring_bytes names unknown topics 'lidar/pakets'"),
     ("Docker's 64 MiB /dev/shm", {}, {"ROADLOG_SIMULATED_SHM_BYTES": str(64 << 20)},
-     "rings need 451 MiB of /dev/shm, which holds 64 MiB"),
+     "rings need 455 MiB of /dev/shm, which holds 64 MiB"),
 ])
 def test_rings_that_cannot_work_are_refused_by_check_config_and_by_the_daemon_before_it_starts(case, bus, env, expected,
                                                                                                tmp_path):

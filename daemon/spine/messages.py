@@ -88,6 +88,19 @@ class GnssFix:
 
 
 @dataclass(slots=True)
+class GnssVelocity:
+    """The receiver's velocity of its antenna (Doppler), east/north/up m/s, with its covariance in (m/s)^2 (row-major
+    3x3; covariance_type as GnssFix's: 0 unknown, 2 diagonal). `sensor_time_ns` is the fix's of the same epoch."""
+
+    seq: int = 0
+    sensor_time_ns: int = 0
+    host_mono_ns: int = 0
+    velocity_enu_mps: Vec3 = (0.0, 0.0, 0.0)
+    velocity_covariance: tuple[float, ...] = (0.0,) * 9
+    covariance_type: int = 0
+
+
+@dataclass(slots=True)
 class ImuSample:
     """Specific force (m/s^2) and angular rate (rad/s) in the IMU frame."""
 
@@ -175,6 +188,7 @@ MESSAGE_TYPES: tuple[type, ...] = (
     LidarPacket,
     PointCloud,
     GnssFix,
+    GnssVelocity,
     ImuSample,
     WheelSpeeds,
     CanFrame,

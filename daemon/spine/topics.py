@@ -15,6 +15,7 @@ from daemon.spine.messages import (
     CanFrame,
     DriverHealth,
     GnssFix,
+    GnssVelocity,
     ImuSample,
     LidarPacket,
     PointCloud,
@@ -114,10 +115,14 @@ LIDAR_PACKETS = "lidar/packets"
 LIDAR_IMU = "lidar/imu"  # the Lidar's own IMU (Ouster: UDP udp_port_imu)
 LIDAR_POINTS = "lidar/points"  # a point-cloud Lidar's scans, decoded (instead of lidar/packets and lidar/imu)
 GNSS_FIX = "gnss/fix"
+GNSS_VELOCITY = "gnss/velocity"  # the receiver's Doppler velocity of its antenna (u-blox NAV-PVT, NAV-PVAT)
 IMU = "imu"
 CAN_FRAMES = "can/frames"
 WHEEL_SPEEDS = "wheel_speeds"
 TIME_ANCHOR = "time_anchor"
+
+GNSS_TOPIC_BY_TYPE = {GnssFix: GNSS_FIX, GnssVelocity: GNSS_VELOCITY, ImuSample: IMU}  # what a GNSS receiver gives
+FUSION_TOPICS = (GNSS_FIX, GNSS_VELOCITY, IMU, WHEEL_SPEEDS)  # what the pose fusion takes (mapping.inputs.drive_inputs)
 
 # Processes that publish a health topic besides one camera driver per camera ("camera_<name>").
 HEALTH_PROCESSES = ("lidar", "gnss", "can", "recorder", "mapper", "replay", "supervisor", "status")
@@ -146,6 +151,7 @@ def topic_table(config: CarConfig) -> dict[str, Topic]:
         topics.append(Topic(LIDAR_IMU, ImuSample, 100.0, 4 * MB, True, "lidar"))
     if sensors.gnss is not None:
         topics.append(Topic(GNSS_FIX, GnssFix, sensors.gnss.rate_hz, 4 * MB, True, "gnss"))
+        topics.append(Topic(GNSS_VELOCITY, GnssVelocity, sensors.gnss.rate_hz, 4 * MB, True, "gnss"))
         topics.append(Topic(IMU, ImuSample, sensors.gnss.imu_rate_hz, 8 * MB, True, "gnss"))
     if sensors.can is not None:
         topics.append(Topic(CAN_FRAMES, CanFrame, 2000.0, 16 * MB, True, "can"))

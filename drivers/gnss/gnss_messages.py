@@ -1,4 +1,4 @@
-"""Turns checked NMEA and UBX frames into GnssFix and ImuSample messages (times, units, covariances).
+"""Turns checked NMEA and UBX frames into GnssFix, GnssVelocity and ImuSample messages (times, units, covariances).
 
 Fixes come from NMEA GGA (date from RMC or ZDA, covariance from GST of the same epoch, else approximated
 from HDOP) and from UBX NAV-PVT, NAV-PVAT and HNR-PVT (covariance from the error ellipse or hAcc/vAcc).
@@ -6,6 +6,9 @@ from HDOP) and from UBX NAV-PVT, NAV-PVAT and HNR-PVT (covariance from the error
 leaves the separation empty). A receiver epoch is published once, by the first message that gives it.
 Fix `sensor_time_ns` is UTC in ns since 1970: NMEA time of day + date; UBX GPS time of week (iTOW) mapped
 to UTC through the UTC date/time the receiver sends in the same NAV-PVT/PVAT/HNR-PVT message.
+Velocities come from UBX NAV-PVT and NAV-PVAT (velN/velE/velD, the antenna's Doppler velocity, with sAcc as each
+axis's 1-sigma), stamped as the epoch's fix, once an epoch; NMEA RMC's speed and course (horizontal only) and HNR-PVT
+(no velocity vector) give none.
 
 IMU samples come from ESF-RAW, ESF-MEAS (the IMU's own axes, specific force in m/s^2, rate in rad/s;
 `sensor_time_ns` is the receiver's sensor time tag, a clock since its start, not UTC) or HNR-INS
@@ -24,7 +27,7 @@ import pynmea2
 from pyubx2 import UBXReader
 
 from daemon.spine.health import HealthCounters
-from daemon.spine.messages import GnssFix, ImuSample, Vec3
+from daemon.spine.messages import GnssFix, GnssVelocity, ImuSample, Vec3
 from drivers.gnss.stream_framer import Frame
 
 NS_PER_S = 1_000_000_000
@@ -46,6 +49,7 @@ IMU_PAIR_WINDOW_NS = 20 * NS_PER_MS  # accel and gyro triples this close in time
 IMU_SOURCE_RANK = {"ESF-RAW": 3, "ESF-MEAS": 2, "HNR-INS": 1}
 # GGA without GST: sigma = HDOP x a per-fix-quality error, as ROS nmea_navsat_driver does (metres).
 HDOP_ERROR_BY_QUALITY = {1: 4.0, 2: 0.1, 3: 4.0, 4: 0.02, 5: 4.0, 6: 4.0, 9: 3.0}
+MAX_VELOCITY_MPS = 500.0  # a car's receiver reporting more is garbled (u-blox's own dynamic limit is 500 m/s)
 UBX_FIX_TYPES = (1, 2, 3, 4)  # dead reckoning, 2D, 3D, GNSS + dead reckoning
 UBX_WANTED = {
     b"\x01\x07": "NAV-PVT",
@@ -140,13 +144,14 @@ class GnssDecoder:
         self._week_start_utc_ns: int | None = None  # UTC time of GPS time-of-week 0, from the receiver
         self._week_anchor_itow_ms = 0
         self._recent_fix_ms: deque[int] = deque(maxlen=RECENT_FIX_EPOCHS)
+        self._recent_velocity_ms: deque[int] = deque(maxlen=RECENT_FIX_EPOCHS)
         self._imu_source_rank = 0
         self._imu_pending: dict[str, tuple[int, Vec3]] = {}
         self._esf_raw_last_tick: int | None = None
         self._esf_raw_wraps = 0
 
     # ---- entry points -------------------------------------------------------------------------------
-    def decode(self, frame: Frame, host_mono_ns: int) -> list[GnssFix | ImuSample]:
+    def decode(self, frame: Frame, host_mono_ns: int) -> list[GnssFix | GnssVelocity | ImuSample]:
         if frame.protocol not in self._protocols:
             self.counts[f"ignored_{frame.protocol}"] += 1
             return []
@@ -154,7 +159,7 @@ class GnssDecoder:
             return self._decode_nmea(frame.data.decode("ascii"), host_mono_ns)
         return self._decode_ubx(frame.data, host_mono_ns)
 
-    def flush(self) -> list[GnssFix | ImuSample]:
+    def flush(self) -> list[GnssFix | GnssVelocity | ImuSample]:
         """The stream has ended (port closed): publish the GGA still waiting for its GST, drop half IMU
         samples and forget the IMU clock, which restarts if the receiver does."""
         out = self._flush_pending(None)
@@ -176,7 +181,7 @@ class GnssDecoder:
         if self._health is not None:
             self._health.dropped += 1
 
-    def _emit_fix(self, fix: GnssFix) -> list[GnssFix | ImuSample]:
+    def _emit_fix(self, fix: GnssFix) -> list[GnssFix | GnssVelocity | ImuSample]:
         epoch_ms = round(fix.sensor_time_ns / NS_PER_MS)
         if epoch_ms in self._recent_fix_ms:
             self.counts["duplicate_epoch"] += 1
@@ -186,7 +191,7 @@ class GnssDecoder:
         return [fix]
 
     # ---- NMEA ---------------------------------------------------------------------------------------
-    def _decode_nmea(self, text: str, host_mono_ns: int) -> list[GnssFix | ImuSample]:
+    def _decode_nmea(self, text: str, host_mono_ns: int) -> list[GnssFix | GnssVelocity | ImuSample]:
         kind = text[3:6] if not text.startswith("$P") else ""
         if kind not in NMEA_WANTED:
             self.counts["ignored"] += 1
@@ -206,7 +211,7 @@ class GnssDecoder:
             self._reject(f"nmea_bad_field_{kind}", exc)
             return []
 
-    def _on_date(self, sentence: pynmea2.TalkerSentence, kind: str) -> list[GnssFix | ImuSample]:
+    def _on_date(self, sentence: pynmea2.TalkerSentence, kind: str) -> list[GnssFix | GnssVelocity | ImuSample]:
         time_of_day = _time_of_day_ns(sentence.timestamp)
         out = self._flush_pending(time_of_day)
         if kind == "RMC":
@@ -229,7 +234,7 @@ class GnssDecoder:
             midnight -= DAY_NS  # a fix from before midnight, the date came after it
         return midnight + time_of_day_ns
 
-    def _on_gga(self, gga: pynmea2.TalkerSentence, host_mono_ns: int) -> list[GnssFix | ImuSample]:
+    def _on_gga(self, gga: pynmea2.TalkerSentence, host_mono_ns: int) -> list[GnssFix | GnssVelocity | ImuSample]:
         time_of_day = _time_of_day_ns(gga.timestamp)
         out = self._flush_pending(time_of_day)
         quality = int(gga.gps_qual or 0)
@@ -264,7 +269,7 @@ class GnssDecoder:
             return out
         return out + self._emit_fix(replace(fix, position_covariance=hdop_cov, covariance_type=hdop_type))
 
-    def _on_gst(self, gst: pynmea2.TalkerSentence) -> list[GnssFix | ImuSample]:
+    def _on_gst(self, gst: pynmea2.TalkerSentence) -> list[GnssFix | GnssVelocity | ImuSample]:
         time_of_day = _time_of_day_ns(gst.timestamp)
         out = self._flush_pending(time_of_day)
         sig_lat, sig_lon, sig_alt = gst.std_dev_latitude, gst.std_dev_longitude, gst.std_dev_altitude
@@ -286,7 +291,7 @@ class GnssDecoder:
         self._early_gst = (time_of_day, cov, cov_type)
         return out
 
-    def _flush_pending(self, time_of_day_ns: int | None) -> list[GnssFix | ImuSample]:
+    def _flush_pending(self, time_of_day_ns: int | None) -> list[GnssFix | GnssVelocity | ImuSample]:
         """Publish the waiting GGA fix with its HDOP covariance once a sentence of another epoch arrives."""
         pending = self._pending
         if pending is None or pending.time_of_day_ns == time_of_day_ns:
@@ -298,7 +303,7 @@ class GnssDecoder:
         return self._emit_fix(fix)
 
     # ---- UBX ----------------------------------------------------------------------------------------
-    def _decode_ubx(self, data: bytes, host_mono_ns: int) -> list[GnssFix | ImuSample]:
+    def _decode_ubx(self, data: bytes, host_mono_ns: int) -> list[GnssFix | GnssVelocity | ImuSample]:
         name = UBX_WANTED.get(data[2:4])
         if name is None:
             self.counts["ignored"] += 1
@@ -329,7 +334,7 @@ class GnssDecoder:
             t -= WEEK_NS
         return t
 
-    def _on_pvt(self, name: str, msg, host_mono_ns: int) -> list[GnssFix | ImuSample]:
+    def _on_pvt(self, name: str, msg, host_mono_ns: int) -> list[GnssFix | GnssVelocity | ImuSample]:
         if msg.validDate and msg.validTime:
             second = msg.sec if name == "NAV-PVAT" else msg.second
             utc = utc_ns(msg.year, msg.month, msg.day, msg.hour, msg.min, second, msg.nano)
@@ -360,10 +365,30 @@ class GnssDecoder:
         fix = GnssFix(sensor_time_ns=sensor_time, host_mono_ns=host_mono_ns, latitude_deg=lat,
                       longitude_deg=lon, altitude_m=msg.height / 1000.0, position_covariance=cov,
                       covariance_type=cov_type)
-        return self._emit_fix(fix)
+        return self._emit_fix(fix) + (self._velocity(msg, sensor_time, host_mono_ns) if name != "HNR-PVT" else [])
+
+    def _velocity(self, msg, sensor_time: int, host_mono_ns: int) -> list[GnssVelocity]:
+        """The epoch's velocity (NAV-PVT, NAV-PVAT: mm/s, north/east/down) in east/north/up m/s, once an epoch; a
+        garbled one (not finite, over MAX_VELOCITY_MPS) is rejected and counted."""
+        epoch_ms = round(sensor_time / NS_PER_MS)
+        if epoch_ms in self._recent_velocity_ms:
+            self.counts["duplicate_velocity_epoch"] += 1
+            return []
+        velocity = (msg.velE / 1000.0, msg.velN / 1000.0, -msg.velD / 1000.0)
+        s_acc = msg.sAcc / 1000.0
+        if not (all(math.isfinite(v) and abs(v) <= MAX_VELOCITY_MPS for v in velocity) and math.isfinite(s_acc)
+                and s_acc >= 0):  # the epoch's fix stands; only its velocity is lost
+            self._reject("ubx_bad_velocity", ValueError(f"velocity {velocity} m/s, sAcc {s_acc} m/s"))
+            return []
+        self._recent_velocity_ms.append(epoch_ms)
+        self.counts["velocity"] += 1
+        known = s_acc > 0
+        return [GnssVelocity(sensor_time_ns=sensor_time, host_mono_ns=host_mono_ns, velocity_enu_mps=velocity,
+                             velocity_covariance=covariance_diagonal(s_acc, s_acc, s_acc) if known else (0.0,) * 9,
+                             covariance_type=2 if known else 0)]
 
     # ---- IMU ----------------------------------------------------------------------------------------
-    def _on_imu(self, name: str, msg, host_mono_ns: int) -> list[GnssFix | ImuSample]:
+    def _on_imu(self, name: str, msg, host_mono_ns: int) -> list[GnssFix | GnssVelocity | ImuSample]:
         rank = IMU_SOURCE_RANK[name]
         if rank < self._imu_source_rank:
             self.counts["ignored_lower_imu_source"] += 1
@@ -374,12 +399,12 @@ class GnssDecoder:
         if name == "HNR-INS":
             return self._on_hnr_ins(msg, host_mono_ns)
         triples = self._esf_raw_triples(msg) if name == "ESF-RAW" else self._esf_meas_triples(msg)
-        out: list[GnssFix | ImuSample] = []
+        out: list[GnssFix | GnssVelocity | ImuSample] = []
         for kind, t, xyz in triples:
             out += self._pair_imu(kind, t, xyz, host_mono_ns)
         return out
 
-    def _on_hnr_ins(self, msg, host_mono_ns: int) -> list[GnssFix | ImuSample]:
+    def _on_hnr_ins(self, msg, host_mono_ns: int) -> list[GnssFix | GnssVelocity | ImuSample]:
         valid = (msg.xAngRateValid, msg.yAngRateValid, msg.zAngRateValid,
                  msg.xAccelValid, msg.yAccelValid, msg.zAccelValid)
         if not all(valid):
@@ -442,7 +467,7 @@ class GnssDecoder:
             triples.append((kind, t, (xyz[0], xyz[1], xyz[2])))
         return triples
 
-    def _pair_imu(self, kind: str, t: int, xyz: Vec3, host_mono_ns: int) -> list[GnssFix | ImuSample]:
+    def _pair_imu(self, kind: str, t: int, xyz: Vec3, host_mono_ns: int) -> list[GnssFix | GnssVelocity | ImuSample]:
         other = "accel" if kind == "gyro" else "gyro"
         if kind in self._imu_pending:
             self._drop("imu_unpaired")

@@ -21,7 +21,6 @@ from daemon.bus.pubsub import open_publisher
 from daemon.spine import topics
 from daemon.spine.config import ConfigError, GnssConfig, load_config, reports_config_errors
 from daemon.spine.health import HealthCounters
-from daemon.spine.messages import GnssFix
 from daemon.spine.process_logging import setup_logging
 from drivers.gnss.gnss_messages import GnssDecoder
 from drivers.gnss.stream_framer import StreamFramer
@@ -68,7 +67,7 @@ class _Loop:
 
     def emit(self, messages: list) -> None:
         for message in messages:
-            topic = topics.GNSS_FIX if isinstance(message, GnssFix) else topics.IMU
+            topic = topics.GNSS_TOPIC_BY_TYPE[type(message)]
             try:
                 self.publish(topic, message)
             except Exception as exc:  # a bus failure must not stop the sensor; it is counted and reported
@@ -123,8 +122,9 @@ def run_gnss_driver(
     health: HealthCounters,
     backoff_s: tuple[float, float] = REOPEN_BACKOFF_S,
 ) -> GnssDriverStats:
-    """Read `port` until `stop` is set; publish fixes on topics.GNSS_FIX, IMU samples on topics.IMU and
-    health on health_topic("gnss"). Never raises for port trouble: it is counted and the port reopened."""
+    """Read `port` until `stop` is set; publish fixes on topics.GNSS_FIX, velocities on topics.GNSS_VELOCITY, IMU
+    samples on topics.IMU and health on health_topic("gnss"). Never raises for port trouble: it is counted and the
+    port reopened."""
     loop = _Loop(config, port, publish, health)
     backoff = backoff_s[0]
     while not stop.is_set():
@@ -174,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
     gnss = config.sensors.gnss
     if gnss is None:
         raise ConfigError(f"{args.config}: sensors.gnss is not configured")
-    names = (topics.GNSS_FIX, topics.IMU, topics.health_topic(PROCESS))
+    names = (*topics.GNSS_TOPIC_BY_TYPE.values(), topics.health_topic(PROCESS))
     publishers = {name: open_publisher(config, name) for name in names}
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):

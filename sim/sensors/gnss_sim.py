@@ -44,11 +44,12 @@ class GnssEpoch:
     latitude_deg: float
     longitude_deg: float
     height_m: float  # above the WGS84 ellipsoid
-    velocity_enu: tuple[float, float, float]
+    velocity_enu: tuple[float, float, float]  # of the antenna, m/s
     h_acc_m: float
     v_acc_m: float
     rtk: bool
     num_sv: int = 21
+    s_acc_m_s: float = 0.05  # the receiver's 1-sigma of each velocity axis
 
 
 def _gauss_markov(n: int, dt_s: float, sigma: float, tau: float, rng: np.random.Generator) -> np.ndarray:
@@ -76,9 +77,12 @@ def antenna_epochs(ego: EgoTrajectory, frame: LocalFrame, lever_arm: np.ndarray,
         rng.normal(0, model.white_v_m, n) + _gauss_markov(n, dt_s, model.wander_v_m, model.wander_tau_s, rng),
     ])
     lat, lon, alt = frame.enu_to_geodetic(antenna + error)
-    vel = ego.sample("velocity", true_s) + rng.normal(0, model.velocity_m_s, (n, 3))
+    # the antenna's velocity: the reference point's and the turn's (body rate x lever arm, turned into ENU)
+    swing = np.einsum("nij,nj->ni", rot, np.cross(ego.sample("body_rate", true_s), lever_arm))
+    vel = ego.sample("velocity", true_s) + swing + rng.normal(0, model.velocity_m_s, (n, 3))
     return [GnssEpoch(int(utc_ns[i]), float(lat[i]), float(lon[i]), float(alt[i]), tuple(map(float, vel[i])),
-                      model.reported_h_m, model.reported_v_m, model.rtk) for i in range(n)]
+                      model.reported_h_m, model.reported_v_m, model.rtk, s_acc_m_s=model.velocity_m_s)
+            for i in range(n)]
 
 
 def _nmea_angle(value: float, degree_digits: int) -> str:
@@ -120,5 +124,5 @@ def epoch_bytes(epoch: GnssEpoch) -> bytes:
         lon=epoch.longitude_deg, lat=epoch.latitude_deg, height=round(epoch.height_m * 1000),
         hMSL=round(epoch.height_m * 1000), hAcc=round(epoch.h_acc_m * 1000), vAcc=round(epoch.v_acc_m * 1000),
         velN=round(vn * 1000), velE=round(ve * 1000), velD=round(-vu * 1000), gSpeed=round(speed * 1000),
-        headMot=course, sAcc=50, headAcc=1.0, pDOP=1.2)
+        headMot=course, sAcc=round(epoch.s_acc_m_s * 1000), headAcc=1.0, pDOP=1.2)
     return text + pvt.serialize()

@@ -19,6 +19,7 @@ from daemon.spine.messages import (
     CanFrame,
     DriverHealth,
     GnssFix,
+    GnssVelocity,
     ImuSample,
     LidarPacket,
     PointCloud,
@@ -59,6 +60,10 @@ def _messages(n_rounds: int = 3) -> list[tuple[str, object]]:
 
 def test_every_message_type_round_trips(tmp_path):
     msgs = _messages()
+    # (not in _messages: tests/data's logs of an older writer hold those, and no velocity)
+    covariance = (0.0025, 0.0, 0.0, 0.0, 0.0025, 0.0, 0.0, 0.0, 0.01)
+    velocity = GnssVelocity(3, 1_350_000_006, 1_350_000_106, (1.25, -0.5, 0.0625), covariance, 2)
+    msgs.append(("gnss/velocity", velocity))
     # a PointCloud travels in a point-cloud Lidar's logs instead of packets: tests/daemon/test_point_cloud_log.py
     assert {type(m) for _, m in msgs} | {PointCloud} == set(MESSAGE_TYPES)
     path = tmp_path / "a.mcap"

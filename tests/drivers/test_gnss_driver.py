@@ -24,7 +24,7 @@ from pyubx2 import GET, UBXMessage
 from daemon.spine.config import GnssConfig
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import DriverHealth, GnssFix, ImuSample
-from daemon.spine.topics import GNSS_FIX, IMU, health_topic
+from daemon.spine.topics import GNSS_FIX, GNSS_VELOCITY, IMU, health_topic
 from drivers.gnss.gnss_messages import covariance_from_ellipse, utc_ns
 from drivers.gnss.serial_driver import GnssDriverStats, run_gnss_driver
 
@@ -145,12 +145,13 @@ def itow_ms(utc: int) -> int:
 
 
 def nav_pvt(utc: int, lat: float, lon: float, height_mm: int, h_acc_mm: int = 1500, v_acc_mm: int = 2500,
-            fix_type: int = 3) -> bytes:
+            fix_type: int = 3, vel_ned_mm_s: tuple[int, int, int] = (0, 0, 0), s_acc_mm_s: int = 0) -> bytes:
     t = time.gmtime(utc // 1_000_000_000)
     return UBXMessage("NAV", "NAV-PVT", GET, iTOW=itow_ms(utc), year=t.tm_year, month=t.tm_mon, day=t.tm_mday,
                       hour=t.tm_hour, min=t.tm_min, second=t.tm_sec, nano=utc % 1_000_000_000, validDate=1,
                       validTime=1, fullyResolved=1, fixType=fix_type, gnssFixOk=1, numSV=20, lat=lat, lon=lon,
-                      height=height_mm, hMSL=height_mm - 47000, hAcc=h_acc_mm, vAcc=v_acc_mm).serialize()
+                      height=height_mm, hMSL=height_mm - 47000, hAcc=h_acc_mm, vAcc=v_acc_mm,
+                      velN=vel_ned_mm_s[0], velE=vel_ned_mm_s[1], velD=vel_ned_mm_s[2], sAcc=s_acc_mm_s).serialize()
 
 
 def esf_word(data_type: int, value: int) -> bytes:
@@ -269,6 +270,34 @@ def test_ubx_fixes_and_imu_samples_scaled_and_time_tagged(receiver):
     assert raw1.gyro_rps == pytest.approx((math.radians(1.0), 0.0, math.radians(-1.0)))
     assert stats.decoder["ignored_lower_imu_source"] == 1
     assert driver.health.rejected == 0 and driver.health.errors == 0
+
+
+def test_ubx_velocities_in_east_north_up_once_an_epoch_and_a_garbled_one_keeps_its_fix(receiver):
+    driver = DriverThread(receiver.link)
+    driver.wait_open(receiver)
+    t0 = utc_ns(2024, 5, 6, 7, 8, 10)
+    second = 1_000_000_000
+    stream = nav_pvt(t0, 51.5, -0.12, 45678, vel_ned_mm_s=(12_345, -6_789, 250), s_acc_mm_s=80)
+    stream += gga("070811.00") + nav_pvt(t0 + second, 51.5, -0.12, 45678, vel_ned_mm_s=(1_000, 2_000, -300),
+                                         s_acc_mm_s=50)  # the epoch's fix from GGA, its velocity from NAV-PVT
+    stream += nav_pvt(t0 + second, 51.5, -0.12, 45678, vel_ned_mm_s=(1_000, 2_000, -300), s_acc_mm_s=50)  # again
+    stream += nav_pvt(t0 + 2 * second, 51.5, -0.12, 45678, vel_ned_mm_s=(900_000, 0, 0), s_acc_mm_s=50)  # 900 m/s
+    stream += nav_pvt(t0 + 3 * second, 51.5, -0.12, 45678, vel_ned_mm_s=(500, 0, 0))  # no speed accuracy
+    receiver.write(rmc("070809.00") + stream)
+    driver.wait_until(lambda: len(driver.of(GNSS_FIX)) == 4 and len(driver.of(GNSS_VELOCITY)) == 3)
+    stats = driver.finish()
+
+    assert [f.sensor_time_ns for f in driver.of(GNSS_FIX)] == [t0 + k * second for k in range(4)]
+    first, second_epoch, unknown = driver.of(GNSS_VELOCITY)
+    assert first.sensor_time_ns == t0
+    assert first.velocity_enu_mps == pytest.approx((-6.789, 12.345, -0.25))  # north/east/down -> east/north/up
+    assert first.covariance_type == 2
+    assert first.velocity_covariance == pytest.approx((0.0064, 0, 0, 0, 0.0064, 0, 0, 0, 0.0064))
+    assert second_epoch.sensor_time_ns == t0 + second
+    assert second_epoch.velocity_enu_mps == pytest.approx((2.0, 1.0, 0.3))
+    assert unknown.sensor_time_ns == t0 + 3 * second and unknown.covariance_type == 0
+    assert stats.decoder["duplicate_velocity_epoch"] == 1
+    assert stats.decoder["ubx_bad_velocity"] == 1 and driver.health.rejected == 1  # counted, its fix kept
 
 
 def test_garbage_bad_checksums_and_truncations_are_counted_and_good_messages_survive(receiver):

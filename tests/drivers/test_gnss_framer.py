@@ -111,7 +111,8 @@ def test_gps_week_rollover_between_pvt_and_ins():
     week_end = UBXMessage("NAV", "NAV-PVT", GET, iTOW=604_799_000, year=2024, month=5, day=11, hour=23,
                           min=59, second=41, validDate=1, validTime=1, fixType=3, gnssFixOk=1, lat=1.0,
                           lon=2.0)
-    [fix] = decoder.decode(ubx(week_end), 1)
+    fix, velocity = decoder.decode(ubx(week_end), 1)
+    assert velocity.sensor_time_ns == fix.sensor_time_ns and velocity.covariance_type == 0  # no sAcc given
     valid = dict.fromkeys(("xAngRateValid", "yAngRateValid", "zAngRateValid", "xAccelValid", "yAccelValid",
                            "zAccelValid"), 1)
     ins = UBXMessage("HNR", "HNR-INS", GET, iTOW=500, zAccel=9.81, **valid)  # 1.5 s later, in the next week
@@ -151,7 +152,9 @@ def test_the_same_epoch_from_nmea_and_ubx_is_published_once():
     out = decoder.decode(ubx(pvt), 1)
     decoder.decode(nmea("RMC", "000000.25", *RMC_FIELDS, "110524", "", ""), 1)
     out += decoder.decode(nmea("GGA", "000000.25", *GGA_FIELDS), 1)
-    assert len(out) == 1 and isinstance(out[0], GnssFix) and decoder.counts["duplicate_epoch"] == 1
+    fixes = [m for m in out if isinstance(m, GnssFix)]
+    assert len(fixes) == 1 and decoder.counts["duplicate_epoch"] == 1
+    assert [type(m).__name__ for m in out] == ["GnssFix", "GnssVelocity"]  # the velocity: NAV-PVT's alone
 
 
 def test_ellipse_covariance_is_symmetric_positive_with_the_given_axes():

@@ -15,8 +15,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from daemon.spine.health import HealthCounters
-from daemon.spine.messages import GnssFix, ImuSample
-from drivers.gnss.gnss_messages import NMEA_WANTED, UBX_WANTED, GnssDecoder
+from daemon.spine.messages import GnssFix, GnssVelocity, ImuSample
+from drivers.gnss.gnss_messages import MAX_VELOCITY_MPS, NMEA_WANTED, UBX_WANTED, GnssDecoder
 from drivers.gnss.stream_framer import Frame, StreamFramer, nmea_checksum, ubx_checksum
 
 DATA = Path("/work/shared/data")
@@ -90,6 +90,9 @@ def check_published(published: list) -> None:
             assert abs(m.latitude_deg) <= 90 and abs(m.longitude_deg) <= 180 and math.isfinite(m.altitude_m)
             assert all(math.isfinite(v) for v in m.position_covariance)
             assert m.position_covariance[0] >= 0 and m.position_covariance[4] >= 0
+        elif isinstance(m, GnssVelocity):
+            assert all(math.isfinite(v) and abs(v) <= MAX_VELOCITY_MPS for v in m.velocity_enu_mps)
+            assert all(math.isfinite(v) for v in m.velocity_covariance) and m.velocity_covariance[0] >= 0
         else:
             assert isinstance(m, ImuSample)
             assert all(math.isfinite(v) for v in m.accel_mps2 + m.gyro_rps)

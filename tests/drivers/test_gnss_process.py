@@ -14,7 +14,7 @@ import yaml
 
 from daemon.bus import pubsub
 from daemon.spine.config import load_config
-from daemon.spine.topics import GNSS_FIX, IMU, health_topic
+from daemon.spine.topics import GNSS_FIX, GNSS_VELOCITY, IMU, health_topic
 from tests.drivers.test_gnss_driver import PROBE, PtyReceiver
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -30,7 +30,7 @@ def write_config(tmp_path: Path) -> Path:
     return path
 
 
-def test_gnss_driver_process_publishes_fixes_imu_and_health_on_the_bus(tmp_path):
+def test_gnss_driver_process_publishes_fixes_velocities_imu_and_health_on_the_bus(tmp_path):
     config_path = write_config(tmp_path)
     car = load_config(config_path)
     receiver = PtyReceiver(tmp_path / "ttyGNSS")
@@ -41,6 +41,7 @@ def test_gnss_driver_process_publishes_fixes_imu_and_health_on_the_bus(tmp_path)
         health = pubsub.open_subscriber(car, health_topic("gnss"), start="oldest", wait_s=20)
         fixes = pubsub.open_subscriber(car, GNSS_FIX, start="oldest", wait_s=5)
         imu = pubsub.open_subscriber(car, IMU, start="oldest", wait_s=5)
+        speeds = pubsub.open_subscriber(car, GNSS_VELOCITY, start="oldest", wait_s=5)
         deadline = time.monotonic() + 15
         while True:  # probe until the driver reports a received frame: its port is open
             assert time.monotonic() < deadline, "the driver never opened the port"
@@ -56,7 +57,17 @@ def test_gnss_driver_process_publishes_fixes_imu_and_health_on_the_bus(tmp_path)
             got.append(msg)
         while len(samples) < 8 and (msg := imu.read(timeout_s=5.0, copy=True)) is not None:
             samples.append(msg)
+        velocities = []
+        while len(velocities) < 89 and (msg := speeds.read(timeout_s=5.0, copy=True)) is not None:
+            velocities.append(msg)
         assert fixes.read(timeout_s=0.2) is None and imu.read(timeout_s=0.2) is None  # nothing more
+        assert speeds.read(timeout_s=0.2) is None
+        # the receiver's NAV-PVT velocity of each epoch, stamped as its fix, with its speed accuracy
+        assert [v.sensor_time_ns for v in velocities] == [m.sensor_time_ns for m in got]
+        assert all(abs(c) < 60 for v in velocities for c in v.velocity_enu_mps)
+        assert any(abs(v.velocity_enu_mps[0]) + abs(v.velocity_enu_mps[1]) > 1.0 for v in velocities)  # it drives
+        assert all(v.covariance_type == 2 and 0 < v.velocity_covariance[0] == v.velocity_covariance[8] < 1
+                   for v in velocities)
         assert len(got) == 89
         assert [m.seq for m in got] == list(range(got[0].seq, got[0].seq + len(got)))
         assert all(m.host_mono_ns > 0 and 51.2 < m.latitude_deg < 51.3 for m in got)
@@ -70,7 +81,7 @@ def test_gnss_driver_process_publishes_fixes_imu_and_health_on_the_bus(tmp_path)
         last = None
         while (msg := health.read(timeout_s=0.2, copy=True)) is not None:
             last = msg
-        assert last is not None and last.process == "gnss" and last.published == 89 + 8
+        assert last is not None and last.process == "gnss" and last.published == 89 + 89 + 8
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -19,10 +19,11 @@ from scipy.spatial.transform import Rotation
 from daemon.log_format.reader import read_log, read_metadata
 from daemon.spine.config import load_config
 from daemon.spine.local_frame import LocalFrame
-from daemon.spine.messages import GnssFix
+from daemon.spine.messages import GnssFix, GnssVelocity, ImuSample
 from daemon.spine.topics import (
     CAN_FRAMES,
     GNSS_FIX,
+    GNSS_VELOCITY,
     IMU,
     LIDAR_IMU,
     LIDAR_PACKETS,
@@ -117,6 +118,20 @@ def test_ground_truth_agrees_with_the_logged_sensors(drive):
         antenna = gt["trajectory_position_enu"][k] + rot @ lever
         enu = frame.geodetic_to_enu(fix.latitude_deg, fix.longitude_deg, fix.altitude_m)
         assert np.linalg.norm(enu - antenna) < 0.12  # cm noise plus up to 5 ms of sampling (5 cm at 10 m/s)
+    # ... and their velocities the antenna's (the turn's share included), within the receiver's reported accuracy
+    times = gt["trajectory_host_mono_ns"]
+    rotations = Rotation.from_quat(gt["trajectory_quaternion_xyzw"]).as_matrix()
+    antenna_track = gt["trajectory_position_enu"] + rotations @ lever
+    velocities = [r.message for r in read_log([drive], topics=[GNSS_VELOCITY])]
+    assert [v.sensor_time_ns for v in velocities] == [f.sensor_time_ns for f in fixes]
+    errors = []
+    for v in velocities:
+        k = np.searchsorted(times, v.sensor_time_ns - utc0 + host0)
+        true = (antenna_track[k + 1] - antenna_track[k - 1]) / ((times[k + 1] - times[k - 1]) / 1e9)
+        errors.append(np.array(v.velocity_enu_mps) - true)
+        assert v.covariance_type == 2
+    sigma = np.sqrt(velocities[0].velocity_covariance[0])
+    assert np.sqrt(np.mean(np.square(errors))) < 2 * sigma, (np.sqrt(np.mean(np.square(errors))), sigma)
     speeds = [r.message for r in read_log([drive], topics=[WHEEL_SPEEDS])]
     assert np.mean([s.rear_left_mps for s in speeds]) == pytest.approx(10.0, abs=1.0)
 
@@ -178,7 +193,13 @@ def test_live_mode_plays_the_drive_into_udp_pty_and_can(drive):
     assert len(fixes) >= logged[GNSS_FIX] - 1
     logged_fixes = [r.message for r in read_log([drive], topics=[GNSS_FIX])]
     assert fixes[0].latitude_deg == pytest.approx(logged_fixes[0].latitude_deg, abs=1e-8)
-    assert len(out) - len(fixes) == pytest.approx(SECONDS * 100, abs=3)  # IMU samples
+    assert sum(isinstance(m, ImuSample) for m in out) == pytest.approx(SECONDS * 100, abs=3)
+    # each fix's velocity is the one logged for its epoch (to the receiver's mm/s)
+    logged_velocities = {v.sensor_time_ns: v for v in (r.message for r in read_log([drive], topics=[GNSS_VELOCITY]))}
+    velocities = [m for m in out if isinstance(m, GnssVelocity)]
+    assert len(velocities) >= len(logged_velocities) - 1
+    for v in velocities:
+        assert v.velocity_enu_mps == pytest.approx(logged_velocities[v.sensor_time_ns].velocity_enu_mps, abs=1e-3)
 
 
 def test_a_drive_without_masks_has_the_same_frames_and_no_mask_topic(city_drive, city_drive_without_masks):
