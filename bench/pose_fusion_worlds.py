@@ -7,8 +7,9 @@ mapping/inputs/drive_inputs.fuse_log_trajectory as the mapper does; no camera or
 Per world: mean and worst roll, pitch and yaw error (deg) and lateral position error (cm, across the true heading),
 and the lateral error's spread within 1 s (cm: its RMS after a 1 s running mean is taken out, the part that differs
 between the views of one spot); over the worlds: the median and worst of the mean |error| and the worst error.
+`--no-velocity` fuses the fixes without the receiver's velocities (`gnss/velocity`), as logs without them are.
 
-    .venv/bin/python bench/pose_fusion_worlds.py [--quick] [--worlds 5] [--seconds 8]
+    .venv/bin/python bench/pose_fusion_worlds.py [--quick] [--worlds 5] [--seconds 8] [--no-velocity]
 
 The last line is one JSON object.
 """
@@ -27,7 +28,7 @@ sys.path.insert(0, str(ROOT))  # the package `mapping`, not bench/mapping.py bes
 
 from daemon.spine.config import load_config, resolve_path  # noqa: E402
 from daemon.spine.local_frame import LocalFrame  # noqa: E402
-from daemon.spine.topics import GNSS_FIX, IMU, WHEEL_SPEEDS  # noqa: E402
+from daemon.spine.topics import GNSS_FIX, GNSS_VELOCITY, IMU, WHEEL_SPEEDS  # noqa: E402
 from mapping.inputs.drive_inputs import fuse_log_trajectory  # noqa: E402
 from mapping.localization.sensor_time import fit_clock  # noqa: E402
 from sim import drive_log  # noqa: E402
@@ -36,7 +37,7 @@ from sim.world.random_world import scenario_for  # noqa: E402
 from sim.world.scene import build_scene  # noqa: E402
 
 
-def fused_errors(name: str, seed: int, seconds: float) -> dict[str, float]:
+def fused_errors(name: str, seed: int, seconds: float, velocity: bool = True) -> dict[str, float]:
     config = load_config(drive_log.DEFAULT_CONFIG)
     scenario = scenario_for(name, seed, [c.name for c in config.sensors.cameras])
     scene = build_scene(scenario, config, seconds, seed, seed)
@@ -47,14 +48,14 @@ def fused_errors(name: str, seed: int, seconds: float) -> dict[str, float]:
     items += drive_log._can_messages(scene, clocks, dbc, np.random.default_rng([seed, 6]))
     utc0 = utc_start_ns(scenario)
     anchors = [(host_mono_ns(k), utc0 + k * 1_000_000_000) for k in range(int(seconds) + 2)]
-    by_topic: dict[str, list] = {GNSS_FIX: [], IMU: [], WHEEL_SPEEDS: []}
+    by_topic: dict[str, list] = {GNSS_FIX: [], GNSS_VELOCITY: [], IMU: [], WHEEL_SPEEDS: []}
     for _, topic, message in items:
         if topic in by_topic:
             by_topic[topic].append(message)
     fit = {t: fit_clock([m.sensor_time_ns for m in ms], [m.host_mono_ns for m in ms], anchors)
-           for t, ms in by_topic.items()}
+           for t, ms in by_topic.items() if ms}
     trajectory = fuse_log_trajectory(by_topic[GNSS_FIX], by_topic[IMU], by_topic[WHEEL_SPEEDS], scene.config, frame,
-                                     fit)
+                                     fit, by_topic[GNSS_VELOCITY] if velocity else [])
     position, quat = trajectory.interpolate(trajectory.times_ns)
     true_s = (trajectory.times_ns - HOST_MONO_AT_START_NS) * 1e-9
     true_rotation, true_position = scene.ego.pose(true_s)
@@ -82,12 +83,13 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="worlds 1-3 and the city, 4 s (under a minute)")
     parser.add_argument("--worlds", type=int, default=5)
     parser.add_argument("--seconds", type=float, default=8.0)
+    parser.add_argument("--no-velocity", action="store_true", help="fuse without the receiver's velocities")
     args = parser.parse_args()
     worlds, seconds = (3, 4.0) if args.quick else (args.worlds, args.seconds)
-    figures: dict[str, object] = {"seconds": seconds}
+    figures: dict[str, object] = {"seconds": seconds, "velocity": not args.no_velocity}
     runs = [("random", seed) for seed in range(1, worlds + 1)] + [("city", 3)]
     for name, seed in runs:
-        figures[f"{name}_{seed}"] = fused_errors(name, seed, seconds)
+        figures[f"{name}_{seed}"] = fused_errors(name, seed, seconds, not args.no_velocity)
         print(f"{name}_{seed}", figures[f"{name}_{seed}"], flush=True)
     per_world = [figures[f"{name}_{seed}"] for name, seed in runs]
     for angle, unit in (("roll", "deg"), ("pitch", "deg"), ("yaw", "deg"), ("lateral", "cm")):

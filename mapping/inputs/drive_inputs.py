@@ -27,6 +27,7 @@ from daemon.spine.messages import (
     RAW_FORMAT_CHANNELS,
     CameraFrame,
     GnssFix,
+    GnssVelocity,
     ImuSample,
     LidarPacket,
     PointCloud,
@@ -36,7 +37,9 @@ from daemon.spine.messages import (
     WheelSpeeds,
 )
 from daemon.spine.topics import (
+    FUSION_TOPICS,
     GNSS_FIX,
+    GNSS_VELOCITY,
     IMU,
     LIDAR_PACKETS,
     LIDAR_POINTS,
@@ -160,20 +163,42 @@ def _by_sensor_time(messages: list) -> list:
     return out
 
 
+def fix_velocities(gnss: list[GnssFix], velocities: list[GnssVelocity]) -> tuple[np.ndarray, np.ndarray] | None:
+    """(N, 3) ENU velocity (m/s) and (N, 3, 3) covariance of each fix, from the receiver's velocity of the same epoch
+    (equal sensor times to the millisecond); NaN rows where it sent none or gave no covariance. None without any."""
+    by_epoch = {round(v.sensor_time_ns / 1e6): v for v in velocities
+                if v.covariance_type != 0 and len(v.velocity_covariance) == 9}
+    velocity = np.full((len(gnss), 3), np.nan)
+    cov = np.full((len(gnss), 3, 3), np.nan)
+    for i, fix in enumerate(gnss):
+        v = by_epoch.get(round(fix.sensor_time_ns / 1e6))
+        if v is not None:
+            velocity[i] = v.velocity_enu_mps
+            cov[i] = np.reshape(v.velocity_covariance, (3, 3))
+    usable = np.all(np.isfinite(velocity), axis=1) & np.all(np.diagonal(cov, axis1=1, axis2=2) > 0, axis=1)
+    velocity[~usable] = np.nan
+    return (velocity, cov) if usable.any() else None
+
+
 def fuse_log_trajectory(gnss: list[GnssFix], imu: list[ImuSample], wheels: list[WheelSpeeds], config: CarConfig,
-                        origin: LocalFrame | None, clocks: dict[str, ClockMap]) -> Trajectory:
-    """The vehicle trajectory from the log's GNSS, IMU and (when it has them) wheel speeds (host clock)."""
+                        origin: LocalFrame | None, clocks: dict[str, ClockMap],
+                        velocities: list[GnssVelocity] = ()) -> Trajectory:
+    """The vehicle trajectory from the log's GNSS (its fixes and, where the receiver sends it, its velocity), IMU and
+    (when it has them) wheel speeds (host clock)."""
     if not gnss or not imu:
         raise ValueError(f"pose fusion needs GNSS and IMU, wheel speeds where the car has them (got {len(gnss)} "
                          f"fixes, {len(imu)} IMU samples, {len(wheels)} wheel speeds) or a `pose` topic in the log")
     g = config.sensors.gnss
     gnss, imu, wheels = _by_sensor_time(gnss), _by_sensor_time(imu), _by_sensor_time(wheels)
+    velocity = fix_velocities(gnss, velocities)
     fixes = pose_fusion.GnssFixes(
         times_ns=clocks[GNSS_FIX].to_host([m.sensor_time_ns for m in gnss]),
         lat_deg=np.array([m.latitude_deg for m in gnss]),
         lon_deg=np.array([m.longitude_deg for m in gnss]),
         alt_m=np.array([m.altitude_m for m in gnss]),
         position_cov_enu=np.array([np.reshape(m.position_covariance, (3, 3)) for m in gnss]),
+        velocity_enu=None if velocity is None else velocity[0],
+        velocity_cov_enu=None if velocity is None else velocity[1],
     )
     samples = pose_fusion.ImuSamples(
         times_ns=clocks[IMU].to_host([m.sensor_time_ns for m in imu]),
@@ -202,7 +227,8 @@ def fuse_bus_trajectory(held: dict[str, list], config: CarConfig, origin: LocalF
     anchors = [(m.host_mono_ns, m.utc_ns) for m in held[TIME_ANCHOR]]
     clocks = {t: span_clock([m.sensor_time_ns for m in held[t]], [m.host_mono_ns for m in held[t]], anchors)
               for t in (GNSS_FIX, IMU, WHEEL_SPEEDS)}
-    return fuse_log_trajectory(held[GNSS_FIX], held[IMU], held[WHEEL_SPEEDS], config, origin, clocks)
+    return fuse_log_trajectory(held[GNSS_FIX], held[IMU], held[WHEEL_SPEEDS], config, origin, clocks,
+                               held.get(GNSS_VELOCITY, []))
 
 
 def _pose_trajectory(poses: list[VehiclePose], clock: ClockMap, origin: LocalFrame | None) -> Trajectory:
@@ -252,9 +278,9 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
     cams = [c.name for c in config.sensors.cameras]
     frames: dict[str, list[CameraFrame]] = defaultdict(list)
     masks: dict[str, dict[int, SemanticMask]] = defaultdict(dict)
-    gnss, imu, wheels, poses, packets, clouds, view_clouds = [], [], [], [], [], [], []
+    gnss, velocities, imu, wheels, poses, packets, clouds, view_clouds = [], [], [], [], [], [], [], []
     wanted = {camera_topic(c) for c in cams} | ({mask_topic(c) for c in cams} if segmenter is None else set())
-    wanted |= {GNSS_FIX, IMU, WHEEL_SPEEDS, POSE, TIME_ANCHOR}
+    wanted |= {*FUSION_TOPICS, POSE, TIME_ANCHOR}
     anchors: list[tuple[int, int]] = []
     if use_lidar and config.sensors.lidar is not None:
         # a log of a point-cloud Lidar (or an imported one) has points; one without either, its viewing clouds
@@ -274,6 +300,8 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
             masks[m.camera][m.sensor_time_ns] = m
         elif isinstance(m, GnssFix):
             gnss.append(m)
+        elif isinstance(m, GnssVelocity):
+            velocities.append(m)
         elif isinstance(m, ImuSample):
             imu.append(m)
         elif isinstance(m, WheelSpeeds):
@@ -288,7 +316,7 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
     if poses:
         trajectory = _pose_trajectory(poses, clocks[POSE], origin or recorded_pose_origin(paths[0]))
     else:
-        trajectory = fuse_log_trajectory(gnss, imu, wheels, config, origin, clocks)
+        trajectory = fuse_log_trajectory(gnss, imu, wheels, config, origin, clocks, velocities)
     if pose_noise is not None:
         trajectory = perturbed(trajectory, pose_noise)
     chosen, counts = _keyframe_messages(config, frames, masks if segmenter is None else None, clocks, trajectory,

@@ -15,8 +15,7 @@ from daemon.bus import pubsub
 from daemon.spine.config import CarConfig
 from daemon.spine.health import HealthCounters
 from daemon.spine.topics import (
-    GNSS_FIX,
-    IMU,
+    FUSION_TOPICS,
     LIDAR_PACKETS,
     LIDAR_POINTS,
     TIME_ANCHOR,
@@ -32,7 +31,7 @@ from mapping.live.keyframe_spool import KeyframeSpool
 
 STALLED_TOPIC_NS = 30_000_000_000  # a topic this far behind the newest message is not waited for
 DRAIN_QUIET_S = 1.0  # at shutdown: the bus counts as drained after this long without a message
-SMALL_TOPICS = (GNSS_FIX, IMU, WHEEL_SPEEDS, TIME_ANCHOR)
+SMALL_TOPICS = (*FUSION_TOPICS, TIME_ANCHOR)
 SEGMENT_SOURCES = (health_topic("recorder"), health_topic("replay"))
 
 
@@ -57,7 +56,7 @@ class BusReader(threading.Thread):
         cams = [c.name for c in config.sensors.cameras]
         table = topic_table(config)
         self.topics = [t for t in [camera_topic(c) for c in cams] + [mask_topic(c) for c in cams]
-                       + [LIDAR_PACKETS, LIDAR_POINTS, GNSS_FIX, IMU, WHEEL_SPEEDS, TIME_ANCHOR] if t in table]
+                       + [LIDAR_PACKETS, LIDAR_POINTS, *SMALL_TOPICS] if t in table]
         self.subs: dict[str, pubsub.Subscriber] = {}
         self.side: dict[str, pubsub.Subscriber] = {}
         self.lidar_count = 0
@@ -180,11 +179,11 @@ class BusReader(threading.Thread):
         return all(t >= host_ns or t < top - STALLED_TOPIC_NS for t in newest.values())
 
     def read_small(self, first_ns: int, last_ns: int) -> dict[str, list]:
-        """The GNSS fixes, IMU samples and wheel speeds that arrived in [first_ns, last_ns] (from their spool), and
-        every time anchor up to last_ns."""
+        """The GNSS fixes and velocities, IMU samples and wheel speeds that arrived in [first_ns, last_ns] (from their
+        spool), and every time anchor up to last_ns."""
         small: dict[str, list] = {t: [] for t in SMALL_TOPICS}
         with self.lock:
-            for _, topic, msg in self.small_spool.read(first_ns, last_ns, {GNSS_FIX, IMU, WHEEL_SPEEDS}):
+            for _, topic, msg in self.small_spool.read(first_ns, last_ns, set(FUSION_TOPICS)):
                 small[topic].append(msg)
             small[TIME_ANCHOR] = [a for a in self.anchors if a.host_mono_ns <= last_ns]
         return small

@@ -9,12 +9,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from daemon.spine.topics import (
-    GNSS_FIX,
-    IMU,
+    FUSION_TOPICS,
     LIDAR_PACKETS,
     LIDAR_POINTS,
     TIME_ANCHOR,
-    WHEEL_SPEEDS,
     camera_topic,
     mask_topic,
 )
@@ -114,7 +112,7 @@ def gather_window_inputs(worker: MappingWorker, k: int) -> WindowInputs:
                                                    t_lo if occlusion else None)
         ground_times = ground_times + (int(traj.times_ns[0]) - t_lo) / 1e9  # from the fusion's start to t_lo's
     fed = dict(by_topic)
-    for t in (GNSS_FIX, IMU, WHEEL_SPEEDS):
+    for t in FUSION_TOPICS:
         fed[t] = [x for x in small[t] if t_lo <= x.host_mono_ns <= t_hi]
     seq = {t: [min(x.seq for x in v), max(x.seq for x in v)] for t, v in sorted(fed.items()) if v}
     provenance = {"host_time_ns": [t_lo, t_hi], "seq": seq,

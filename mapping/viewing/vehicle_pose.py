@@ -26,13 +26,13 @@ from daemon.spine.config import CarConfig, reports_config_errors
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.messages import VehiclePose
 from daemon.spine.topics import (
+    FUSION_TOPICS,
     GNSS_FIX,
     IMU,
     MAP_FRAME,
     TIME_ANCHOR,
     VEHICLE_POSE,
     VEHICLE_POSE_PROCESS,
-    WHEEL_SPEEDS,
     fuses_pose,
 )
 from mapping.inputs.drive_inputs import fuse_bus_trajectory
@@ -50,7 +50,7 @@ class LivePose:
     def __init__(self, config: CarConfig):
         self.config = config
         self.step_ns = int(round(1e9 / config.recorder.pose_hz))
-        self.held: dict[str, list] = {GNSS_FIX: [], IMU: [], WHEEL_SPEEDS: [], TIME_ANCHOR: []}
+        self.held: dict[str, list] = {t: [] for t in (*FUSION_TOPICS, TIME_ANCHOR)}
         self.origin: LocalFrame | None = None
         self.next_ns: int | None = None  # host time of the next pose to publish
         self.fused_at_ns = 0  # the newest IMU time of the last fusion
@@ -73,7 +73,7 @@ class LivePose:
         newest = int(imu[-1].host_mono_ns)
         self.fused_at_ns = newest
         start = newest - int(FUSION_WINDOW_S * 1e9)
-        for topic in (GNSS_FIX, IMU, WHEEL_SPEEDS):
+        for topic in FUSION_TOPICS:
             self.held[topic] = [m for m in self.held[topic] if m.host_mono_ns >= start]
         if len(self.held[GNSS_FIX]) < MIN_FIXES or len(self.held[IMU]) < MIN_IMU:
             return []
@@ -117,7 +117,7 @@ def run(config: CarConfig, stop: threading.Event) -> LivePose:
             pose.max_lag_s = max(pose.max_lag_s, pose.lag_s)
         return poses
 
-    serve(config, VEHICLE_POSE_PROCESS, [GNSS_FIX, IMU, WHEEL_SPEEDS, TIME_ANCHOR], VEHICLE_POSE, step,
+    serve(config, VEHICLE_POSE_PROCESS, [*FUSION_TOPICS, TIME_ANCHOR], VEHICLE_POSE, step,
           lambda: (pose.failed, pose.report()), stop)
     return pose
 
