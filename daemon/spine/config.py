@@ -174,6 +174,10 @@ class GnssConfig(StrictModel):
     imu_rate_hz: float = Field(100.0, gt=0)
     antenna_lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # antenna in the vehicle frame
     imu_extrinsics: Extrinsics = Extrinsics()
+    # The IMU accelerometer's turn-on bias, 1-sigma per axis (m/s^2), from its datasheet: the pose fusion's prior.
+    # On a drive with few heading changes the roll and the sideways bias are one unknown (both tilt the measured
+    # gravity), so this prior bounds the fused roll error (about sigma / g rad). 0.2 (20 mg) when unknown.
+    imu_accel_bias_sigma_mps2: float = Field(0.2, gt=0, le=2.0)
 
 
 class CanSignals(StrictModel):

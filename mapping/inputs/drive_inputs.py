@@ -218,7 +218,8 @@ def fuse_log_trajectory(gnss: list[GnssFix], imu: list[ImuSample], wheels: list[
         wheel_base_m=config.vehicle.wheel_base_m,
         imu_to_vehicle=g.imu_extrinsics.rotation_matrix(),
     )
-    return pose_fusion.fuse_trajectory(fixes, samples, speeds, mounting, origin=origin).trajectory
+    settings = pose_fusion.FusionSettings(accel_bias_sigma=g.imu_accel_bias_sigma_mps2)
+    return pose_fusion.fuse_trajectory(fixes, samples, speeds, mounting, origin=origin, settings=settings).trajectory
 
 
 def fuse_bus_trajectory(held: dict[str, list], config: CarConfig, origin: LocalFrame) -> Trajectory:

@@ -6,10 +6,12 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from daemon.log_format.reader import read_log
 from daemon.log_format.writer import LogWriter
 from daemon.spine.config import ConfigError, load_config
 from daemon.spine.messages import GnssFix
-from mapping.inputs.drive_inputs import gnss_std_m, load_drive
+from daemon.spine.topics import GNSS_FIX, GNSS_VELOCITY, IMU, WHEEL_SPEEDS
+from mapping.inputs.drive_inputs import fuse_log_trajectory, gnss_std_m, load_drive
 from mapping.inputs.lidar_ground import TILE_CELLS, GroundFilter, TrajectoryGround, ground_points
 from mapping.localization.trajectory import Trajectory
 from mapping.offline.reconstruct_command import DriveTruth, config_from_logs
@@ -45,6 +47,31 @@ def test_fused_trajectory_matches_the_truth(drive):
     assert np.sqrt((err[:, 2] ** 2).mean()) < 0.03
     rot_err = Rotation.from_quat(quat).inv() * Rotation.from_quat(gt["trajectory_quaternion_xyzw"][ok])
     assert np.degrees(rot_err.magnitude()).mean() < 0.5
+
+
+def test_the_car_configs_imu_bias_is_the_fusions_prior(drive):
+    """The car config's accelerometer bias sigma reaches the fusion: the simulated car's 0.02 m/s^2 (its IMU's)
+    holds the roll nearer the truth than the unknown-IMU default of 0.2 on the same log."""
+    inputs, truth, out = drive
+    held = {t: [] for t in (GNSS_FIX, GNSS_VELOCITY, IMU, WHEEL_SPEEDS)}
+    for rec in read_log([out], topics=list(held)):
+        held[rec.topic].append(rec.message)
+    config = load_config(CONFIG)
+    gnss = config.sensors.gnss.model_copy(update={"imu_accel_bias_sigma_mps2": 0.2})
+    loose = config.model_copy(update={"sensors": config.sensors.model_copy(update={"gnss": gnss})})
+    gt = np.load(out.with_name("city.gt.npz"))
+    t = gt["trajectory_host_mono_ns"]
+
+    def mean_abs_roll_deg(trajectory: Trajectory) -> float:
+        ok = (t >= trajectory.times_ns[0]) & (t <= trajectory.times_ns[-1])
+        _, quat = trajectory.interpolate(t[ok])
+        error = Rotation.from_quat(quat).inv() * Rotation.from_quat(gt["trajectory_quaternion_xyzw"][ok])
+        return abs(float(np.degrees(error.as_euler("xyz")[:, 0]).mean()))
+
+    tight_roll = mean_abs_roll_deg(inputs.trajectory)
+    loose_roll = mean_abs_roll_deg(fuse_log_trajectory(held[GNSS_FIX], held[IMU], held[WHEEL_SPEEDS], loose,
+                                                       truth.origin, inputs.clocks, held[GNSS_VELOCITY]))
+    assert tight_roll < loose_roll, (tight_roll, loose_roll)
 
 
 def test_the_drive_carries_its_fixes_reported_accuracy(drive):

@@ -1,6 +1,7 @@
 """Pose fusion against the roadlog simulator's own motion (sim/world/ego_trajectory.py: four wheels on a random
 world's surface, the body pitched with the chord between the axles): exact GNSS, IMU and wheel speeds give the
-true roll and pitch, and the first fix's sideways error does not become a roll."""
+true roll and pitch, the first fix's sideways error does not become a roll, and the accelerometer bias prior bounds
+the roll that noisy fixes move."""
 
 import numpy as np
 import pytest
@@ -9,8 +10,15 @@ from scipy.spatial.transform import Rotation
 from daemon.spine.config import load_config
 from daemon.spine.local_frame import LocalFrame
 from mapping.localization.navigation_math import normal_gravity
-from mapping.localization.pose_fusion import GnssFixes, ImuSamples, VehicleMounting, WheelSpeeds, fuse_trajectory
-from sim.sensors import can_sim
+from mapping.localization.pose_fusion import (
+    FusionSettings,
+    GnssFixes,
+    ImuSamples,
+    VehicleMounting,
+    WheelSpeeds,
+    fuse_trajectory,
+)
+from sim.sensors import can_sim, imu_sim
 from sim.world.ego_trajectory import GRAVITY, drive_trajectory, specific_force_body
 from sim.world.random_world import draw_scenario
 from sim.world.road_world import build_world
@@ -85,3 +93,30 @@ def test_the_first_fixs_sideways_error_does_not_become_a_roll(world_7):
     errors = roll_pitch_errors_deg(fuse_trajectory(gnss, imu, wheels, mounting(config, 2.8), origin=origin), ego)
     # held independent of the attitude, 12 mm through the 1.2 m high antenna was a constant ~0.5 deg roll
     assert np.abs(errors[:, 0]).max() < 0.05, np.abs(errors).max(axis=0)
+
+
+def test_the_accelerometer_bias_prior_bounds_the_roll_that_noisy_fixes_move(world_7):
+    """World 7 turns 9 deg in 8 s: too little to tell a roll from a sideways accelerometer bias (both tilt the
+    measured gravity). White fix noise of the reported 1.4 cm then moves that pair through the 1.2 m high antenna,
+    by up to its prior: 0.2 m/s^2 (the default) let the roll go 0.10-0.18 deg over three noise draws, the simulated
+    IMU's own 0.02 held it to 0.004-0.025 deg."""
+    config, ego, origin = world_7
+    gnss, imu, wheels = exact_inputs(config, ego, origin)
+    antenna = origin.geodetic_to_enu(gnss.lat_deg, gnss.lon_deg, gnss.alt_m)
+    loose, tight = [], []
+    for seed in range(3):
+        noise = np.random.default_rng(seed).normal(0.0, 0.014, (len(gnss.times_ns), 3))
+        noisy = GnssFixes(gnss.times_ns, *origin.enu_to_geodetic(antenna + noise), gnss.position_cov_enu)
+        for sigma, out in ((0.2, loose), (imu_sim.ACCEL_BIAS, tight)):
+            result = fuse_trajectory(noisy, imu, wheels, mounting(config, 2.8), origin=origin,
+                                     settings=FusionSettings(accel_bias_sigma=sigma))
+            out.append(abs(roll_pitch_errors_deg(result, ego)[:, 0].mean()))
+    assert max(tight) < 0.03, tight
+    assert np.median(loose) > 3 * np.median(tight), (loose, tight)
+
+
+def test_the_simulated_car_states_its_imu_bias():
+    """configs/sim.yaml gives the fusion the simulated IMU's accelerometer bias sigma, as a user gives their IMU's
+    datasheet value; a car config that does not state one keeps the conservative 0.2 m/s^2."""
+    assert load_config(REPO / "configs" / "sim.yaml").sensors.gnss.imu_accel_bias_sigma_mps2 == imu_sim.ACCEL_BIAS
+    assert load_config(REPO / "configs" / "car.yaml").sensors.gnss.imu_accel_bias_sigma_mps2 == 0.2
