@@ -6,12 +6,13 @@ from HDOP) and from UBX NAV-PVT, NAV-PVAT and HNR-PVT (covariance from the error
 leaves the separation empty). A receiver epoch is published once, by the first message that gives it.
 Fix `sensor_time_ns` is UTC in ns since 1970: NMEA time of day + date; UBX GPS time of week (iTOW) mapped
 to UTC through the UTC date/time the receiver sends in the same NAV-PVT/PVAT/HNR-PVT message.
-Velocities come from UBX NAV-PVT and NAV-PVAT (velN/velE/velD, the antenna's Doppler velocity, with sAcc as each
-axis's 1-sigma) and, for a receiver that sends no UBX velocity, from NMEA RMC or VTG (speed and course over ground:
-horizontal only, the vertical given NMEA_VERTICAL_SIGMA_MPS; no accuracy in NMEA, so NMEA_VELOCITY_SIGMA_MPS), stamped
-as the epoch's fix, once an epoch. RMC carries its epoch's time; VTG carries none and is taken for the epoch whose
-timed sentences (GGA, RMC, GST, ZDA) come both before and after it, else counted (`nmea_vtg_epoch_ambiguous`) and
-skipped. HNR-PVT (no velocity vector) gives none.
+Velocities come from UBX NAV-PVT and NAV-PVAT (velN/velE/velD, the antenna's Doppler velocity, with sAcc as each axis's
+1-sigma) and, for a receiver that sends no UBX velocity, from NMEA RMC or VTG (speed and course over ground: horizontal
+only, the vertical given NMEA_VERTICAL_SIGMA_MPS; no accuracy in NMEA, so NMEA_VELOCITY_SIGMA_MPS), stamped as the
+epoch's fix, once an epoch (an NMEA one is held until a message of another epoch comes, since a u-blox receiver sends
+its RMC before the NAV-PVT of the same epoch, which replaces it). RMC carries its epoch's time; VTG carries none and is
+taken for the epoch whose timed sentences (GGA, RMC, GST, ZDA) come both before and after it, else counted
+(`nmea_vtg_epoch_ambiguous`) and skipped. HNR-PVT (no velocity vector) gives none.
 
 IMU samples come from ESF-RAW, ESF-MEAS (the IMU's own axes, specific force in m/s^2, rate in rad/s;
 `sensor_time_ns` is the receiver's sensor time tag, a clock since its start, not UTC) or HNR-INS
@@ -170,6 +171,7 @@ class GnssDecoder:
         self._recent_fix_ms: deque[int] = deque(maxlen=RECENT_FIX_EPOCHS)
         self._recent_velocity_ms: deque[int] = deque(maxlen=RECENT_FIX_EPOCHS)
         self._ubx_velocity_seen = False  # then NMEA velocities are not used: UBX gives the vertical and sAcc
+        self._held_nmea_velocity: GnssVelocity | None = None  # until a message of another epoch (or a UBX one) comes
         self._last_nmea_time_of_day_ns: int | None = None  # of the last timed NMEA sentence (GGA, RMC, GST, ZDA)
         self._pending_vtg: _PendingVtg | None = None  # a VTG waiting for the next timed sentence
         self._invalid_time_of_day_ns: int | None = None  # an epoch without a fix (RMC status V, GGA quality 0)
@@ -190,7 +192,7 @@ class GnssDecoder:
     def flush(self) -> list[GnssFix | GnssVelocity | ImuSample]:
         """The stream has ended (port closed): publish the GGA still waiting for its GST, drop half IMU
         samples and forget the IMU clock, which restarts if the receiver does."""
-        out = self._flush_pending(None)
+        out = self._flush_pending(None) + self._release_nmea_velocity(None)
         if self._pending_vtg is not None:
             self.counts["nmea_vtg_epoch_ambiguous"] += 1  # no sentence after it: its epoch is unknown
         self._pending_vtg = None
@@ -246,6 +248,9 @@ class GnssDecoder:
         if no_fix:
             self._invalid_time_of_day_ns = time_of_day
         out = self._close_vtg(time_of_day)
+        sensor_time = self._nmea_utc_ns(time_of_day)
+        if sensor_time is not None:
+            out += self._release_nmea_velocity(sensor_time)
         try:
             if kind == "GGA":
                 return out + self._on_gga(sentence, host_mono_ns)
@@ -314,8 +319,6 @@ class GnssDecoder:
         if sensor_time is None:
             self._drop("no_date")
             return []
-        if not self._first_velocity_of_epoch(sensor_time):
-            return []
         sigma2 = NMEA_VELOCITY_SIGMA_MPS**2
         if course is None:
             self.counts["nmea_velocity_without_course"] += 1
@@ -323,11 +326,29 @@ class GnssDecoder:
             sigma2 += speed**2 / 2.0  # each axis of a speed in a uniformly unknown direction
         else:
             east, north = speed * math.sin(math.radians(course)), speed * math.cos(math.radians(course))
+        velocity = GnssVelocity(sensor_time_ns=sensor_time, host_mono_ns=host_mono_ns,
+                                velocity_enu_mps=(east, north, 0.0),
+                                velocity_covariance=(sigma2, 0.0, 0.0, 0.0, sigma2, 0.0, 0.0, 0.0,
+                                                     NMEA_VERTICAL_SIGMA_MPS**2),
+                                covariance_type=1)
+        out = self._release_nmea_velocity(sensor_time)
+        held = self._held_nmea_velocity
+        if held is not None or round(sensor_time / NS_PER_MS) in self._recent_velocity_ms:
+            self.counts["duplicate_velocity_epoch"] += 1  # e.g. the VTG after its epoch's RMC
+            return out
+        self._held_nmea_velocity = velocity
+        return out
+
+    def _release_nmea_velocity(self, sensor_time_ns: int | None) -> list[GnssVelocity]:
+        """The held NMEA velocity, once a message of another epoch than its own comes (None: the stream ended)."""
+        held = self._held_nmea_velocity
+        if held is None or held.sensor_time_ns == sensor_time_ns:
+            return []
+        self._held_nmea_velocity = None
+        if not self._first_velocity_of_epoch(held.sensor_time_ns):
+            return []
         self.counts["velocity"] += 1
-        return [GnssVelocity(sensor_time_ns=sensor_time, host_mono_ns=host_mono_ns, velocity_enu_mps=(east, north, 0.0),
-                             velocity_covariance=(sigma2, 0.0, 0.0, 0.0, sigma2, 0.0, 0.0, 0.0,
-                                                  NMEA_VERTICAL_SIGMA_MPS**2),
-                             covariance_type=1)]
+        return [held]
 
     def _first_velocity_of_epoch(self, sensor_time_ns: int) -> bool:
         """True once per epoch (remembered); a second velocity of an epoch is counted."""
@@ -498,21 +519,25 @@ class GnssDecoder:
         """The epoch's velocity (NAV-PVT, NAV-PVAT: mm/s, north/east/down) in east/north/up m/s, once an epoch; a
         garbled one (not finite, over MAX_VELOCITY_MPS) is rejected and counted."""
         self._ubx_velocity_seen = True
+        out = self._release_nmea_velocity(sensor_time)  # one of an earlier epoch goes out
+        if self._held_nmea_velocity is not None:  # this epoch's: the receiver's own velocity replaces it
+            self._held_nmea_velocity = None
+            self.counts["ignored_nmea_velocity_ubx_gives_it"] += 1
         if round(sensor_time / NS_PER_MS) in self._recent_velocity_ms:
             self.counts["duplicate_velocity_epoch"] += 1
-            return []
+            return out
         velocity = (msg.velE / 1000.0, msg.velN / 1000.0, -msg.velD / 1000.0)
         s_acc = msg.sAcc / 1000.0
         if not (all(math.isfinite(v) and abs(v) <= MAX_VELOCITY_MPS for v in velocity) and math.isfinite(s_acc)
                 and s_acc >= 0):  # the epoch's fix stands; only its velocity is lost
             self._reject("ubx_bad_velocity", ValueError(f"velocity {velocity} m/s, sAcc {s_acc} m/s"))
-            return []
+            return out
         self._first_velocity_of_epoch(sensor_time)
         self.counts["velocity"] += 1
         known = s_acc > 0
-        return [GnssVelocity(sensor_time_ns=sensor_time, host_mono_ns=host_mono_ns, velocity_enu_mps=velocity,
-                             velocity_covariance=covariance_diagonal(s_acc, s_acc, s_acc) if known else (0.0,) * 9,
-                             covariance_type=2 if known else 0)]
+        covariance = covariance_diagonal(s_acc, s_acc, s_acc) if known else (0.0,) * 9
+        return out + [GnssVelocity(sensor_time_ns=sensor_time, host_mono_ns=host_mono_ns, velocity_enu_mps=velocity,
+                                   velocity_covariance=covariance, covariance_type=2 if known else 0)]
 
     # ---- IMU ----------------------------------------------------------------------------------------
     def _on_imu(self, name: str, msg, host_mono_ns: int) -> list[GnssFix | GnssVelocity | ImuSample]:
