@@ -9,8 +9,9 @@ to UTC through the UTC date/time the receiver sends in the same NAV-PVT/PVAT/HNR
 Velocities come from UBX NAV-PVT and NAV-PVAT (velN/velE/velD, the antenna's Doppler velocity, with sAcc as each axis's
 1-sigma) and, for a receiver that sends no UBX velocity, from NMEA RMC or VTG (speed and course over ground: horizontal
 only, the vertical given NMEA_VERTICAL_SIGMA_MPS; no accuracy in NMEA, so NMEA_VELOCITY_SIGMA_MPS), stamped as the
-epoch's fix, once an epoch (an NMEA one is held until a message of another epoch comes, since a u-blox receiver sends
-its RMC before the NAV-PVT of the same epoch, which replaces it). RMC carries its epoch's time; VTG carries none and is
+epoch's fix, once an epoch (the first NMEA one is held until a message of another epoch comes, since a u-blox receiver
+sends its RMC before the NAV-PVT of the same epoch, which replaces it; once an epoch has passed without a UBX velocity,
+NMEA ones go out at once). RMC carries its epoch's time; VTG carries none and is
 taken for the epoch whose timed sentences (GGA, RMC, GST, ZDA) come both before and after it, else counted
 (`nmea_vtg_epoch_ambiguous`) and skipped. HNR-PVT (no velocity vector) gives none.
 
@@ -172,6 +173,7 @@ class GnssDecoder:
         self._recent_velocity_ms: deque[int] = deque(maxlen=RECENT_FIX_EPOCHS)
         self._ubx_velocity_seen = False  # then NMEA velocities are not used: UBX gives the vertical and sAcc
         self._held_nmea_velocity: GnssVelocity | None = None  # until a message of another epoch (or a UBX one) comes
+        self._nmea_velocity_at_once = False  # an epoch passed without a UBX velocity: NMEA ones go out at once
         self._last_nmea_time_of_day_ns: int | None = None  # of the last timed NMEA sentence (GGA, RMC, GST, ZDA)
         self._pending_vtg: _PendingVtg | None = None  # a VTG waiting for the next timed sentence
         self._invalid_time_of_day_ns: int | None = None  # an epoch without a fix (RMC status V, GGA quality 0)
@@ -332,19 +334,24 @@ class GnssDecoder:
                                                      NMEA_VERTICAL_SIGMA_MPS**2),
                                 covariance_type=1)
         out = self._release_nmea_velocity(sensor_time)
-        held = self._held_nmea_velocity
-        if held is not None or round(sensor_time / NS_PER_MS) in self._recent_velocity_ms:
+        if self._held_nmea_velocity is not None or round(sensor_time / NS_PER_MS) in self._recent_velocity_ms:
             self.counts["duplicate_velocity_epoch"] += 1  # e.g. the VTG after its epoch's RMC
             return out
-        self._held_nmea_velocity = velocity
-        return out
+        if not self._nmea_velocity_at_once:
+            self._held_nmea_velocity = velocity
+            return out
+        self._first_velocity_of_epoch(sensor_time)
+        self.counts["velocity"] += 1
+        return out + [velocity]
 
     def _release_nmea_velocity(self, sensor_time_ns: int | None) -> list[GnssVelocity]:
-        """The held NMEA velocity, once a message of another epoch than its own comes (None: the stream ended)."""
+        """The held NMEA velocity, once a message of another epoch than its own comes (None: the stream ended); from
+        then on, until a UBX velocity comes, NMEA velocities go out at once (the receiver sends none of its own)."""
         held = self._held_nmea_velocity
         if held is None or held.sensor_time_ns == sensor_time_ns:
             return []
         self._held_nmea_velocity = None
+        self._nmea_velocity_at_once = sensor_time_ns is not None
         if not self._first_velocity_of_epoch(held.sensor_time_ns):
             return []
         self.counts["velocity"] += 1

@@ -286,16 +286,13 @@ def test_ubx_velocities_in_east_north_up_once_an_epoch_and_a_garbled_one_keeps_i
     stream += nav_pvt(t0 + 2 * second, 51.5, -0.12, 45678, vel_ned_mm_s=(900_000, 0, 0), s_acc_mm_s=50)  # 900 m/s
     stream += nav_pvt(t0 + 3 * second, 51.5, -0.12, 45678, vel_ned_mm_s=(500, 0, 0))  # no speed accuracy
     stream += rmc("070813.00", knots="10.0", course="90.0")  # NMEA's velocity: not used once UBX gives it
-    receiver.write(rmc("070809.00") + stream)
-    driver.wait_until(lambda: len(driver.of(GNSS_FIX)) == 4 and len(driver.of(GNSS_VELOCITY)) == 4)
+    receiver.write(stream)
+    driver.wait_until(lambda: len(driver.of(GNSS_FIX)) == 4 and len(driver.of(GNSS_VELOCITY)) == 3)
     stats = driver.finish()
 
     assert [f.sensor_time_ns for f in driver.of(GNSS_FIX)] == [t0 + k * second for k in range(4)]
-    from_rmc, first, second_epoch, unknown = driver.of(GNSS_VELOCITY)
-    # before the receiver's first UBX velocity its RMC gives one (still: 0 m/s; covariance approximated)
-    assert from_rmc.sensor_time_ns == t0 - second and from_rmc.covariance_type == 1
-    assert from_rmc.velocity_enu_mps == (0.0, 0.0, 0.0)
-    assert stats.decoder["ignored_nmea_velocity_ubx_gives_it"] == 2  # the epochs' own NAV-PVT replaces it
+    first, second_epoch, unknown = driver.of(GNSS_VELOCITY)
+    assert stats.decoder["ignored_nmea_velocity_ubx_gives_it"] == 2  # the first epoch's RMC, held: its NAV-PVT's
     assert first.sensor_time_ns == t0
     assert first.velocity_enu_mps == pytest.approx((-6.789, 12.345, -0.25))  # north/east/down -> east/north/up
     assert first.covariance_type == 2
@@ -328,8 +325,8 @@ def test_nmea_velocities_from_rmc_or_vtg_once_an_epoch_stamped_as_its_fix(receiv
     stream += gga("070817.00") + vtg("5.0", "0.0") + gga("070818.00")  # no RMC: a VTG at an epoch boundary
     stream += rmc("070819.00", knots="1.0", course="0.0")  # ends epoch 070818 (its GGA waits for no GST)
     receiver.write(stream)
-    driver.wait_until(lambda: len(driver.of(GNSS_FIX)) == 9 and len(driver.of(GNSS_VELOCITY)) == 3)
-    stats = driver.finish()  # the last epoch's velocity is held until another epoch or the end of the stream
+    driver.wait_until(lambda: len(driver.of(GNSS_FIX)) == 9 and len(driver.of(GNSS_VELOCITY)) == 4)
+    stats = driver.finish()
 
     fixes = {f.sensor_time_ns: f for f in driver.of(GNSS_FIX)}
     base = utc_ns(2024, 5, 6, 7, 8, 10)
@@ -348,6 +345,10 @@ def test_nmea_velocities_from_rmc_or_vtg_once_an_epoch_stamped_as_its_fix(receiv
         assert v.velocity_covariance == pytest.approx((0.25**2, 0, 0, 0, 0.25**2, 0, 0, 0, 1000.0**2))
     # a speed of unknown direction: its square shared by the two axes
     assert still.velocity_covariance[0] == pytest.approx(0.25**2 + (0.03 * knot) ** 2 / 2)
+    order = [(t, m.sensor_time_ns) for t, m in driver.published if t in (GNSS_FIX, GNSS_VELOCITY)]
+    # the first held until the next epoch (a NAV-PVT of its epoch would replace it), then each at once
+    assert order.index((GNSS_VELOCITY, base)) > order.index((GNSS_FIX, base))
+    assert order.index((GNSS_VELOCITY, base + 5_000_000_000)) < order.index((GNSS_FIX, base + 5_000_000_000))
     assert stats.decoder["duplicate_velocity_epoch"] == 1  # epoch 0's VTG after its RMC
     assert stats.decoder["nmea_velocity_empty"] == 1
     assert stats.decoder["nmea_velocity_invalid"] == 3  # RMC V, its VTG, RMC mode N
