@@ -6,14 +6,9 @@ from HDOP) and from UBX NAV-PVT, NAV-PVAT and HNR-PVT (covariance from the error
 leaves the separation empty). A receiver epoch is published once, by the first message that gives it.
 Fix `sensor_time_ns` is UTC in ns since 1970: NMEA time of day + date; UBX GPS time of week (iTOW) mapped
 to UTC through the UTC date/time the receiver sends in the same NAV-PVT/PVAT/HNR-PVT message.
-Velocities come from UBX NAV-PVT and NAV-PVAT (velN/velE/velD, the antenna's Doppler velocity, with sAcc as each axis's
-1-sigma) and, for a receiver that sends no UBX velocity, from NMEA RMC or VTG (speed and course over ground: horizontal
-only, the vertical given NMEA_VERTICAL_SIGMA_MPS; no accuracy in NMEA, so NMEA_VELOCITY_SIGMA_MPS), stamped as the
-epoch's fix, once an epoch (the first NMEA one is held until a message of another epoch comes, since a u-blox receiver
-sends its RMC before the NAV-PVT of the same epoch, which replaces it; once an epoch has passed without a UBX velocity,
-NMEA ones go out at once). RMC carries its epoch's time; VTG carries none and is
-taken for the epoch whose timed sentences (GGA, RMC, GST, ZDA) come both before and after it, else counted
-(`nmea_vtg_epoch_ambiguous`) and skipped. HNR-PVT (no velocity vector) gives none.
+Velocities come from UBX NAV-PVT and NAV-PVAT and, for a receiver that sends no UBX velocity, from NMEA RMC or VTG,
+once an epoch, stamped as the epoch's fix: epoch_velocity.py says which and how.
+HNR-PVT (no velocity vector) gives none.
 
 IMU samples come from ESF-RAW, ESF-MEAS (the IMU's own axes, specific force in m/s^2, rate in rad/s;
 `sensor_time_ns` is the receiver's sensor time tag, a clock since its start, not UTC) or HNR-INS
@@ -33,6 +28,7 @@ from pyubx2 import UBXReader
 
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import GnssFix, GnssVelocity, ImuSample, Vec3
+from drivers.gnss.epoch_velocity import NMEA_NOT_VALID_MODES, EpochVelocity
 from drivers.gnss.stream_framer import Frame
 
 NS_PER_S = 1_000_000_000
@@ -54,7 +50,6 @@ IMU_PAIR_WINDOW_NS = 20 * NS_PER_MS  # accel and gyro triples this close in time
 IMU_SOURCE_RANK = {"ESF-RAW": 3, "ESF-MEAS": 2, "HNR-INS": 1}
 # GGA without GST: sigma = HDOP x a per-fix-quality error, as ROS nmea_navsat_driver does (metres).
 HDOP_ERROR_BY_QUALITY = {1: 4.0, 2: 0.1, 3: 4.0, 4: 0.02, 5: 4.0, 6: 4.0, 9: 3.0}
-MAX_VELOCITY_MPS = 500.0  # a car's receiver reporting more is garbled (u-blox's own dynamic limit is 500 m/s)
 UBX_FIX_TYPES = (1, 2, 3, 4)  # dead reckoning, 2D, 3D, GNSS + dead reckoning
 UBX_WANTED = {
     b"\x01\x07": "NAV-PVT",
@@ -66,17 +61,6 @@ UBX_WANTED = {
     b"\x10\x15": "ESF-INS",
 }
 NMEA_WANTED = ("GGA", "RMC", "GST", "ZDA", "VTG")
-KNOT_MPS = 1852.0 / 3600.0
-# NMEA gives no velocity accuracy: a stated, conservative 1-sigma per horizontal axis. Above what real receivers show:
-# the static u-blox NMEA captures of /work/shared/data/gnss_gpsd report speeds of 0.03-0.09 m/s RMS (max 0.3 m/s);
-# the ZED-F9R drive's own sAcc is 0.08 m/s median, 0.19 m/s at the 95th percentile; a moving boat's RMC velocities
-# (bundg_zeus_9.log) differ from its fixes' central differences by 0.23-0.25 m/s RMS per axis. NMEA also cannot say
-# when an epoch is bad (few satellites, multipath) or how much the receiver filters its course and speed.
-NMEA_VELOCITY_SIGMA_MPS = 0.25
-# NMEA has no vertical velocity: 0 m/s with this 1-sigma, which makes the pose fusion's update take nothing from it
-# (its gain on the vertical velocity is below 1e-6) while the horizontal axes are used.
-NMEA_VERTICAL_SIGMA_MPS = 1000.0
-NMEA_NOT_VALID_MODES = ("N",)  # NMEA 2.3 mode indicator (RMC, VTG): data not valid
 RECENT_FIX_EPOCHS = 64
 
 Covariance = tuple[float, ...]
@@ -145,18 +129,9 @@ class _PendingFix:
     hdop_covariance_type: int
 
 
-@dataclass(slots=True)
-class _PendingVtg:
-    """A VTG (no time of its own) waiting for the next timed sentence."""
-
-    time_of_day_before_ns: int | None  # of the timed sentence before it
-    knots: object  # as pynmea2 gives them (checked when used)
-    course_deg: object
-    host_mono_ns: int
-
-
 class GnssDecoder:
-    """Stateful: keeps the date, the GPS-week to UTC mapping, a GGA waiting for its GST, half IMU samples."""
+    """Stateful: keeps the date, the GPS-week to UTC mapping, a GGA waiting for its GST, half IMU samples, and its
+    epochs' velocities in an EpochVelocity."""
 
     def __init__(self, protocol: str = "nmea+ubx", health: HealthCounters | None = None) -> None:
         self.counts: Counter[str] = Counter()
@@ -170,13 +145,7 @@ class GnssDecoder:
         self._week_start_utc_ns: int | None = None  # UTC time of GPS time-of-week 0, from the receiver
         self._week_anchor_itow_ms = 0
         self._recent_fix_ms: deque[int] = deque(maxlen=RECENT_FIX_EPOCHS)
-        self._recent_velocity_ms: deque[int] = deque(maxlen=RECENT_FIX_EPOCHS)
-        self._ubx_velocity_seen = False  # then NMEA velocities are not used: UBX gives the vertical and sAcc
-        self._held_nmea_velocity: GnssVelocity | None = None  # until a message of another epoch (or a UBX one) comes
-        self._nmea_velocity_at_once = False  # an epoch passed without a UBX velocity: NMEA ones go out at once
-        self._last_nmea_time_of_day_ns: int | None = None  # of the last timed NMEA sentence (GGA, RMC, GST, ZDA)
-        self._pending_vtg: _PendingVtg | None = None  # a VTG waiting for the next timed sentence
-        self._invalid_time_of_day_ns: int | None = None  # an epoch without a fix (RMC status V, GGA quality 0)
+        self._velocities = EpochVelocity(self.counts, self._reject, self._drop, self._nmea_utc_ns)
         self._imu_source_rank = 0
         self._imu_pending: dict[str, tuple[int, Vec3]] = {}
         self._esf_raw_last_tick: int | None = None
@@ -194,11 +163,7 @@ class GnssDecoder:
     def flush(self) -> list[GnssFix | GnssVelocity | ImuSample]:
         """The stream has ended (port closed): publish the GGA still waiting for its GST, drop half IMU
         samples and forget the IMU clock, which restarts if the receiver does."""
-        out = self._flush_pending(None) + self._release_nmea_velocity(None)
-        if self._pending_vtg is not None:
-            self.counts["nmea_vtg_epoch_ambiguous"] += 1  # no sentence after it: its epoch is unknown
-        self._pending_vtg = None
-        self._last_nmea_time_of_day_ns = None
+        out = self._flush_pending(None) + self._velocities.flush()
         for _ in self._imu_pending:
             self._drop("imu_unpaired")
         self._imu_pending.clear()
@@ -239,7 +204,7 @@ class GnssDecoder:
             return []
         try:
             if kind == "VTG":
-                self._on_vtg(sentence, host_mono_ns)
+                self._velocities.on_vtg(sentence, host_mono_ns)
                 return []
             time_of_day = _time_of_day_ns(sentence.timestamp)
             no_fix = (kind == "RMC" and (sentence.status != "A" or sentence.mode_indicator in NMEA_NOT_VALID_MODES)
@@ -247,12 +212,8 @@ class GnssDecoder:
         except _BAD_FIELD_ERRORS as exc:
             self._reject(f"nmea_bad_field_{kind}", exc)
             return []
-        if no_fix:
-            self._invalid_time_of_day_ns = time_of_day
-        out = self._close_vtg(time_of_day)
-        sensor_time = self._nmea_utc_ns(time_of_day)
-        if sensor_time is not None:
-            out += self._release_nmea_velocity(sensor_time)
+        out: list[GnssFix | GnssVelocity | ImuSample] = []
+        out += self._velocities.on_timed_sentence(time_of_day, no_fix)
         try:
             if kind == "GGA":
                 return out + self._on_gga(sentence, host_mono_ns)
@@ -263,108 +224,8 @@ class GnssDecoder:
             self._reject(f"nmea_bad_field_{kind}", exc)
             return out
         if kind == "RMC":
-            if no_fix:
-                self.counts["nmea_velocity_invalid"] += 1
-                return out
-            return out + self._nmea_velocity(time_of_day, sentence.spd_over_grnd, sentence.true_course, host_mono_ns)
+            return out + self._velocities.on_rmc(sentence, time_of_day, no_fix, host_mono_ns)
         return out
-
-    # ---- NMEA velocity ------------------------------------------------------------------------------
-    def _on_vtg(self, vtg: pynmea2.TalkerSentence, host_mono_ns: int) -> None:
-        """Hold the VTG until the next timed sentence says whether it lies inside one epoch."""
-        if self._pending_vtg is not None:
-            self.counts["nmea_vtg_epoch_ambiguous"] += 1  # two VTGs with no timed sentence between them
-        self._pending_vtg = None
-        if vtg.faa_mode in NMEA_NOT_VALID_MODES:
-            self.counts["nmea_velocity_invalid"] += 1
-            return
-        knots = vtg.spd_over_grnd_kts
-        if knots is None and vtg.spd_over_grnd_kmph is not None:
-            knots = float(vtg.spd_over_grnd_kmph) / 1.852
-        self._pending_vtg = _PendingVtg(self._last_nmea_time_of_day_ns, knots, vtg.true_track, host_mono_ns)
-
-    def _close_vtg(self, time_of_day_ns: int) -> list[GnssFix | GnssVelocity | ImuSample]:
-        """A timed sentence came: the waiting VTG's velocity if the sentence before it had the same time."""
-        pending, self._pending_vtg = self._pending_vtg, None
-        self._last_nmea_time_of_day_ns = time_of_day_ns
-        if pending is None:
-            return []
-        if pending.time_of_day_before_ns != time_of_day_ns:
-            self.counts["nmea_vtg_epoch_ambiguous"] += 1  # at an epoch boundary: either epoch's
-            return []
-        if time_of_day_ns == self._invalid_time_of_day_ns:
-            self.counts["nmea_velocity_invalid"] += 1
-            return []
-        return self._nmea_velocity(time_of_day_ns, pending.knots, pending.course_deg, pending.host_mono_ns)
-
-    def _nmea_velocity(self, time_of_day_ns: int, knots, course_deg, host_mono_ns: int) -> list[GnssVelocity]:
-        """Speed (knots) and true course over ground as an east/north velocity; an empty speed is counted, a garbled
-        one rejected (the fix stands). Without a course (receivers leave it empty when nearly still) the velocity is 0
-        with the speed added to the variance, as a speed of unknown direction."""
-        if self._ubx_velocity_seen:
-            self.counts["ignored_nmea_velocity_ubx_gives_it"] += 1
-            return []
-        if knots is None:
-            self.counts["nmea_velocity_empty"] += 1
-            return []
-        try:
-            speed = float(knots) * KNOT_MPS
-            course = None if course_deg is None else float(course_deg)
-            if not (math.isfinite(speed) and 0.0 <= speed <= MAX_VELOCITY_MPS):
-                raise ValueError(f"speed {speed} m/s")
-            if course is not None and not (math.isfinite(course) and 0.0 <= course <= 360.0):
-                raise ValueError(f"course {course} deg")
-        except (ValueError, TypeError, ArithmeticError) as exc:
-            self._reject("nmea_bad_velocity", exc)
-            return []
-        sensor_time = self._nmea_utc_ns(time_of_day_ns)
-        if sensor_time is None:
-            self._drop("no_date")
-            return []
-        sigma2 = NMEA_VELOCITY_SIGMA_MPS**2
-        if course is None:
-            self.counts["nmea_velocity_without_course"] += 1
-            east = north = 0.0
-            sigma2 += speed**2 / 2.0  # each axis of a speed in a uniformly unknown direction
-        else:
-            east, north = speed * math.sin(math.radians(course)), speed * math.cos(math.radians(course))
-        velocity = GnssVelocity(sensor_time_ns=sensor_time, host_mono_ns=host_mono_ns,
-                                velocity_enu_mps=(east, north, 0.0),
-                                velocity_covariance=(sigma2, 0.0, 0.0, 0.0, sigma2, 0.0, 0.0, 0.0,
-                                                     NMEA_VERTICAL_SIGMA_MPS**2),
-                                covariance_type=1)
-        out = self._release_nmea_velocity(sensor_time)
-        if self._held_nmea_velocity is not None or round(sensor_time / NS_PER_MS) in self._recent_velocity_ms:
-            self.counts["duplicate_velocity_epoch"] += 1  # e.g. the VTG after its epoch's RMC
-            return out
-        if not self._nmea_velocity_at_once:
-            self._held_nmea_velocity = velocity
-            return out
-        self._first_velocity_of_epoch(sensor_time)
-        self.counts["velocity"] += 1
-        return out + [velocity]
-
-    def _release_nmea_velocity(self, sensor_time_ns: int | None) -> list[GnssVelocity]:
-        """The held NMEA velocity, once a message of another epoch than its own comes (None: the stream ended); from
-        then on, until a UBX velocity comes, NMEA velocities go out at once (the receiver sends none of its own)."""
-        held = self._held_nmea_velocity
-        if held is None or held.sensor_time_ns == sensor_time_ns:
-            return []
-        self._held_nmea_velocity = None
-        self._nmea_velocity_at_once = sensor_time_ns is not None
-        if not self._first_velocity_of_epoch(held.sensor_time_ns):
-            return []
-        self.counts["velocity"] += 1
-        return [held]
-
-    def _first_velocity_of_epoch(self, sensor_time_ns: int) -> bool:
-        """True once per epoch (remembered); a second velocity of an epoch is counted."""
-        epoch_ms = round(sensor_time_ns / NS_PER_MS)
-        if epoch_ms in self._recent_velocity_ms:
-            self.counts["duplicate_velocity_epoch"] += 1
-            return False
-        self._recent_velocity_ms.append(epoch_ms)
-        return True
 
     def _on_date(self, sentence: pynmea2.TalkerSentence, kind: str) -> list[GnssFix | GnssVelocity | ImuSample]:
         time_of_day = _time_of_day_ns(sentence.timestamp)
@@ -520,31 +381,8 @@ class GnssDecoder:
         fix = GnssFix(sensor_time_ns=sensor_time, host_mono_ns=host_mono_ns, latitude_deg=lat,
                       longitude_deg=lon, altitude_m=msg.height / 1000.0, position_covariance=cov,
                       covariance_type=cov_type)
-        return self._emit_fix(fix) + (self._velocity(msg, sensor_time, host_mono_ns) if name != "HNR-PVT" else [])
-
-    def _velocity(self, msg, sensor_time: int, host_mono_ns: int) -> list[GnssVelocity]:
-        """The epoch's velocity (NAV-PVT, NAV-PVAT: mm/s, north/east/down) in east/north/up m/s, once an epoch; a
-        garbled one (not finite, over MAX_VELOCITY_MPS) is rejected and counted."""
-        self._ubx_velocity_seen = True
-        out = self._release_nmea_velocity(sensor_time)  # one of an earlier epoch goes out
-        if self._held_nmea_velocity is not None:  # this epoch's: the receiver's own velocity replaces it
-            self._held_nmea_velocity = None
-            self.counts["ignored_nmea_velocity_ubx_gives_it"] += 1
-        if round(sensor_time / NS_PER_MS) in self._recent_velocity_ms:
-            self.counts["duplicate_velocity_epoch"] += 1
-            return out
-        velocity = (msg.velE / 1000.0, msg.velN / 1000.0, -msg.velD / 1000.0)
-        s_acc = msg.sAcc / 1000.0
-        if not (all(math.isfinite(v) and abs(v) <= MAX_VELOCITY_MPS for v in velocity) and math.isfinite(s_acc)
-                and s_acc >= 0):  # the epoch's fix stands; only its velocity is lost
-            self._reject("ubx_bad_velocity", ValueError(f"velocity {velocity} m/s, sAcc {s_acc} m/s"))
-            return out
-        self._first_velocity_of_epoch(sensor_time)
-        self.counts["velocity"] += 1
-        known = s_acc > 0
-        covariance = covariance_diagonal(s_acc, s_acc, s_acc) if known else (0.0,) * 9
-        return out + [GnssVelocity(sensor_time_ns=sensor_time, host_mono_ns=host_mono_ns, velocity_enu_mps=velocity,
-                                   velocity_covariance=covariance, covariance_type=2 if known else 0)]
+        velocity = self._velocities.on_ubx(msg, sensor_time, host_mono_ns) if name != "HNR-PVT" else []
+        return self._emit_fix(fix) + velocity
 
     # ---- IMU ----------------------------------------------------------------------------------------
     def _on_imu(self, name: str, msg, host_mono_ns: int) -> list[GnssFix | GnssVelocity | ImuSample]:
