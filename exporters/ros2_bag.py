@@ -1,15 +1,17 @@
 """`roadlog export ros2 LOG... --out BAG`: roadlog logs as one ROS 2 bag (sqlite3 storage, written with `rosbags`) that
 `roadlog import ros2` reads back.
 
-Exported: each camera's frames (`/<camera>/image_raw/compressed` CompressedImage for jpeg/png,
-`/<camera>/image_raw` Image for rgb8/bgr8/mono8) with a CameraInfo per frame (`/<camera>/camera_info`, from the
-recorded config), the Lidar's scans as PointCloud2 (`/lidar/points`: x, y, z, intensity and `t`, ns after the stamp,
-in the Lidar frame; Ouster or vendor packets decoded with the recorded metadata as the mapper decodes them, or the
-log's point clouds), GNSS fixes as NavSatFix (`/gnss/fix`), IMU samples as Imu (`/imu/data`, the Lidar's IMU on
-`/lidar/imu`), `/tf_static` (base_link -> every sensor frame from the config's extrinsics) and the `pose` topic as
-nav_msgs Odometry (`/odom`) and `/tf`; without a `pose` topic, the daemon's live pose (`vehicle/pose`, map -> vehicle)
-as `/tf` only (an Odometry would be imported as the drive's given trajectory, where the original's reconstruction fuses
-it from the sensors). Every other topic is listed with its count on stderr, never dropped silently.
+Exported: each camera's frames (`/<camera>/image_raw/compressed` CompressedImage for jpeg/png, `/<camera>/image_raw`
+Image for rgb8/bgr8/mono8) with a CameraInfo per frame (`/<camera>/camera_info`, from the recorded config), the Lidar's
+scans as PointCloud2 (`/lidar/points`: x, y, z, intensity and `t`, ns after the stamp, in the Lidar frame; Ouster or
+vendor packets decoded with the recorded metadata as the mapper decodes them, or the log's point clouds), GNSS fixes as
+NavSatFix (`/gnss/fix`), the receiver's velocities as TwistWithCovarianceStamped (`/gnss/velocity`: the antenna's ENU
+linear velocity, frame `gnss`, stamped as their epoch's fix; angular velocity unknown, covariance[21] = -1), IMU samples
+as Imu (`/imu/data`, the Lidar's IMU on `/lidar/imu`), `/tf_static` (base_link -> every sensor frame from the config's
+extrinsics) and the `pose` topic as nav_msgs Odometry (`/odom`) and `/tf`; without a `pose` topic, the daemon's live
+pose (`vehicle/pose`, map -> vehicle) as `/tf` only (an Odometry would be imported as the drive's given trajectory,
+where the original's reconstruction fuses it from the sensors). Every other topic is listed with its count on stderr,
+never dropped silently.
 
 Clock: ROS time is UTC. A message's receive time is its host time in UTC, and header.stamp its sensor time in UTC: a
 sensor stamp already on UTC (GNSS, a PTP Lidar) as it is, any other put on the host clock as the mapper does
@@ -37,6 +39,7 @@ from daemon.spine.config import CarConfig, ConfigError, reports_config_errors
 from daemon.spine.messages import RAW_FORMAT_CHANNELS, CameraFrame, PointCloud, VehiclePose
 from daemon.spine.topics import (
     GNSS_FIX,
+    GNSS_VELOCITY,
     IMU,
     LIDAR_IMU,
     LIDAR_PACKETS,
@@ -60,8 +63,9 @@ from mapping.offline.reconstruct_command import config_from_logs
 
 BASE_FRAME = "base_link"  # the roadlog vehicle frame (the importer's default base frame)
 CLOUD_TOPIC, ODOM_TOPIC = "/lidar/points", "/odom"
-ROS_TOPICS = {GNSS_FIX: "/gnss/fix", IMU: "/imu/data", LIDAR_IMU: "/lidar/imu"}
-FRAME_OF = {GNSS_FIX: GNSS_FRAME, IMU: IMU_FRAME, LIDAR_IMU: LIDAR_FRAME}
+ROS_TOPICS = {GNSS_FIX: "/gnss/fix", GNSS_VELOCITY: "/gnss/velocity", IMU: "/imu/data", LIDAR_IMU: "/lidar/imu"}
+FRAME_OF = {GNSS_FIX: GNSS_FRAME, GNSS_VELOCITY: GNSS_FRAME, IMU: IMU_FRAME, LIDAR_IMU: LIDAR_FRAME}
+MSGTYPE_OF = {GNSS_FIX: ros.NAVSAT, GNSS_VELOCITY: ros.TWIST, IMU: ros.IMU_MSG, LIDAR_IMU: ros.IMU_MSG}
 
 
 class UtcClock:
@@ -173,7 +177,7 @@ def export_bag(logs: list[Path], out: Path) -> tuple[dict[str, int], dict[str, s
                        for name, e in sensor_frames(config).items()]
             bag.write("/tf_static", ros.TF, first_utc, ros.tf_message(statics))
             for topic in (t for t in ROS_TOPICS if counts[t]):  # the car's IMU before the Lidar's: imported first
-                bag.connect(ROS_TOPICS[topic], ros.NAVSAT if topic == GNSS_FIX else ros.IMU_MSG)
+                bag.connect(ROS_TOPICS[topic], MSGTYPE_OF[topic])
             written["/tf_static"] += 1
             for r in read_log(logs, topics=sorted(set(cameras) | set(ROS_TOPICS) | {poses})):
                 for topic, msgtype, msg in _convert(r, cameras, clocks, utc):
@@ -225,6 +229,9 @@ def _convert(r, cameras: dict, clocks: dict[str, ClockMap], utc: UtcClock) -> li
             return [tf]
         return [(ODOM_TOPIC, ros.ODOMETRY, ros.odometry(m.position_m, m.orientation_xyzw, stamp, m.frame_id,
                                                         BASE_FRAME)), tf]
+    if r.topic == GNSS_VELOCITY:  # on its fix's clock: the same stamp as the NavSatFix of its epoch
+        stamp = utc.stamp(clocks.get(GNSS_FIX, clock), m.sensor_time_ns)
+        return [(ROS_TOPICS[r.topic], ros.TWIST, ros.gnss_velocity(m, stamp, FRAME_OF[r.topic]))]
     stamp = utc.stamp(clock, m.sensor_time_ns)
     if r.topic == GNSS_FIX:
         return [(ROS_TOPICS[r.topic], ros.NAVSAT, ros.nav_sat_fix(m, stamp, FRAME_OF[r.topic]))]

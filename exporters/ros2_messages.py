@@ -1,5 +1,6 @@
 """roadlog messages -> ROS 2 messages (rosbags' Humble types, ready for `serialize_cdr`): std_msgs Header,
-tf2 transforms, sensor_msgs Image / CompressedImage / CameraInfo / NavSatFix / Imu / PointCloud2, nav_msgs Odometry;
+tf2 transforms, sensor_msgs Image / CompressedImage / CameraInfo / NavSatFix / Imu / PointCloud2, geometry_msgs
+TwistWithCovarianceStamped (the GNSS velocity), nav_msgs Odometry;
 and `BagWriter`, a rosbags writer that adds each topic's connection on its first message. The inverse of
 `importers/ros2_messages.py`: what one writes the other reads back."""
 
@@ -11,13 +12,15 @@ from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
 
 from daemon.spine.config import CameraConfig
-from daemon.spine.messages import RAW_FORMAT_CHANNELS, CameraFrame, GnssFix, ImuSample
+from daemon.spine.messages import RAW_FORMAT_CHANNELS, CameraFrame, GnssFix, GnssVelocity, ImuSample
 
 TYPESTORE = get_typestore(Stores.ROS2_HUMBLE)
 T = TYPESTORE.types
 IMAGE, COMPRESSED, INFO = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/CameraInfo"
 NAVSAT, IMU_MSG, CLOUD = "sensor_msgs/msg/NavSatFix", "sensor_msgs/msg/Imu", "sensor_msgs/msg/PointCloud2"
 ODOMETRY, TF = "nav_msgs/msg/Odometry", "tf2_msgs/msg/TFMessage"
+TWIST = "geometry_msgs/msg/TwistWithCovarianceStamped"
+TWIST_ANGULAR_UNKNOWN = 21  # covariance[3 * 6 + 3] = -1: no angular velocity (the u-blox ROS driver's, REP 145's -1)
 # PointCloud2 layout: float32 x, y, z, intensity and uint32 t, the firing time in ns after header.stamp (the Ouster
 # ROS driver's `t`, which the importer reads back)
 CLOUD_POINT = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"), ("t", "<u4")])
@@ -103,6 +106,20 @@ def imu(sample: ImuSample, stamp_ns: int, frame_id: str):
                       orientation_covariance=no_orientation, angular_velocity=vector(sample.gyro_rps),
                       angular_velocity_covariance=np.zeros(9), linear_acceleration=vector(sample.accel_mps2),
                       linear_acceleration_covariance=np.zeros(9))
+
+
+def gnss_velocity(velocity: GnssVelocity, stamp_ns: int, frame_id: str):
+    """The antenna's ENU velocity as the u-blox ROS driver publishes it (`fix_velocity`): twist.linear east, north, up
+    in m/s, the 3x3 covariance in the linear block (all zero when unknown, as NavSatFix's type 0), angular velocity
+    zero and marked unknown by covariance[21] = -1."""
+    covariance = np.zeros((6, 6))
+    if velocity.covariance_type != 0:
+        covariance[:3, :3] = np.reshape(velocity.velocity_covariance, (3, 3))
+    covariance = covariance.ravel()
+    covariance[TWIST_ANGULAR_UNKNOWN] = -1.0
+    twist = T["geometry_msgs/msg/Twist"](linear=vector(velocity.velocity_enu_mps), angular=vector((0.0, 0.0, 0.0)))
+    return T[TWIST](header=header(stamp_ns, frame_id),
+                    twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=covariance))
 
 
 def point_cloud(xyz: np.ndarray, intensity: np.ndarray | None, t_ns: np.ndarray, stamp_ns: int, frame_id: str):

@@ -2,14 +2,15 @@
 log that `roadlog reconstruct LOG` maps with nothing else.
 
 Imported: sensor_msgs Image (rgb8, bgr8, mono8) and CompressedImage (jpeg, png) as camera frames, each camera's
-CameraInfo as its intrinsics (a camera without one is skipped: a map needs them), NavSatFix and Imu as GNSS fixes
-and IMU samples, PointCloud2 as the scans of a point-cloud Lidar (x, y, z, intensity, and a per-point `time`, `t` or
-`timestamp` field where the driver gives one), nav_msgs Odometry as the `pose` topic (the base frame in the
-odometry's frame), tf_static (and /tf between sensor frames) as the sensors' extrinsics in the base frame
-(`--base-frame`, default: the Odometry's child frame, else base_link). Every other topic, and every message that
-cannot be used, is listed with its count and reason on stderr and in the printed summary, never dropped silently.
-Stamps: header.stamp is the sensor time, the bag's receive time the host time (ROS time: UTC, so time anchors pair
-it with itself).
+CameraInfo as its intrinsics (a camera without one is skipped: a map needs them), NavSatFix and Imu as GNSS fixes and
+IMU samples, a TwistWithCovarianceStamped in the NavSatFix's frame as the receiver's ENU velocity (`gnss/velocity`, as
+the u-blox ROS driver and `roadlog export ros2` write it; another frame's twist is not a GNSS velocity), PointCloud2 as
+the scans of a point-cloud Lidar (x, y, z, intensity, and a per-point `time`, `t` or `timestamp` field where the driver
+gives one), nav_msgs Odometry as the `pose` topic (the base frame in the odometry's frame), tf_static (and /tf between
+sensor frames) as the sensors' extrinsics in the base frame (`--base-frame`, default: the Odometry's child frame, else
+base_link). Every other topic, and every message that cannot be used, is listed with its count and reason on stderr and
+in the printed summary, never dropped silently. Stamps: header.stamp is the sensor time, the bag's receive time the host
+time (ROS time: UTC, so time anchors pair it with itself).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from daemon.spine.config import POINT_CLOUD_LIDAR, reports_config_errors
 from daemon.spine.messages import TimeAnchor
-from daemon.spine.topics import GNSS_FIX, IMU, LIDAR_POINTS, POSE, TIME_ANCHOR, camera_topic
+from daemon.spine.topics import GNSS_FIX, GNSS_VELOCITY, IMU, LIDAR_POINTS, POSE, TIME_ANCHOR, camera_topic
 from importers import ros2_messages as ros
 from importers.imported_log import ImportSummary, imported_log, vehicle_pose
 from importers.kitti_files import DatasetError, extrinsics, imported_car_config, recorded_camera
@@ -34,8 +35,8 @@ from importers.kitti_files import DatasetError, extrinsics, imported_car_config,
 IMAGE, COMPRESSED, INFO = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/CameraInfo"
 NAVSAT, IMU_MSG, ODOMETRY, TF = "sensor_msgs/msg/NavSatFix", "sensor_msgs/msg/Imu", "nav_msgs/msg/Odometry", \
     "tf2_msgs/msg/TFMessage"
-CLOUD = "sensor_msgs/msg/PointCloud2"
-IMPORTED_TYPES = {IMAGE, COMPRESSED, INFO, NAVSAT, IMU_MSG, ODOMETRY, TF, CLOUD}
+CLOUD, TWIST = "sensor_msgs/msg/PointCloud2", "geometry_msgs/msg/TwistWithCovarianceStamped"
+IMPORTED_TYPES = {IMAGE, COMPRESSED, INFO, NAVSAT, IMU_MSG, ODOMETRY, TF, CLOUD, TWIST}
 
 
 def _open(bag: Path) -> AnyReader:
@@ -135,12 +136,13 @@ def import_bag(bag: Path, out: Path, *, base_frame: str | None = None, reference
                 clouds = []
             else:
                 sensors["lidar"] = {"model": POINT_CLOUD_LIDAR, "extrinsics": extrinsics(t_base_lidar)}
-        for extra in navsat[1:] + imus[1:] + odometry[1:] + clouds[1:]:
+        velocity = _gnss_velocity_connections(reader, navsat[:1], skipped)
+        for extra in navsat[1:] + imus[1:] + odometry[1:] + clouds[1:] + velocity[1:]:
             skipped[extra.topic][f"{extra.msgtype}: a second {extra.msgtype.rsplit('/', 1)[-1]} topic "
                                  f"(the first is imported)"] += extra.msgcount
         config = imported_car_config(f"ros2-{bag.name}", cameras, reference_height_m, bag, **sensors)
         metadata = {"source": f"ROS 2 bag {bag.resolve()}", "import": json.dumps({"base_frame": base})}
-        chosen = image_conns + navsat[:1] + imus[:1] + odometry[:1] + clouds[:1]
+        chosen = image_conns + navsat[:1] + velocity[:1] + imus[:1] + odometry[:1] + clouds[:1]
         with imported_log(out, config, metadata) as writer:
             seq, frame_times, next_anchor = Counter(), [], None
             for conn, host_ns, raw in reader.messages(connections=chosen):
@@ -169,6 +171,28 @@ def import_bag(bag: Path, out: Path, *, base_frame: str | None = None, reference
     return ImportSummary(out, counts, drive_s, time.perf_counter() - started), listed
 
 
+def _first_frame(reader, conns: list, msgtype: str) -> str:
+    first = next(reader.messages(connections=conns), None) if conns else None  # no connections: all of them
+    return reader.deserialize(first[2], msgtype).header.frame_id.strip("/") if first else ""
+
+
+def _gnss_velocity_connections(reader, navsat: list, skipped: dict[str, Counter]) -> list:
+    """The TwistWithCovarianceStamped topics in the (first) NavSatFix's frame: the receiver's ENU velocity; every
+    other twist topic listed as skipped."""
+    twists = [c for c in reader.connections if c.msgtype == TWIST]
+    antenna = _first_frame(reader, navsat, NAVSAT) if navsat and twists else ""
+    chosen = []
+    for conn in twists:
+        frame = _first_frame(reader, [conn], TWIST)
+        if navsat and frame == antenna:
+            chosen.append(conn)
+            continue
+        why = (f"in frame {frame!r}, not the NavSatFix's {antenna!r} (a GNSS velocity is the antenna's, ENU)" if navsat
+               else "no NavSatFix: a GNSS velocity goes with its fixes")
+        skipped[conn.topic][f"{TWIST}: {why}"] += conn.msgcount
+    return chosen
+
+
 def _gnss_config(reader, navsat, imus, tree: ros.FrameTree, base: str) -> dict:
     gnss: dict = {"port": ""}
     for conns, key in ((navsat, "rate_hz"), (imus, "imu_rate_hz")):
@@ -195,6 +219,8 @@ def _convert(msg, conn, host_ns: int, camera_of: dict[str, str], tree: ros.Frame
         return GNSS_FIX, *ros.gnss_fix(msg, host_ns)
     if conn.msgtype == IMU_MSG:
         return IMU, *ros.imu_sample(msg, host_ns)
+    if conn.msgtype == TWIST:
+        return GNSS_VELOCITY, *ros.gnss_velocity(msg, host_ns)
     if conn.msgtype == CLOUD:
         return LIDAR_POINTS, *ros.point_cloud(msg, host_ns)
     t_child_base = tree.lookup(msg.child_frame_id, base)  # Odometry: the child frame's pose -> the base's

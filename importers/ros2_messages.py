@@ -1,6 +1,7 @@
-"""ROS 2 messages (as rosbags deserialises them) -> roadlog messages: sensor_msgs Image / CompressedImage /
-CameraInfo / NavSatFix / Imu / PointCloud2, nav_msgs Odometry, and tf2 transforms into one static frame tree. Each
-conversion returns None (and says why) for a message it cannot use, so the importer counts it instead of failing."""
+"""ROS 2 messages (as rosbags deserialises them) -> roadlog messages: sensor_msgs Image / CompressedImage / CameraInfo /
+NavSatFix / Imu / PointCloud2, geometry_msgs TwistWithCovarianceStamped (a GNSS velocity), nav_msgs Odometry, and tf2
+transforms into one static frame tree. Each conversion returns None (and says why) for a message it cannot use, so the
+importer counts it instead of failing."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from daemon.spine.messages import RAW_FORMAT_CHANNELS, CameraFrame, GnssFix, ImuSample, PointCloud
+from daemon.spine.messages import RAW_FORMAT_CHANNELS, CameraFrame, GnssFix, GnssVelocity, ImuSample, PointCloud
 from daemon.spine.point_cloud_codec import pack_points
 
 # trailing topic parts that name the stream, not the camera: /front/image_raw/compressed -> camera "front"
@@ -89,6 +90,22 @@ def imu_sample(msg, host_ns: int) -> tuple[ImuSample | None, str]:
     a, w = msg.linear_acceleration, msg.angular_velocity
     return ImuSample(sensor_time_ns=stamp_ns(msg.header), host_mono_ns=host_ns, accel_mps2=(a.x, a.y, a.z),
                      gyro_rps=(w.x, w.y, w.z)), ""
+
+
+def gnss_velocity(msg, host_ns: int) -> tuple[GnssVelocity | None, str]:
+    """A TwistWithCovarianceStamped of a GNSS receiver (the u-blox ROS driver's `fix_velocity`): twist.linear is the
+    antenna's east/north/up velocity, the covariance's linear block its covariance (covariance_type 0 when it is all
+    zero or marked unknown by a -1, else 2 when diagonal, 3 when not: ROS carries no finer type)."""
+    v = msg.twist.twist.linear
+    velocity = (float(v.x), float(v.y), float(v.z))
+    if not all(np.isfinite(velocity)):
+        return None, "TwistWithCovarianceStamped with a velocity that is not finite"
+    block = np.asarray(msg.twist.covariance, float).reshape(6, 6)[:3, :3]
+    if not np.all(np.isfinite(block)) or block[0, 0] < 0 or not np.any(block):
+        return GnssVelocity(sensor_time_ns=stamp_ns(msg.header), host_mono_ns=host_ns, velocity_enu_mps=velocity), ""
+    covariance_type = 2 if not np.any(block - np.diag(np.diag(block))) else 3
+    return GnssVelocity(sensor_time_ns=stamp_ns(msg.header), host_mono_ns=host_ns, velocity_enu_mps=velocity,
+                        velocity_covariance=tuple(float(c) for c in block.ravel()), covariance_type=covariance_type), ""
 
 
 def matrix(translation, rotation) -> np.ndarray:

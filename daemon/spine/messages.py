@@ -89,8 +89,9 @@ class GnssFix:
 
 @dataclass(slots=True)
 class GnssVelocity:
-    """The receiver's velocity of its antenna (Doppler), east/north/up m/s, with its covariance in (m/s)^2 (row-major
-    3x3; covariance_type as GnssFix's: 0 unknown, 2 diagonal). `sensor_time_ns` is the fix's of the same epoch."""
+    """The receiver's velocity of its antenna, east/north/up m/s, with its covariance in (m/s)^2 (row-major 3x3;
+    covariance_type as GnssFix's: 0 unknown, 1 approximated (NMEA: no accuracy given, the vertical unknown and given a
+    huge variance), 2 diagonal). `sensor_time_ns` is the fix's of the same epoch."""
 
     seq: int = 0
     sensor_time_ns: int = 0

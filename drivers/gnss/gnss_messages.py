@@ -6,9 +6,9 @@ from HDOP) and from UBX NAV-PVT, NAV-PVAT and HNR-PVT (covariance from the error
 leaves the separation empty). A receiver epoch is published once, by the first message that gives it.
 Fix `sensor_time_ns` is UTC in ns since 1970: NMEA time of day + date; UBX GPS time of week (iTOW) mapped
 to UTC through the UTC date/time the receiver sends in the same NAV-PVT/PVAT/HNR-PVT message.
-Velocities come from UBX NAV-PVT and NAV-PVAT (velN/velE/velD, the antenna's Doppler velocity, with sAcc as each
-axis's 1-sigma), stamped as the epoch's fix, once an epoch; NMEA RMC's speed and course (horizontal only) and HNR-PVT
-(no velocity vector) give none.
+Velocities come from UBX NAV-PVT and NAV-PVAT and, for a receiver that sends no UBX velocity, from NMEA RMC or VTG,
+once an epoch, stamped as the epoch's fix: epoch_velocity.py says which and how.
+HNR-PVT (no velocity vector) gives none.
 
 IMU samples come from ESF-RAW, ESF-MEAS (the IMU's own axes, specific force in m/s^2, rate in rad/s;
 `sensor_time_ns` is the receiver's sensor time tag, a clock since its start, not UTC) or HNR-INS
@@ -28,6 +28,7 @@ from pyubx2 import UBXReader
 
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import GnssFix, GnssVelocity, ImuSample, Vec3
+from drivers.gnss.epoch_velocity import NMEA_NOT_VALID_MODES, EpochVelocity
 from drivers.gnss.stream_framer import Frame
 
 NS_PER_S = 1_000_000_000
@@ -49,7 +50,6 @@ IMU_PAIR_WINDOW_NS = 20 * NS_PER_MS  # accel and gyro triples this close in time
 IMU_SOURCE_RANK = {"ESF-RAW": 3, "ESF-MEAS": 2, "HNR-INS": 1}
 # GGA without GST: sigma = HDOP x a per-fix-quality error, as ROS nmea_navsat_driver does (metres).
 HDOP_ERROR_BY_QUALITY = {1: 4.0, 2: 0.1, 3: 4.0, 4: 0.02, 5: 4.0, 6: 4.0, 9: 3.0}
-MAX_VELOCITY_MPS = 500.0  # a car's receiver reporting more is garbled (u-blox's own dynamic limit is 500 m/s)
 UBX_FIX_TYPES = (1, 2, 3, 4)  # dead reckoning, 2D, 3D, GNSS + dead reckoning
 UBX_WANTED = {
     b"\x01\x07": "NAV-PVT",
@@ -60,7 +60,7 @@ UBX_WANTED = {
     b"\x10\x03": "ESF-RAW",
     b"\x10\x15": "ESF-INS",
 }
-NMEA_WANTED = ("GGA", "RMC", "GST", "ZDA")
+NMEA_WANTED = ("GGA", "RMC", "GST", "ZDA", "VTG")
 RECENT_FIX_EPOCHS = 64
 
 Covariance = tuple[float, ...]
@@ -130,7 +130,8 @@ class _PendingFix:
 
 
 class GnssDecoder:
-    """Stateful: keeps the date, the GPS-week to UTC mapping, a GGA waiting for its GST, half IMU samples."""
+    """Stateful: keeps the date, the GPS-week to UTC mapping, a GGA waiting for its GST, half IMU samples, and its
+    epochs' velocities in an EpochVelocity."""
 
     def __init__(self, protocol: str = "nmea+ubx", health: HealthCounters | None = None) -> None:
         self.counts: Counter[str] = Counter()
@@ -144,7 +145,7 @@ class GnssDecoder:
         self._week_start_utc_ns: int | None = None  # UTC time of GPS time-of-week 0, from the receiver
         self._week_anchor_itow_ms = 0
         self._recent_fix_ms: deque[int] = deque(maxlen=RECENT_FIX_EPOCHS)
-        self._recent_velocity_ms: deque[int] = deque(maxlen=RECENT_FIX_EPOCHS)
+        self._velocities = EpochVelocity(self.counts, self._reject, self._drop, self._nmea_utc_ns)
         self._imu_source_rank = 0
         self._imu_pending: dict[str, tuple[int, Vec3]] = {}
         self._esf_raw_last_tick: int | None = None
@@ -162,7 +163,7 @@ class GnssDecoder:
     def flush(self) -> list[GnssFix | GnssVelocity | ImuSample]:
         """The stream has ended (port closed): publish the GGA still waiting for its GST, drop half IMU
         samples and forget the IMU clock, which restarts if the receiver does."""
-        out = self._flush_pending(None)
+        out = self._flush_pending(None) + self._velocities.flush()
         for _ in self._imu_pending:
             self._drop("imu_unpaired")
         self._imu_pending.clear()
@@ -202,14 +203,29 @@ class GnssDecoder:
             self._reject(f"nmea_parse_error_{kind}", exc)
             return []
         try:
-            if kind == "GGA":
-                return self._on_gga(sentence, host_mono_ns)
-            if kind == "GST":
-                return self._on_gst(sentence)
-            return self._on_date(sentence, kind)
+            if kind == "VTG":
+                self._velocities.on_vtg(sentence, host_mono_ns)
+                return []
+            time_of_day = _time_of_day_ns(sentence.timestamp)
+            no_fix = (kind == "RMC" and (sentence.status != "A" or sentence.mode_indicator in NMEA_NOT_VALID_MODES)
+                      or kind == "GGA" and not int(sentence.gps_qual or 0))
         except _BAD_FIELD_ERRORS as exc:
             self._reject(f"nmea_bad_field_{kind}", exc)
             return []
+        out: list[GnssFix | GnssVelocity | ImuSample] = []
+        out += self._velocities.on_timed_sentence(time_of_day, no_fix)
+        try:
+            if kind == "GGA":
+                return out + self._on_gga(sentence, host_mono_ns)
+            if kind == "GST":
+                return out + self._on_gst(sentence)
+            out += self._on_date(sentence, kind)
+        except _BAD_FIELD_ERRORS as exc:
+            self._reject(f"nmea_bad_field_{kind}", exc)
+            return out
+        if kind == "RMC":
+            return out + self._velocities.on_rmc(sentence, time_of_day, no_fix, host_mono_ns)
+        return out
 
     def _on_date(self, sentence: pynmea2.TalkerSentence, kind: str) -> list[GnssFix | GnssVelocity | ImuSample]:
         time_of_day = _time_of_day_ns(sentence.timestamp)
@@ -365,27 +381,8 @@ class GnssDecoder:
         fix = GnssFix(sensor_time_ns=sensor_time, host_mono_ns=host_mono_ns, latitude_deg=lat,
                       longitude_deg=lon, altitude_m=msg.height / 1000.0, position_covariance=cov,
                       covariance_type=cov_type)
-        return self._emit_fix(fix) + (self._velocity(msg, sensor_time, host_mono_ns) if name != "HNR-PVT" else [])
-
-    def _velocity(self, msg, sensor_time: int, host_mono_ns: int) -> list[GnssVelocity]:
-        """The epoch's velocity (NAV-PVT, NAV-PVAT: mm/s, north/east/down) in east/north/up m/s, once an epoch; a
-        garbled one (not finite, over MAX_VELOCITY_MPS) is rejected and counted."""
-        epoch_ms = round(sensor_time / NS_PER_MS)
-        if epoch_ms in self._recent_velocity_ms:
-            self.counts["duplicate_velocity_epoch"] += 1
-            return []
-        velocity = (msg.velE / 1000.0, msg.velN / 1000.0, -msg.velD / 1000.0)
-        s_acc = msg.sAcc / 1000.0
-        if not (all(math.isfinite(v) and abs(v) <= MAX_VELOCITY_MPS for v in velocity) and math.isfinite(s_acc)
-                and s_acc >= 0):  # the epoch's fix stands; only its velocity is lost
-            self._reject("ubx_bad_velocity", ValueError(f"velocity {velocity} m/s, sAcc {s_acc} m/s"))
-            return []
-        self._recent_velocity_ms.append(epoch_ms)
-        self.counts["velocity"] += 1
-        known = s_acc > 0
-        return [GnssVelocity(sensor_time_ns=sensor_time, host_mono_ns=host_mono_ns, velocity_enu_mps=velocity,
-                             velocity_covariance=covariance_diagonal(s_acc, s_acc, s_acc) if known else (0.0,) * 9,
-                             covariance_type=2 if known else 0)]
+        velocity = self._velocities.on_ubx(msg, sensor_time, host_mono_ns) if name != "HNR-PVT" else []
+        return self._emit_fix(fix) + velocity
 
     # ---- IMU ----------------------------------------------------------------------------------------
     def _on_imu(self, name: str, msg, host_mono_ns: int) -> list[GnssFix | GnssVelocity | ImuSample]:

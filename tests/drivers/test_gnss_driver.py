@@ -17,6 +17,7 @@ import time
 import tty
 from pathlib import Path
 
+import numpy as np
 import pynmea2
 import pytest
 from pyubx2 import GET, UBXMessage
@@ -128,8 +129,8 @@ def nmea(sentence_type: str, *fields: str) -> bytes:
     return cls("GN", sentence_type, fields).render().encode() + b"\r\n"
 
 
-def rmc(hhmmss: str) -> bytes:
-    return nmea("RMC", hhmmss, "A", "5130.0000", "N", "00007.5000", "W", "0.0", "0.0", "060524", "", "", "A")
+def rmc(hhmmss: str, status: str = "A", knots: str = "0.0", course: str = "0.0", mode: str = "A") -> bytes:
+    return nmea("RMC", hhmmss, status, "5130.0000", "N", "00007.5000", "W", knots, course, "060524", "", "", mode)
 
 
 def gga(hhmmss: str, lat: str = "5130.1234", lon: str = "00007.5678", quality: str = "1", hdop: str = "0.8",
@@ -277,18 +278,21 @@ def test_ubx_velocities_in_east_north_up_once_an_epoch_and_a_garbled_one_keeps_i
     driver.wait_open(receiver)
     t0 = utc_ns(2024, 5, 6, 7, 8, 10)
     second = 1_000_000_000
-    stream = nav_pvt(t0, 51.5, -0.12, 45678, vel_ned_mm_s=(12_345, -6_789, 250), s_acc_mm_s=80)
+    stream = rmc("070810.00", knots="10.0", course="90.0")  # a u-blox receiver's RMC comes before its NAV-PVT
+    stream += nav_pvt(t0, 51.5, -0.12, 45678, vel_ned_mm_s=(12_345, -6_789, 250), s_acc_mm_s=80)
     stream += gga("070811.00") + nav_pvt(t0 + second, 51.5, -0.12, 45678, vel_ned_mm_s=(1_000, 2_000, -300),
                                          s_acc_mm_s=50)  # the epoch's fix from GGA, its velocity from NAV-PVT
     stream += nav_pvt(t0 + second, 51.5, -0.12, 45678, vel_ned_mm_s=(1_000, 2_000, -300), s_acc_mm_s=50)  # again
     stream += nav_pvt(t0 + 2 * second, 51.5, -0.12, 45678, vel_ned_mm_s=(900_000, 0, 0), s_acc_mm_s=50)  # 900 m/s
     stream += nav_pvt(t0 + 3 * second, 51.5, -0.12, 45678, vel_ned_mm_s=(500, 0, 0))  # no speed accuracy
-    receiver.write(rmc("070809.00") + stream)
+    stream += rmc("070813.00", knots="10.0", course="90.0")  # NMEA's velocity: not used once UBX gives it
+    receiver.write(stream)
     driver.wait_until(lambda: len(driver.of(GNSS_FIX)) == 4 and len(driver.of(GNSS_VELOCITY)) == 3)
     stats = driver.finish()
 
     assert [f.sensor_time_ns for f in driver.of(GNSS_FIX)] == [t0 + k * second for k in range(4)]
     first, second_epoch, unknown = driver.of(GNSS_VELOCITY)
+    assert stats.decoder["ignored_nmea_velocity_ubx_gives_it"] == 2  # the first epoch's RMC, held: its NAV-PVT's
     assert first.sensor_time_ns == t0
     assert first.velocity_enu_mps == pytest.approx((-6.789, 12.345, -0.25))  # north/east/down -> east/north/up
     assert first.covariance_type == 2
@@ -299,6 +303,65 @@ def test_ubx_velocities_in_east_north_up_once_an_epoch_and_a_garbled_one_keeps_i
     assert stats.decoder["duplicate_velocity_epoch"] == 1
     assert stats.decoder["ubx_bad_velocity"] == 1 and driver.health.rejected == 1  # counted, its fix kept
 
+
+def vtg(knots: str, course: str, mode: str = "A") -> bytes:
+    kmh = f"{float(knots) * 1.852:.3f}" if knots else ""
+    return nmea("VTG", course, "T" if course else "", "", "M", knots, "N", kmh, "K", mode)
+
+
+def test_nmea_velocities_from_rmc_or_vtg_once_an_epoch_stamped_as_its_fix(receiver):
+    """An NMEA receiver (u-blox order: RMC, VTG, GGA): east/north from speed and course over ground, the vertical
+    unknown; invalid, empty and garbled ones counted and skipped, their fixes kept; a VTG between two epochs skipped."""
+    driver = DriverThread(receiver.link)
+    driver.wait_open(receiver)
+    stream = rmc("070810.00", knots="10.0", course="90.0") + vtg("10.0", "90.0") + gga("070810.00")  # RMC's
+    stream += rmc("070811.00", knots="", course="") + vtg("4.0", "180.0") + gga("070811.00")  # VTG's
+    stream += rmc("070812.00", status="V", knots="3.0", course="45.0") + vtg("3.0", "45.0") + gga("070812.00")
+    stream += rmc("070813.00", knots="abc", course="45.0") + gga("070813.00")  # garbled, checksum valid
+    spoiled = rmc("070814.00", knots="9.0", course="30.0")
+    stream += spoiled.replace(b",9.0,", b",8.0,") + gga("070814.00")  # bad checksum: the framer's
+    stream += rmc("070815.00", knots="0.03", course="") + gga("070815.00")  # nearly still: no course
+    stream += rmc("070816.00", knots="2.0", course="30.0", mode="N") + gga("070816.00")  # mode: not valid
+    stream += gga("070817.00") + vtg("5.0", "0.0") + gga("070818.00")  # no RMC: a VTG at an epoch boundary
+    stream += rmc("070819.00", knots="1.0", course="0.0")  # ends epoch 070818 (its GGA waits for no GST)
+    receiver.write(stream)
+    driver.wait_until(lambda: len(driver.of(GNSS_FIX)) == 9 and len(driver.of(GNSS_VELOCITY)) == 4)
+    stats = driver.finish()
+
+    fixes = {f.sensor_time_ns: f for f in driver.of(GNSS_FIX)}
+    base = utc_ns(2024, 5, 6, 7, 8, 10)
+    assert sorted(fixes) == [base + k * 1_000_000_000 for k in range(9)]  # every fix kept
+    by_time = {v.sensor_time_ns: v for v in driver.of(GNSS_VELOCITY)}
+    assert sorted(by_time) == [base + k * 1_000_000_000 for k in (0, 1, 5, 9)]
+    assert all(t in fixes for t in list(by_time)[:3])  # stamped as their epoch's fix
+    knot = 1852 / 3600
+    east, south, still, last = (by_time[base + k * 1_000_000_000] for k in (0, 1, 5, 9))
+    assert east.velocity_enu_mps == pytest.approx((10 * knot, 0.0, 0.0), abs=1e-9)
+    assert south.velocity_enu_mps == pytest.approx((0.0, -4 * knot, 0.0), abs=1e-9)
+    assert still.velocity_enu_mps == (0.0, 0.0, 0.0)
+    assert last.velocity_enu_mps == pytest.approx((0.0, knot, 0.0), abs=1e-9)
+    for v in (east, south, last):
+        assert v.covariance_type == 1  # approximated: NMEA gives no accuracy
+        assert v.velocity_covariance == pytest.approx((0.25**2, 0, 0, 0, 0.25**2, 0, 0, 0, 1000.0**2))
+    # a speed of unknown direction: its square shared by the two axes
+    assert still.velocity_covariance[0] == pytest.approx(0.25**2 + (0.03 * knot) ** 2 / 2)
+    order = [(t, m.sensor_time_ns) for t, m in driver.published if t in (GNSS_FIX, GNSS_VELOCITY)]
+    # the first held until the next epoch (a NAV-PVT of its epoch would replace it), then each at once
+    assert order.index((GNSS_VELOCITY, base)) > order.index((GNSS_FIX, base))
+    assert order.index((GNSS_VELOCITY, base + 5_000_000_000)) < order.index((GNSS_FIX, base + 5_000_000_000))
+    assert stats.decoder["duplicate_velocity_epoch"] == 1  # epoch 0's VTG after its RMC
+    assert stats.decoder["nmea_velocity_empty"] == 1
+    assert stats.decoder["nmea_velocity_invalid"] == 3  # RMC V, its VTG, RMC mode N
+    assert stats.decoder["nmea_bad_velocity"] == 1 and driver.health.rejected == 2  # and the bad checksum
+    assert stats.decoder["nmea_velocity_without_course"] == 1
+    assert stats.decoder["nmea_vtg_epoch_ambiguous"] == 1
+    assert stats.framer == {"nmea_bad_checksum": 1}
+
+    from mapping.inputs.drive_inputs import fix_velocities  # what the pose fusion takes
+    ordered = [fixes[t] for t in sorted(fixes)]
+    velocity, cov = fix_velocities(ordered, driver.of(GNSS_VELOCITY))
+    assert [bool(row) for row in np.all(np.isfinite(velocity), axis=1)] == [k in (0, 1, 5) for k in range(9)]
+    assert cov[0][2, 2] == 1000.0**2
 
 def test_garbage_bad_checksums_and_truncations_are_counted_and_good_messages_survive(receiver):
     driver = DriverThread(receiver.link)

@@ -94,8 +94,9 @@ def test_gga_before_any_date_is_dropped_and_a_fix_past_midnight_takes_the_next_d
     assert decoder.decode(nmea("GGA", "235959.50", *GGA_FIELDS), 1) == []
     assert decoder.counts["no_date"] == 1 and health.dropped == 1
     decoder.decode(nmea("RMC", "235959.90", *RMC_FIELDS, "311224", "", ""), 2)
-    [fix] = decoder.decode(nmea("GGA", "000000.10", *GGA_FIELDS), 3)
+    velocity, fix = decoder.decode(nmea("GGA", "000000.10", *GGA_FIELDS), 3)  # the RMC's, out as an epoch starts
     assert fix.sensor_time_ns == utc_ns(2025, 1, 1, 0, 0, 0) + 100_000_000
+    assert velocity.sensor_time_ns == utc_ns(2024, 12, 31, 23, 59, 59) + 900_000_000
 
 
 def test_empty_position_with_a_fix_flag_is_rejected_not_zero():

@@ -16,7 +16,8 @@ from hypothesis import strategies as st
 
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import GnssFix, GnssVelocity, ImuSample
-from drivers.gnss.gnss_messages import MAX_VELOCITY_MPS, NMEA_WANTED, UBX_WANTED, GnssDecoder
+from drivers.gnss.epoch_velocity import MAX_VELOCITY_MPS
+from drivers.gnss.gnss_messages import NMEA_WANTED, UBX_WANTED, GnssDecoder
 from drivers.gnss.stream_framer import Frame, StreamFramer, nmea_checksum, ubx_checksum
 
 DATA = Path("/work/shared/data")

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from daemon.spine.messages import GnssFix
-from daemon.spine.topics import GNSS_FIX, IMU
+from daemon.spine.topics import GNSS_FIX, GNSS_VELOCITY, IMU
 from drivers.gnss.gnss_messages import utc_ns
 from tests.drivers.test_gnss_driver import DriverThread, PtyReceiver
 
@@ -109,3 +109,55 @@ def test_gpsd_captures_agree_with_gpsd_decoding(name, tolerance_deg, tmp_path):
         assert fix.altitude_m == pytest.approx(tpv["altHAE"], abs=1e-3)
     assert len(fixes) > 20
     assert matched >= min(len(fixes), len(reports)) - 1
+
+
+def test_a_moving_boats_nmea_velocities_agree_with_its_fixes(tmp_path):
+    """gpsd's B&G chartplotter capture (RMC, VTG, GGA at 1 Hz, ~3 m/s): each epoch's velocity from its RMC speed and
+    course, stamped as its fix, against the central difference of the fixes around it."""
+    driver, fixes = feed(DATA / "gnss_gpsd/bundg_zeus_9.log", tmp_path)
+    velocities = driver.of(GNSS_VELOCITY)
+    assert parse_errors(driver.stats.decoder) == {}
+    assert len(velocities) == 146  # one an RMC (its VTG a duplicate), also in the 9 epochs the capture has no GGA of
+    assert driver.stats.decoder["duplicate_velocity_epoch"] >= len(velocities) - 2
+    by_time = {f.sensor_time_ns: f for f in fixes}
+    assert sum(v.sensor_time_ns in by_time for v in velocities) >= len(fixes) - 1 > 130  # each fix's own stamp
+    lat0 = fixes[0].latitude_deg
+    metres_per_deg_east = math.radians(1.0) * EARTH_RADIUS_M * math.cos(math.radians(lat0))
+
+    def enu(f: GnssFix) -> tuple[float, float]:
+        return f.longitude_deg * metres_per_deg_east, math.radians(f.latitude_deg) * EARTH_RADIUS_M
+
+    second = 1_000_000_000
+    residuals = []
+    for v in velocities:
+        before, after = by_time.get(v.sensor_time_ns - second), by_time.get(v.sensor_time_ns + second)
+        if before is None or after is None:
+            continue
+        (e0, n0), (e1, n1) = enu(before), enu(after)
+        residuals.append((v.velocity_enu_mps[0] - (e1 - e0) / 2, v.velocity_enu_mps[1] - (n1 - n0) / 2))
+        assert v.velocity_enu_mps[2] == 0.0 and v.velocity_covariance[8] >= 1e4  # no vertical in NMEA
+    assert len(residuals) > 120
+    speeds = [math.hypot(*v.velocity_enu_mps[:2]) for v in velocities]
+    assert 2.5 < sum(speeds) / len(speeds) < 3.5  # it sails
+    for axis in (0, 1):
+        errors = [r[axis] for r in residuals]
+        assert abs(sum(errors) / len(errors)) < 0.05  # no bias, no sign or axis swap
+        rms = math.sqrt(sum(e * e for e in errors) / len(errors))
+        assert rms < 0.3  # 0.23 / 0.25 m/s (0.1 kn, 0.1 deg resolution; a boat in waves over 2 s)
+        assert rms < 1.5 * math.sqrt(velocities[0].velocity_covariance[0])  # the stated sigma is not optimistic
+
+
+@pytest.mark.parametrize("name", ["ublox-zed-f9p_hpg1.11.log", "ublox-8.log"])
+def test_a_still_receivers_nmea_velocities_are_near_zero(name, tmp_path):
+    """Static u-blox captures: an NMEA velocity every epoch, all within the stated sigma's reach of 0 (u-blox
+    leaves the course empty when nearly still)."""
+    driver, fixes = feed(DATA / "gnss_gpsd" / name, tmp_path)
+    velocities = driver.of(GNSS_VELOCITY)
+    assert parse_errors(driver.stats.decoder) == {}
+    assert len(velocities) >= len(fixes) - 2
+    times = {f.sensor_time_ns for f in fixes}
+    assert sum(v.sensor_time_ns in times for v in velocities) >= len(fixes) - 2
+    for v in velocities:
+        assert math.hypot(*v.velocity_enu_mps[:2]) < 0.35
+        sigma = math.sqrt(v.velocity_covariance[0])
+        assert 0.25 <= sigma < 0.35  # 0.25 m/s, more without a course

@@ -1,7 +1,7 @@
 """`roadlog export ros2`: the simulated city drive (and a log of vehicle poses beside it) exported to a ROS 2 bag and
-imported back with `roadlog import ros2`, both as real processes, compared message for message with the original:
-frames byte for byte, fixes and IMU samples value for value, the cameras' calibration and every sensor's extrinsics
-as recorded, the Lidar's points as decoding its packets gives them, the stamps on UTC."""
+imported back with `roadlog import ros2`, both as real processes, compared message for message with the original: frames
+byte for byte, fixes, the receiver's velocities and IMU samples value for value, the cameras' calibration and every
+sensor's extrinsics as recorded, the Lidar's points as decoding its packets gives them, the stamps on UTC."""
 
 from __future__ import annotations
 
@@ -19,10 +19,11 @@ from daemon.commands.cli import main as roadlog
 from daemon.log_format.reader import read_log
 from daemon.log_format.static_transforms import sensor_frames
 from daemon.log_format.writer import LogWriter
-from daemon.spine.messages import VehiclePose
+from daemon.spine.messages import GnssVelocity, VehiclePose
 from daemon.spine.point_cloud_codec import point_array
 from daemon.spine.topics import (
     GNSS_FIX,
+    GNSS_VELOCITY,
     IMU,
     LIDAR_PACKETS,
     LIDAR_POINTS,
@@ -32,9 +33,12 @@ from daemon.spine.topics import (
     VEHICLE_POSE,
     camera_topic,
 )
+from exporters import ros2_messages as ros
 from exporters.ros2_bag import ODOM_TOPIC
 from exporters.ros2_messages import TYPESTORE
+from importers import ros2_messages as ros_in
 from importers.ros2_messages import matrix
+from mapping.inputs.drive_inputs import fix_velocities
 from mapping.inputs.lidar_ground import configured_decoding, packet_scans
 from mapping.offline.reconstruct_command import config_from_logs
 from tests.conftest import REPO
@@ -90,12 +94,13 @@ def test_what_is_not_exported_is_listed_with_its_count(round_trip):
     err = round_trip["export"].stderr
     for topic, n in (("can/frames", 500), ("wheel_speeds", 250), ("mask/front_wide", 50)):
         assert f"not exported {topic}: not exported ({n})" in err
+    assert f"not exported {GNSS_VELOCITY}" not in err
     printed = json.loads(round_trip["export"].stdout.strip().splitlines()[-1])
     assert printed["messages"]["/lidar/points"] == len(round_trip["back"][LIDAR_POINTS])
     # the importer takes everything the bag holds but the Lidar's IMU (it imports one Imu topic: the car's)
     assert round_trip["summary"]["skipped"] == {
         "/lidar/imu": "sensor_msgs/msg/Imu: a second Imu topic (the first is imported) (500)"}
-    assert set(round_trip["summary"]["messages"]) >= {GNSS_FIX, IMU, LIDAR_POINTS, POSE}
+    assert set(round_trip["summary"]["messages"]) >= {GNSS_FIX, GNSS_VELOCITY, IMU, LIDAR_POINTS, POSE}
 
 
 def test_frames_come_back_byte_for_byte_stamped_in_utc(round_trip):
@@ -119,6 +124,45 @@ def test_fixes_and_imu_samples_come_back_value_for_value(round_trip):
     # a free-running IMU clock: put on the host clock by the mapper's fit (shortest latency), then on UTC
     lag = np.array([g.sensor_time_ns - (s.host_mono_ns + offset) for g, s in zip(got, sent, strict=True)])
     assert np.all(lag <= 0) and np.all(lag > -20_000_000)
+
+
+def test_gnss_velocities_are_enu_twists_stamped_as_their_fixes_and_come_back_value_for_value(round_trip):
+    """TwistWithCovarianceStamped as the u-blox ROS driver writes it: linear = the antenna's east/north/up velocity
+    in frame `gnss`, the covariance in the 6x6's linear block, the angular velocity unknown (covariance[21] = -1)."""
+    sent, got = round_trip["original"][GNSS_VELOCITY], round_trip["back"][GNSS_VELOCITY]
+    assert len(sent) == len(round_trip["original"][GNSS_FIX]) > 40
+    assert [(v.velocity_enu_mps, v.velocity_covariance, v.covariance_type, v.sensor_time_ns) for v in got] == [
+        (v.velocity_enu_mps, v.velocity_covariance, v.covariance_type, v.sensor_time_ns) for v in sent]
+    fixes = {ros_in.stamp_ns(m.header) for _, m in _bag_messages(round_trip["bag"], "/gnss/fix")}
+    twists = _bag_messages(round_trip["bag"], "/gnss/velocity")
+    assert len(twists) == len(sent)
+    for (_, msg), v in zip(twists, sent, strict=True):
+        assert msg.header.frame_id == "gnss" and ros_in.stamp_ns(msg.header) in fixes
+        linear, angular = msg.twist.twist.linear, msg.twist.twist.angular
+        assert (linear.x, linear.y, linear.z) == v.velocity_enu_mps and (angular.x, angular.y, angular.z) == (0, 0, 0)
+        covariance = np.reshape(msg.twist.covariance, (6, 6))
+        np.testing.assert_array_equal(covariance[:3, :3], np.reshape(v.velocity_covariance, (3, 3)))
+        assert covariance[3, 3] == -1.0 and np.count_nonzero(covariance[3:, :]) == 1 and not covariance[:3, 3:].any()
+    velocity, _ = fix_velocities(round_trip["back"][GNSS_FIX], got)  # the fusion finds each fix's velocity
+    assert np.all(np.isfinite(velocity))
+
+
+def test_an_nmea_velocity_and_an_unknown_one_keep_their_meaning_through_a_twist():
+    """An NMEA receiver's velocity (horizontal only: the vertical's variance huge) and one of unknown covariance,
+    through CDR bytes and back: the values as they were; the type 2 (diagonal), ROS having no "approximated", and 0."""
+    nmea = GnssVelocity(sensor_time_ns=1_700_000_000_100_000_000, velocity_enu_mps=(3.5, -1.25, 0.0),
+                        velocity_covariance=(0.0625, 0, 0, 0, 0.0625, 0, 0, 0, 1e6), covariance_type=1)
+    unknown = GnssVelocity(sensor_time_ns=1_700_000_000_200_000_000, velocity_enu_mps=(0.5, 0.25, -0.125))
+    back = []
+    for v in (nmea, unknown):
+        raw = TYPESTORE.serialize_cdr(ros.gnss_velocity(v, v.sensor_time_ns, "gnss"), ros.TWIST)
+        message, why = ros_in.gnss_velocity(TYPESTORE.deserialize_cdr(raw, ros.TWIST), 7)
+        assert why == "" and message.sensor_time_ns == v.sensor_time_ns and message.host_mono_ns == 7
+        back.append(message)
+    assert back[0].velocity_enu_mps == nmea.velocity_enu_mps
+    assert back[0].velocity_covariance == nmea.velocity_covariance and back[0].covariance_type == 2
+    assert back[1].velocity_enu_mps == unknown.velocity_enu_mps
+    assert back[1].velocity_covariance == (0.0,) * 9 and back[1].covariance_type == 0
 
 
 def test_calibration_and_static_transforms_are_the_recorded_config(round_trip):

@@ -1,5 +1,6 @@
 """`roadlog import ros2`: a ROS 2 bag written with rosbags from a simulated drive (compressed and raw images,
-camera infos, NavSatFix, Imu, Odometry, tf_static, and topics the importer does not take) imported back, message
+camera infos, NavSatFix, the receiver's velocity as the u-blox ROS driver's TwistWithCovarianceStamped, Imu, Odometry,
+tf_static, and topics the importer does not take) imported back, message
 for message, with the car's cameras, antenna and IMU rebuilt from the bag's own calibration."""
 
 from __future__ import annotations
@@ -14,9 +15,9 @@ from scipy.spatial.transform import Rotation
 
 from daemon.commands.cli import main as roadlog
 from daemon.log_format.reader import read_log
-from daemon.spine.messages import CameraFrame, GnssFix, ImuSample
+from daemon.spine.messages import CameraFrame, GnssFix, GnssVelocity, ImuSample
 from daemon.spine.point_cloud_codec import point_array
-from daemon.spine.topics import GNSS_FIX, IMU, LIDAR_POINTS, POSE, camera_topic
+from daemon.spine.topics import GNSS_FIX, GNSS_VELOCITY, IMU, LIDAR_POINTS, POSE, camera_topic
 from exporters import ros2_messages as ros
 from exporters.ros2_messages import BagWriter, T, header, transform
 from mapping.offline.reconstruct_command import config_from_logs
@@ -27,9 +28,10 @@ def sim_bag(city_drive, tmp_path_factory):
     """The simulated city drive as a ROS 2 bag, and what went into it."""
     config, _ = config_from_logs([str(city_drive)])
     wide, left, right = config.sensors.cameras
-    records = list(read_log([city_drive], topics=[camera_topic(c.name) for c in (wide, left, right)] + [GNSS_FIX, IMU]))
+    records = list(read_log([city_drive], topics=[camera_topic(c.name) for c in (wide, left, right)]
+                            + [GNSS_FIX, GNSS_VELOCITY, IMU]))
     path = tmp_path_factory.mktemp("bag") / "sim_bag"
-    sent = {"wide": [], "left": [], "gnss": [], "imu": [], "odom": [], "clouds": []}
+    sent = {"wide": [], "left": [], "gnss": [], "velocity": [], "imu": [], "odom": [], "clouds": []}
     with Writer(path) as writer:
         bag = BagWriter(writer)
         statics = [transform("base_link", f"{c.name}_optical", c.extrinsics.matrix()) for c in (wide, left, right)]
@@ -68,6 +70,11 @@ def sim_bag(city_drive, tmp_path_factory):
                     odom_pose[:3, 3], Rotation.from_matrix(odom_pose[:3, :3]).as_quat(), m.sensor_time_ns, "odom",
                     "base_link"))
                 sent["odom"].append(odom_pose)
+            elif isinstance(m, GnssVelocity):  # ENU in the antenna's frame, as the u-blox ROS driver has it
+                bag.write("/ublox/fix_velocity", ros.TWIST, host, ros.gnss_velocity(m, m.sensor_time_ns,
+                                                                                    "gnss_antenna"))
+                bag.write("/vehicle/twist", ros.TWIST, host, ros.gnss_velocity(m, m.sensor_time_ns, "base_link"))
+                sent["velocity"].append(m)
             elif isinstance(m, ImuSample):
                 bag.write("/imu/data", ros.IMU_MSG, host, ros.imu(m, m.sensor_time_ns, "imu_link"))
                 sent["imu"].append(m)
@@ -107,6 +114,9 @@ def test_a_ros2_bag_imports_message_for_message(sim_bag, tmp_path, capsys):
         printed["skipped"]["/chatter"]
     assert "no usable CameraInfo for camera 'front_right'" in printed["skipped"]["/front_right/image_raw/compressed"]
     assert "skipped /chatter" in captured.err
+    assert printed["skipped"]["/vehicle/twist"] == (  # a twist in another frame is no GNSS velocity
+        f"{ros.TWIST}: in frame 'base_link', not the NavSatFix's 'gnss_antenna' (a GNSS velocity is the antenna's, "
+        f"ENU) ({len(sent['velocity'])})")
     records = list(read_log([out]))
     by_topic = {}
     for r in records:
@@ -121,6 +131,10 @@ def test_a_ros2_bag_imports_message_for_message(sim_bag, tmp_path, capsys):
     assert [(f.latitude_deg, f.longitude_deg, f.altitude_m, f.position_covariance, f.sensor_time_ns)
             for f in by_topic[GNSS_FIX]] == [(m.latitude_deg, m.longitude_deg, m.altitude_m, m.position_covariance,
                                               m.sensor_time_ns) for m in sent["gnss"]]
+    assert len(sent["velocity"]) == len(sent["gnss"]) > 10
+    assert [(v.velocity_enu_mps, v.velocity_covariance, v.covariance_type, v.sensor_time_ns, v.host_mono_ns)
+            for v in by_topic[GNSS_VELOCITY]] == [(m.velocity_enu_mps, m.velocity_covariance, m.covariance_type,
+                                                   m.sensor_time_ns, m.host_mono_ns) for m in sent["velocity"]]
     assert [(s.accel_mps2, s.gyro_rps, s.sensor_time_ns, s.host_mono_ns) for s in by_topic[IMU]] == [
         (m.accel_mps2, m.gyro_rps, m.sensor_time_ns, m.host_mono_ns) for m in sent["imu"]]
     poses = by_topic[POSE]
