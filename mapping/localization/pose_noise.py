@@ -63,11 +63,30 @@ def residual_error(noise: PoseNoise, trajectory: Trajectory, seconds: np.ndarray
                    correction_rotation: np.ndarray | None = None) -> dict:
     """RMS of the vehicle pose's error left at `seconds` (the keyframes' times) once a correction (position (M, 3)
     m, rotation vector (M, 3) rad, applied as the noise is: on the left, about the reference point) is applied
-    to the perturbed `trajectory`'s (None: none): position in cm (3-D and horizontal), rotation in degrees."""
+    to the perturbed `trajectory`'s (None: none): position in cm (3-D and horizontal), rotation in degrees, and
+    per component in the track's frame (along / across / vertical cm; roll / pitch / yaw degrees)."""
     position, rotation = noise.error_at(trajectory, seconds)
     if correction_position is not None:
         position = position + correction_position
         rotation = (Rotation.from_rotvec(correction_rotation) * Rotation.from_rotvec(rotation)).as_rotvec()
+    # per component in the track's frame at each time: along / across the heading, up; roll (about the heading),
+    # pitch (about its left), yaw (about up)
+    seconds = np.asarray(seconds, np.float64)
+    _, quats = trajectory.interpolate(trajectory.times_ns[0] + np.rint(seconds * 1e9).astype(np.int64))
+    forward = Rotation.from_quat(quats).apply([1.0, 0.0, 0.0])
+    heading = np.arctan2(forward[:, 1], forward[:, 0])
+    c, s = np.cos(heading), np.sin(heading)
+
+    def in_track(v: np.ndarray) -> np.ndarray:
+        return np.stack([c * v[:, 0] + s * v[:, 1], -s * v[:, 0] + c * v[:, 1], v[:, 2]], 1)
+
+    def rms(v: np.ndarray) -> list[float]:
+        return [float(x) for x in np.sqrt((v ** 2).mean(0))]
+
+    along, across, up = rms(100.0 * in_track(position))
+    roll, pitch, yaw = rms(np.rad2deg(in_track(rotation)))
     return {"position_rms_cm": 100.0 * float(np.sqrt((position ** 2).sum(1).mean())),
             "horizontal_rms_cm": 100.0 * float(np.sqrt((position[:, :2] ** 2).sum(1).mean())),
-            "rotation_rms_deg": float(np.rad2deg(np.sqrt((rotation ** 2).sum(1).mean())))}
+            "rotation_rms_deg": float(np.rad2deg(np.sqrt((rotation ** 2).sum(1).mean()))),
+            "along_rms_cm": along, "across_rms_cm": across, "vertical_rms_cm": up,
+            "roll_rms_deg": roll, "pitch_rms_deg": pitch, "yaw_rms_deg": yaw}
