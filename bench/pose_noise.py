@@ -5,8 +5,10 @@ On N random worlds (`roadlog simulate --scenario random --seed S`, as bench/worl
 smooth random pose error injected into the trajectory (`--pose-noise-m`, `--pose-noise-deg`: independent draws every
 `--every-s`, linear between; mapping/localization/pose_noise.py) without refinement (`noisy`), and the same with
 `--pose-refinement on` (`refined`); with Lidar also with `--pose-refinement photometric` (`photometric`: no Lidar
-ground registration first), the refinement before the registration, side by side; and with the exact poses and
-`--pose-refinement on` (`--clean-refined`: the refinement must not make a good map worse). Reported per run and as
+ground registration first), the refinement before the registration, side by side, and with `--pose-refinement
+lidar` (`lidar`: every axis from the Lidar ground, heights and intensity contrast, the drive read again with the
+corrected trajectory); and with the exact poses and `--pose-refinement on` / `lidar` (`--clean-refined`:
+`clean_refined`, `clean_lidar`: the refinement must not make a good map worse). Reported per run and as
 median / worst over the worlds: held-out PSNR, bird's-eye mIoU, lane-marking IoU, the costs against `exact` (dB,
 points), the vehicle pose's RMS error at the keyframes before and after refinement, and the wall times. The target
 (issue 17): 10-20 cm RMS pose noise costs at most 3 points of mIoU and 1 dB of PSNR. The last line is one JSON
@@ -45,13 +47,14 @@ def run(log: Path, out: Path, noise: tuple[str, ...], *extra: str) -> dict:
             "pose_error_after_cm": (pose.get("keyframes_after") or {}).get("position_rms_cm"),
             "rotation_error_before_deg": (pose.get("keyframes_before") or {}).get("rotation_rms_deg"),
             "rotation_error_after_deg": (pose.get("keyframes_after") or {}).get("rotation_rms_deg"),
-            "pose_refinement_wall_s": m.get("pose_refinement_wall_s")}
+            "pose_refinement_wall_s": m.get("pose_refinement_wall_s") or m.get("lidar_pre_pass_wall_s"),
+            "pose_error_after": (pose.get("keyframes_after") or {}) or None}
 
 
 def noisy_runs(mode: str, clean: bool) -> tuple[str, ...]:
     """The runs of a mode besides `exact` (all but clean_refined with the noise injected)."""
-    return (("noisy", "refined") + (("photometric",) if mode == "lidar" else ())
-            + (("clean_refined",) if clean else ()))
+    return (("noisy", "refined") + (("photometric", "lidar") if mode == "lidar" else ())
+            + (("clean_refined",) if clean else ()) + (("clean_lidar",) if clean and mode == "lidar" else ()))
 
 
 def world(seed: int, seconds: float, folder: Path, drives: Path, noise: tuple[str, ...], modes: dict,
@@ -71,6 +74,10 @@ def world(seed: int, seconds: float, folder: Path, drives: Path, noise: tuple[st
         if mode == "lidar":
             runs["photometric"] = run(log, folder / f"{seed}_{mode}_photometric", noise, *extra,
                                       "--pose-refinement", "photometric")
+            runs["lidar"] = run(log, folder / f"{seed}_{mode}_lidar", noise, *extra, "--pose-refinement", "lidar")
+            if clean:
+                runs["clean_lidar"] = run(log, folder / f"{seed}_{mode}_clean_lidar", (), *extra,
+                                          "--pose-refinement", "lidar")
         costs = {f"{name}_{k}": (exact[figure] - r[figure]) if None not in (exact[figure], r[figure]) else None
                  for name, r in runs.items() if name != "exact"
                  for k, figure in (("psnr_cost_db", "psnr_db"), ("miou_cost_pts", "miou_pct"))}
@@ -132,6 +139,12 @@ def main() -> int:
     for mode in modes:
         s = stats[mode]
         if mode == "lidar":
+            print(f"lidar, Lidar registration of every axis (--pose-refinement lidar): PSNR cost median "
+                  f"{fmt(s['lidar_psnr_cost_db']['median'])} worst {fmt(s['lidar_psnr_cost_db']['worst'])} dB; mIoU "
+                  f"cost median {fmt(s['lidar_miou_cost_pts']['median'])} worst "
+                  f"{fmt(s['lidar_miou_cost_pts']['worst'])} points; pose error after "
+                  f"{fmt(s['lidar_pose_error_after_cm']['median'])} / "
+                  f"{fmt(s['lidar_pose_error_after_cm']['worst'])} cm")
             print(f"lidar, photometric refinement only: PSNR cost median "
                   f"{fmt(s['photometric_psnr_cost_db']['median'])} worst {fmt(s['photometric_psnr_cost_db']['worst'])}"
                   f" dB; mIoU cost median {fmt(s['photometric_miou_cost_pts']['median'])} worst "
@@ -142,6 +155,11 @@ def main() -> int:
                   f"{fmt(s['clean_refined_psnr_cost_db']['worst'])} dB; mIoU cost median "
                   f"{fmt(s['clean_refined_miou_cost_pts']['median'])} worst "
                   f"{fmt(s['clean_refined_miou_cost_pts']['worst'])} points")
+        if args.clean_refined and mode == "lidar":
+            print(f"{mode}, --pose-refinement lidar with no noise: PSNR cost median "
+                  f"{fmt(s['clean_lidar_psnr_cost_db']['median'])} worst {fmt(s['clean_lidar_psnr_cost_db']['worst'])}"
+                  f" dB; mIoU cost median {fmt(s['clean_lidar_miou_cost_pts']['median'])} worst "
+                  f"{fmt(s['clean_lidar_miou_cost_pts']['worst'])} points")
         print(f"{mode}: PSNR cost noisy median {fmt(s['noisy_psnr_cost_db']['median'])} worst "
               f"{fmt(s['noisy_psnr_cost_db']['worst'])} dB, refined median {fmt(s['refined_psnr_cost_db']['median'])} "
               f"worst {fmt(s['refined_psnr_cost_db']['worst'])} dB; mIoU cost noisy median "

@@ -272,7 +272,8 @@ class MappingWorker:
         cfg = m.model_copy(update={"model": m.model.model_copy(update={"seed": seed})})
         result = reconstruct(inputs.keyframes, self.cameras, path, inputs.ground, cfg,
                              self.config.vehicle.reference_height_m, holdout_every=0, progress=False,
-                             lidar_standing=inputs.standing, lidar_ground_times=inputs.ground_times)
+                             lidar_standing=inputs.standing, lidar_ground_times=inputs.ground_times,
+                             lidar_ground_contrast=inputs.ground_contrast)
         bev = bev_rasters(result.road_map, self.cam_names, self.res, m.runtime.raster_threads)
         j0, i0 = (int(round(v / self.res)) for v in bev["origin_xy"])
         half = (m.windows.before_m + m.windows.after_m) / 4.0

@@ -96,8 +96,15 @@ def test_injected_pose_noise_has_the_rms_asked_and_a_correction_of_its_opposite_
     assert before["position_rms_cm"] == pytest.approx(15.0, rel=1e-6)
     assert before["rotation_rms_deg"] == pytest.approx(0.2 * np.sqrt(3), rel=1e-3)
     position, rotation = noise.error_at(noisy, seconds)
+    # per component in the track's frame: this track runs along x (east), so along is x, across y
+    assert before["along_rms_cm"] == pytest.approx(100 * np.sqrt((position[:, 0] ** 2).mean()), rel=1e-3)
+    assert before["across_rms_cm"] == pytest.approx(100 * np.sqrt((position[:, 1] ** 2).mean()), rel=1e-3)
+    assert before["yaw_rms_deg"] == pytest.approx(np.rad2deg(np.sqrt((rotation[:, 2] ** 2).mean())), rel=1e-3)
+    assert before["along_rms_cm"] ** 2 + before["across_rms_cm"] ** 2 + before["vertical_rms_cm"] ** 2 \
+        == pytest.approx(before["position_rms_cm"] ** 2, rel=1e-6)
     after = residual_error(noise, noisy, seconds, -position, -rotation)
     assert after["position_rms_cm"] < 1e-9 and after["rotation_rms_deg"] < 1e-9
+    assert max(after[k] for k in ("along_rms_cm", "across_rms_cm", "vertical_rms_cm", "yaw_rms_deg")) < 1e-9
     assert PoseNoise(0.15, 0.2, 0.5, seed=5).error_at(noisy, seconds)[0][0, 0] != position[0, 0]
 
 
@@ -134,10 +141,31 @@ def test_reconstruct_with_injected_noise_reports_the_error_the_refinement_leaves
     assert vertical(after) < 0.5 * vertical(before)
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+def test_reconstruct_with_the_lidar_registration_of_every_axis_takes_the_horizontal_error_out(city_drive, tmp_path):
+    """`--pose-refinement lidar`: the Lidar ground's heights and intensity give every axis (mapping.fits
+    .lidar_horizontal_registration), the drive is read again with the corrected trajectory."""
+    noise = ("--pose-noise-m", "0.2", "--pose-noise-deg", "0.05", "--gt", city_drive.with_suffix(".gt.npz"))
+    done = _reconstruct(city_drive, "--out", tmp_path / "lidar", *noise, "--pose-refinement", "lidar")
+    assert done.returncode == 0, done.stderr[-2000:]
+    m = json.loads((tmp_path / "lidar" / "metrics.json").read_text())
+    before, after = m["pose_noise"]["keyframes_before"], m["pose_noise"]["keyframes_after"]
+    assert 15.0 < before["position_rms_cm"] < 25.0
+    assert after["along_rms_cm"] < 0.5 * before["along_rms_cm"]
+    assert after["across_rms_cm"] < 0.5 * before["across_rms_cm"]
+    assert after["vertical_rms_cm"] < 0.5 * before["vertical_rms_cm"]
+    horizontal = m["lidar_horizontal_registration"]
+    assert horizontal["points_with_contrast"] == horizontal["points"] > 10_000  # the simulated Ouster's signal
+    assert m["lidar_pre_pass_wall_s"] > 0 and m["pose_refinement"]["knots"] == horizontal["knots"]
+
+
 def test_the_refinement_switch_sets_the_photometric_only_path():
     car = load_config(REPO / "configs" / "sim.yaml")
-    settings = {name: with_pose_refinement(car, name).mapper.pose_refinement for name in ("on", "off", "photometric")}
-    assert settings["on"].enabled and settings["on"].lidar_registration
+    settings = {name: with_pose_refinement(car, name).mapper.pose_refinement
+                for name in ("on", "off", "photometric", "lidar")}
+    assert settings["on"].enabled and settings["on"].lidar_registration and not settings["on"].lidar_horizontal
+    assert settings["lidar"].enabled and settings["lidar"].lidar_registration and settings["lidar"].lidar_horizontal
     assert settings["photometric"].enabled and not settings["photometric"].lidar_registration
     assert not settings["off"].enabled
     assert with_pose_refinement(car, None) is car
