@@ -96,9 +96,10 @@ def test_injected_pose_noise_has_the_rms_asked_and_a_correction_of_its_opposite_
     assert before["position_rms_cm"] == pytest.approx(15.0, rel=1e-6)
     assert before["rotation_rms_deg"] == pytest.approx(0.2 * np.sqrt(3), rel=1e-3)
     position, rotation = noise.error_at(noisy, seconds)
-    # per component in the track's frame: this track runs along x (east), so along is x, across y
-    assert before["along_rms_cm"] == pytest.approx(100 * np.sqrt((position[:, 0] ** 2).mean()), rel=1e-3)
-    assert before["across_rms_cm"] == pytest.approx(100 * np.sqrt((position[:, 1] ** 2).mean()), rel=1e-3)
+    # per component in the track's frame: this track runs along x (east), so along is x, across y (to 1 %: the
+    # heading is the perturbed trajectory's, 0.2 degrees off)
+    assert before["along_rms_cm"] == pytest.approx(100 * np.sqrt((position[:, 0] ** 2).mean()), rel=1e-2)
+    assert before["across_rms_cm"] == pytest.approx(100 * np.sqrt((position[:, 1] ** 2).mean()), rel=1e-2)
     assert before["yaw_rms_deg"] == pytest.approx(np.rad2deg(np.sqrt((rotation[:, 2] ** 2).mean())), rel=1e-3)
     assert before["along_rms_cm"] ** 2 + before["across_rms_cm"] ** 2 + before["vertical_rms_cm"] ** 2 \
         == pytest.approx(before["position_rms_cm"] ** 2, rel=1e-6)
