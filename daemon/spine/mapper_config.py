@@ -193,6 +193,13 @@ class PoseRefinementConfig(StrictModel):
     lidar_contrast_sigma: float = Field(0.3, gt=0)  # a point's intensity contrast error (log units)
     lidar_horizontal_huber: float = Field(1.0, gt=0)  # residuals beyond this many sigmas count less
 
+    @model_validator(mode="after")
+    def _horizontal_needs_the_height_registration(self) -> PoseRefinementConfig:
+        if self.lidar_horizontal and not self.lidar_registration:  # it starts from the heights' corrections
+            raise ValueError("lidar_horizontal needs lidar_registration (it starts from the height registration's "
+                             "corrections)")
+        return self
+
 
 class MasklessConfig(StrictModel):
     """Keyframes without semantics (no mask, no segmentation model; mapping.fits.lidar_occlusion): a view's pixel

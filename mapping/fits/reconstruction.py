@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from daemon.spine.local_frame import LocalFrame
-from daemon.spine.mapper_config import MapperConfig
+from daemon.spine.mapper_config import MapperConfig, PoseRefinementConfig
 from mapping.fits import faithful_fit, fast_fit
 from mapping.fits.lidar_horizontal_registration import register_horizontal
 from mapping.fits.lidar_occlusion import OcclusionTest
@@ -116,6 +116,22 @@ def _waited_for(value, timings: dict[str, float], key: str):
     return ready
 
 
+def lidar_refinement_unavailable(refine: PoseRefinementConfig, lidar_supervision: bool, have_lidar: bool,
+                                 registered: bool) -> str | None:
+    """Why the Lidar registration of every axis (`mapper.pose_refinement.lidar_horizontal`), asked for, did not
+    run, so that the photometric refinement took its place (metrics `pose_refinement.lidar_unavailable`); None when
+    it was not asked for. `registered`: the height registration ran (the ground points had their firing times)."""
+    if not (refine.enabled and refine.lidar_horizontal):
+        return None
+    if not lidar_supervision:
+        return "the ablation fits without Lidar supervision"
+    if not have_lidar:
+        return "no Lidar ground points (a drive without Lidar, or --no-lidar)"
+    if not registered:
+        return "the Lidar ground points have no firing times"
+    return None
+
+
 def reconstruct(
     keyframes: list[Keyframe] | Future[list[Keyframe]],
     cameras: dict[str, CameraModel],
@@ -208,6 +224,8 @@ def reconstruct(
             elevation_first_last = fast_fit.fit_surface_from_images(road_map, train, cameras, trajectory, config,
                                                                     rng, timings, progress)
         corrections, pose_figures = None, None
+        lidar_unavailable = None if faithful or horizontal_figures is not None else lidar_refinement_unavailable(
+            config.pose_refinement, variant.lidar_supervision, have_lidar, lidar_figures is not None)
         if horizontal_figures is not None:  # the Lidar fitted every axis: the cameras take its corrections
             corrections = lidar_corrections
             train, holdout = corrected(train, trajectory, corrections), corrected(holdout, trajectory, corrections)
@@ -216,6 +234,8 @@ def reconstruct(
             train, holdout, corrections, pose_figures = refine_poses(
                 road_map, train, holdout, cameras, trajectory, config.pose_refinement, config.fast_fit.behind_m,
                 config.fast_fit.ahead_m, timings, lidar_corrections)
+            if lidar_unavailable is not None:  # asked for the Lidar's every axis, given the photometric fit
+                pose_figures.update(source="photometric", lidar_unavailable=lidar_unavailable)
             phase(f"poses refined ({pose_figures['position_rms_cm']:.1f} cm RMS correction)")
         semantics = semantics_status(train, road_map, config)
         if semantics.startswith("unavailable"):  # nothing to train them on: no semantics, not untrained logits

@@ -47,7 +47,7 @@ from daemon.spine.yaml_document import UnusableYaml, load_yaml
 from mapping.fits.lidar_horizontal_registration import register_horizontal
 from mapping.fits.lidar_registration import register_ground
 from mapping.fits.pose_refinement import PoseCorrections, corrected_trajectory
-from mapping.fits.reconstruction import ReconstructionResult, reconstruct
+from mapping.fits.reconstruction import ReconstructionResult, lidar_refinement_unavailable, reconstruct
 from mapping.inputs.drive_inputs import DriveInputs, missing_masks_warning, start_loading_drive
 from mapping.localization.pose_noise import PoseNoise, residual_error
 from mapping.localization.trajectory import HorizontalTrack, Trajectory
@@ -170,6 +170,11 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
         if pre_pass is not None:  # the drive is read again with the corrected trajectory, nothing fitted twice
             config = config.model_copy(update={"mapper": config.mapper.model_copy(
                 update={"pose_refinement": refine.model_copy(update={"enabled": False})})})
+    unavailable = None if faithful or pre_pass is not None else lidar_refinement_unavailable(
+        refine, variant_for(ablation).lidar_supervision, False, False)  # no pre-pass: no usable Lidar ground
+    if unavailable is not None:  # reconstruct reports it too, in metrics pose_refinement.lidar_unavailable
+        say(f"warning: --pose-refinement lidar (mapper.pose_refinement.lidar_horizontal) asked for, but "
+            f"{unavailable}: the photometric refinement instead")
     loading = start_loading_drive(logs, config, config_path, origin=truth.origin if truth else None,
                                   use_lidar=use_lidar, progress=progress, pose_noise=pose_noise,
                                   trajectory_correction=None if pre_pass is None else pre_pass.correct)

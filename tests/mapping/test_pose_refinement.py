@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.spine.config import load_config
+from daemon.spine.config import ConfigError, load_config, parse_config
 from daemon.spine.mapper_config import InputsConfig, MapperConfig, MeshConfig, WindowsConfig
-from mapping.fits.reconstruction import reconstruct
+from mapping.fits.reconstruction import lidar_refinement_unavailable, reconstruct
 from mapping.localization.pose_noise import PoseNoise, perturbed, residual_error
 from mapping.localization.trajectory import Trajectory
 from mapping.offline.reconstruct_command import with_pose_refinement
@@ -170,3 +170,38 @@ def test_the_refinement_switch_sets_the_photometric_only_path():
     assert settings["photometric"].enabled and not settings["photometric"].lidar_registration
     assert not settings["off"].enabled
     assert with_pose_refinement(car, None) is car
+
+
+def test_lidar_refinement_says_why_it_could_not_run():
+    lidar = with_pose_refinement(load_config(REPO / "configs" / "sim.yaml"), "lidar").mapper.pose_refinement
+    assert lidar_refinement_unavailable(lidar, True, True, True) is None  # it ran
+    assert "no Lidar ground points" in lidar_refinement_unavailable(lidar, True, False, False)
+    assert "without Lidar supervision" in lidar_refinement_unavailable(lidar, False, True, True)
+    assert "firing times" in lidar_refinement_unavailable(lidar, True, True, False)
+    for setting in ("on", "off", "photometric"):  # not asked for: nothing to say
+        refine = with_pose_refinement(load_config(REPO / "configs" / "sim.yaml"), setting).mapper.pose_refinement
+        assert lidar_refinement_unavailable(refine, True, False, False) is None
+
+
+def test_the_horizontal_registration_without_the_height_one_is_a_config_error():
+    import yaml
+
+    data = yaml.safe_load((REPO / "configs" / "sim.yaml").read_text())
+    data["mapper"]["pose_refinement"] = {"enabled": True, "lidar_horizontal": True, "lidar_registration": False}
+    with pytest.raises(ConfigError, match="pose_refinement.*lidar_horizontal needs lidar_registration"):
+        parse_config(data)
+
+
+def test_lidar_refinement_on_a_drive_without_lidar_warns_and_reports_the_photometric_fit(city_drive, tmp_path):
+    """`--pose-refinement lidar` with no Lidar ground (here `--no-lidar`): the photometric refinement runs instead,
+    said on stderr and in metrics `pose_refinement` (not silently)."""
+    done = _reconstruct(city_drive, "--out", tmp_path / "map", "--no-lidar", "--pose-refinement", "lidar")
+    assert done.returncode == 0, done.stderr[-2000:]
+    warnings = [line for line in done.stderr.splitlines() if "--pose-refinement lidar" in line]
+    assert warnings == ["roadlog reconstruct: warning: --pose-refinement lidar (mapper.pose_refinement."
+                        "lidar_horizontal) asked for, but no Lidar ground points (a drive without Lidar, or "
+                        "--no-lidar): the photometric refinement instead"]
+    m = json.loads((tmp_path / "map" / "metrics.json").read_text())
+    assert m["pose_refinement"]["source"] == "photometric"
+    assert m["pose_refinement"]["lidar_unavailable"].startswith("no Lidar ground points")
+    assert "lidar_horizontal_registration" not in m and "lidar_pre_pass_wall_s" not in m
