@@ -64,7 +64,10 @@ def residual_error(noise: PoseNoise, trajectory: Trajectory, seconds: np.ndarray
     """RMS of the vehicle pose's error left at `seconds` (the keyframes' times) once a correction (position (M, 3)
     m, rotation vector (M, 3) rad, applied as the noise is: on the left, about the reference point) is applied
     to the perturbed `trajectory`'s (None: none): position in cm (3-D and horizontal), rotation in degrees, and
-    per component in the track's frame (along / across / vertical cm; roll / pitch / yaw degrees)."""
+    per component in the track's frame (along / across / vertical cm; roll / pitch / yaw degrees); the horizontal
+    error's mean over `seconds` (`common_horizontal_cm`; signed, in the track's frame, `common_along_cm` and
+    `common_across_cm`; and the yaw's, `common_yaw_deg`: a shift and turn of the whole drive, which no registration
+    of the drive against itself can see) and its RMS less that mean (`relative_horizontal_rms_cm`)."""
     position, rotation = noise.error_at(trajectory, seconds)
     if correction_position is not None:
         position = position + correction_position
@@ -85,7 +88,16 @@ def residual_error(noise: PoseNoise, trajectory: Trajectory, seconds: np.ndarray
 
     along, across, up = rms(100.0 * in_track(position))
     roll, pitch, yaw = rms(np.rad2deg(in_track(rotation)))
-    return {"position_rms_cm": 100.0 * float(np.sqrt((position ** 2).sum(1).mean())),
+    # what a registration of the drive against itself cannot see, the error common to all its poses (its mean), and
+    # what is left without it
+    common = position.mean(0)
+    relative = position[:, :2] - common[:2]
+    common_along, common_across, _ = (100.0 * in_track(position).mean(0)).tolist()
+    return {"common_horizontal_cm": 100.0 * float(np.hypot(*common[:2])),
+            "common_along_cm": common_along, "common_across_cm": common_across,
+            "relative_horizontal_rms_cm": 100.0 * float(np.sqrt((relative ** 2).sum(1).mean())),
+            "common_yaw_deg": float(np.rad2deg(rotation[:, 2].mean())),
+            "position_rms_cm": 100.0 * float(np.sqrt((position ** 2).sum(1).mean())),
             "horizontal_rms_cm": 100.0 * float(np.sqrt((position[:, :2] ** 2).sum(1).mean())),
             "rotation_rms_deg": float(np.rad2deg(np.sqrt((rotation ** 2).sum(1).mean()))),
             "along_rms_cm": along, "across_rms_cm": across, "vertical_rms_cm": up,

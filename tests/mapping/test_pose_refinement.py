@@ -103,6 +103,16 @@ def test_injected_pose_noise_has_the_rms_asked_and_a_correction_of_its_opposite_
     assert before["yaw_rms_deg"] == pytest.approx(np.rad2deg(np.sqrt((rotation[:, 2] ** 2).mean())), rel=1e-3)
     assert before["along_rms_cm"] ** 2 + before["across_rms_cm"] ** 2 + before["vertical_rms_cm"] ** 2 \
         == pytest.approx(before["position_rms_cm"] ** 2, rel=1e-6)
+    mean = position[:, :2].mean(0)
+    assert before["common_horizontal_cm"] == pytest.approx(100 * np.hypot(*mean), rel=1e-6)
+    assert before["common_along_cm"] == pytest.approx(100 * mean[0], rel=1e-2)  # the track runs along x
+    assert before["common_across_cm"] == pytest.approx(100 * mean[1], rel=1e-2, abs=0.01)
+    assert before["relative_horizontal_rms_cm"] ** 2 + before["common_horizontal_cm"] ** 2 \
+        == pytest.approx(before["horizontal_rms_cm"] ** 2, rel=1e-6)
+    shifted = residual_error(noise, noisy, seconds, np.tile([0.0, 0.0, 0.0], (len(seconds), 1)) - [*mean, 0.0],
+                             np.zeros((len(seconds), 3)))
+    assert shifted["common_horizontal_cm"] < 1e-9  # a common shift moves only the common part
+    assert shifted["relative_horizontal_rms_cm"] == pytest.approx(before["relative_horizontal_rms_cm"], rel=1e-9)
     after = residual_error(noise, noisy, seconds, -position, -rotation)
     assert after["position_rms_cm"] < 1e-9 and after["rotation_rms_deg"] < 1e-9
     assert max(after[k] for k in ("along_rms_cm", "across_rms_cm", "vertical_rms_cm", "yaw_rms_deg")) < 1e-9
