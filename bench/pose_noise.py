@@ -19,8 +19,8 @@ object.
         [--noise-seed-per-world] [--drives DIR]
 
 Each run with refinement also reports what is left of the error as its mean over the keyframes (common along /
-across the track: a shift of the whole drive, which a registration of the drive against itself cannot see) and
-its RMS less that mean (relative).
+across the track) and the turn of the whole drive (a shift and a turn of all of it, which a registration of the
+drive against itself cannot see), and the RMS left without them (non-rigid).
 """
 
 from __future__ import annotations
@@ -137,7 +137,7 @@ def main() -> int:
             **{f"{run_name}_{k}": summarise([(r[mode][run_name]["pose_error_after"] or {}).get(k) for r in results],
                                             "low")
                for run_name in names if run_name not in ("noisy", "clean_refined", "clean_lidar")
-               for k in ("common_horizontal_cm", "relative_horizontal_rms_cm")},
+               for k in ("common_horizontal_cm", "relative_horizontal_rms_cm", "nonrigid_horizontal_rms_cm")},
         }
         if "noisy" in names:
             stats[mode]["pose_error_before_cm"] = summarise([r[mode]["noisy"]["pose_error_before_cm"]
@@ -148,8 +148,8 @@ def main() -> int:
                 s[f"{name}_target_met"] = all(
                     s[f"{name}_{k}"]["worst"] is not None and s[f"{name}_{k}"]["worst"] <= bound
                     for k, bound in (("psnr_cost_db", 1.0), ("miou_cost_pts", 3.0)))
-    print("| world | mode | run | PSNR dB | mIoU % | lane marking IoU % | pose error cm | common along / across, "
-          "relative cm | wall s |")
+    print("| world | mode | run | PSNR dB | mIoU % | lane marking IoU % | pose error cm | common along / across cm, "
+          "turn deg, non-rigid cm | wall s |")
     print("|---|---|---|---|---|---|---|---|---|")
     for r in results:
         for mode in modes:
@@ -160,7 +160,7 @@ def main() -> int:
                 print(f"| {r['seed']} | {mode} | {name} | {fmt(f['psnr_db'])} | {fmt(f['miou_pct'])} | "
                       f"{fmt(f['lane_marking_iou_pct'])} | {fmt(error if name != 'exact' else 0.0)} | "
                       f"{fmt(after.get('common_along_cm'))} / {fmt(after.get('common_across_cm'))}, "
-                      f"{fmt(after.get('relative_horizontal_rms_cm'))} | "
+                      f"{fmt(after.get('rigid_turn_deg'))}, {fmt(after.get('nonrigid_horizontal_rms_cm'))} | "
                       f"{fmt(f['wall_s'])} |")
     for mode in modes:
         s = stats[mode]
@@ -175,7 +175,9 @@ def main() -> int:
                          f"{fmt(s[f'{name}_common_horizontal_cm']['median'])} / "
                          f"{fmt(s[f'{name}_common_horizontal_cm']['worst'])}, relative "
                          f"{fmt(s[f'{name}_relative_horizontal_rms_cm']['median'])} / "
-                         f"{fmt(s[f'{name}_relative_horizontal_rms_cm']['worst'])} cm horizontal")
+                         f"{fmt(s[f'{name}_relative_horizontal_rms_cm']['worst'])}, non-rigid "
+                         f"{fmt(s[f'{name}_nonrigid_horizontal_rms_cm']['median'])} / "
+                         f"{fmt(s[f'{name}_nonrigid_horizontal_rms_cm']['worst'])} cm horizontal")
             if f"{name}_target_met" in s:
                 line += f": target {'met' if s[f'{name}_target_met'] else 'not met'}"
             print(line)

@@ -67,7 +67,8 @@ def residual_error(noise: PoseNoise, trajectory: Trajectory, seconds: np.ndarray
     per component in the track's frame (along / across / vertical cm; roll / pitch / yaw degrees); the horizontal
     error's mean over `seconds` (`common_horizontal_cm`; signed, in the track's frame, `common_along_cm` and
     `common_across_cm`; and the yaw's, `common_yaw_deg`: a shift and turn of the whole drive, which no registration
-    of the drive against itself can see) and its RMS less that mean (`relative_horizontal_rms_cm`)."""
+    of the drive against itself can see) and its RMS less that mean (`relative_horizontal_rms_cm`); the same with
+    the whole drive's turn too (`_rigid_part`)."""
     position, rotation = noise.error_at(trajectory, seconds)
     if correction_position is not None:
         position = position + correction_position
@@ -75,7 +76,7 @@ def residual_error(noise: PoseNoise, trajectory: Trajectory, seconds: np.ndarray
     # per component in the track's frame at each time: along / across the heading, up; roll (about the heading),
     # pitch (about its left), yaw (about up)
     seconds = np.asarray(seconds, np.float64)
-    _, quats = trajectory.interpolate(trajectory.times_ns[0] + np.rint(seconds * 1e9).astype(np.int64))
+    places, quats = trajectory.interpolate(trajectory.times_ns[0] + np.rint(seconds * 1e9).astype(np.int64))
     forward = Rotation.from_quat(quats).apply([1.0, 0.0, 0.0])
     heading = np.arctan2(forward[:, 1], forward[:, 0])
     c, s = np.cos(heading), np.sin(heading)
@@ -97,8 +98,24 @@ def residual_error(noise: PoseNoise, trajectory: Trajectory, seconds: np.ndarray
             "common_along_cm": common_along, "common_across_cm": common_across,
             "relative_horizontal_rms_cm": 100.0 * float(np.sqrt((relative ** 2).sum(1).mean())),
             "common_yaw_deg": float(np.rad2deg(rotation[:, 2].mean())),
+            **_rigid_part(position[:, :2], places[:, :2]),
             "position_rms_cm": 100.0 * float(np.sqrt((position ** 2).sum(1).mean())),
             "horizontal_rms_cm": 100.0 * float(np.sqrt((position[:, :2] ** 2).sum(1).mean())),
             "rotation_rms_deg": float(np.rad2deg(np.sqrt((rotation ** 2).sum(1).mean()))),
             "along_rms_cm": along, "across_rms_cm": across, "vertical_rms_cm": up,
             "roll_rms_deg": roll, "pitch_rms_deg": pitch, "yaw_rms_deg": yaw}
+
+
+def _rigid_part(error: np.ndarray, places: np.ndarray) -> dict:
+    """The horizontal errors (M, 2) at `places` (M, 2) as a shift and turn of the whole drive (least squares; a turn
+    of a about the places' centroid moves a place q from it by a (-qy, qx)): `rigid_turn_deg` (a), and the RMS the
+    errors have left without shift and turn, `nonrigid_horizontal_rms_cm`. A registration of the drive against
+    itself cannot see a shift or a turn of all of it: from the Lidar and the cameras, this is the error it can
+    remove."""
+    q = places - places.mean(0)
+    left = error - error.mean(0)
+    turn_of = np.stack([-q[:, 1], q[:, 0]], 1)
+    a = float((turn_of * left).sum() / max((q ** 2).sum(), 1e-12))
+    rest = left - a * turn_of
+    return {"rigid_turn_deg": float(np.rad2deg(a)),
+            "nonrigid_horizontal_rms_cm": 100.0 * float(np.sqrt((rest ** 2).sum(1).mean()))}

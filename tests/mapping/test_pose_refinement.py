@@ -112,6 +112,13 @@ def test_injected_pose_noise_has_the_rms_asked_and_a_correction_of_its_opposite_
     shifted = residual_error(noise, noisy, seconds, np.tile([0.0, 0.0, 0.0], (len(seconds), 1)) - [*mean, 0.0],
                              np.zeros((len(seconds), 3)))
     assert shifted["common_horizontal_cm"] < 1e-9  # a common shift moves only the common part
+    places = exact.interpolate(times[0] + np.rint(seconds * 1e9).astype(np.int64))[0][:, :2]
+    turn = 0.002  # rad, about the places' centroid: a position error of a (-qy, qx)
+    q = places - places.mean(0)
+    turned = residual_error(noise, noisy, seconds, -position + np.c_[-turn * q[:, 1], turn * q[:, 0], 0 * q[:, 0]],
+                            -rotation)
+    assert turned["rigid_turn_deg"] == pytest.approx(np.rad2deg(turn), rel=1e-2)  # (the perturbed trajectory's
+    assert turned["nonrigid_horizontal_rms_cm"] < 0.05  # places are within 20 cm of the exact ones)
     assert shifted["relative_horizontal_rms_cm"] == pytest.approx(before["relative_horizontal_rms_cm"], rel=1e-9)
     after = residual_error(noise, noisy, seconds, -position, -rotation)
     assert after["position_rms_cm"] < 1e-9 and after["rotation_rms_deg"] < 1e-9
