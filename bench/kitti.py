@@ -8,9 +8,11 @@ Velodyne also gets `elev_vs_velodyne_cm`: its elevation raster against the drive
 (the reconstruction's Lidar ground filter), per band of horizontal distance from the car's path
 (velodyne_gap). `--pose-refinement on|off` passes that to every reconstruction (default: the config's); `both`
 maps every run twice, `.../refined` with it on; `all` three times, also `.../photometric` (on without the Lidar
-ground registration: the Lidar runs differ). `--lidar` adds 0005's Lidar run to `--quick`.
+ground registration: the Lidar runs differ); `lidar` maps every run three times: off, `.../refined` (on) and
+`.../lidar` (`--pose-refinement lidar`: every axis from the Lidar ground; camera only it is the photometric fit).
+`--lidar` adds 0005's Lidar run to `--quick`.
 
-    .venv/bin/python bench/kitti.py [--quick] [--lidar] [--pose-refinement on|off|both|all]
+    .venv/bin/python bench/kitti.py [--quick] [--lidar] [--pose-refinement on|off|both|all|lidar]
 """
 
 from __future__ import annotations
@@ -37,7 +39,8 @@ from mapping.offline.reconstruct_command import config_from_logs  # noqa: E402
 KEYS = ("psnr_db", "psnr_train_db", "psnr_pixels", "psnr_by_distance_db", "saturation_rendered_pct",
         "saturation_observed_pct", "saturation_ratio", "edge_sawtooth_cm", "smear_pct", "elev_error_cm",
         "maskless_hidden_pct", "semantics", "wall_s", "rtf", "vertices", "pose_refinement",
-        "pose_refinement_wall_s", "lidar_registration", "lidar_registration_wall_s")
+        "pose_refinement_wall_s", "lidar_registration", "lidar_registration_wall_s",
+        "lidar_horizontal_registration", "lidar_pre_pass_wall_s")
 BANDS_M = ((0.0, 2.0), (2.0, 4.0), (4.0, 8.0), (8.0, 15.0))  # distance from the car's path (m)
 
 
@@ -86,13 +89,14 @@ def velodyne_gap(log: Path, out: Path) -> dict:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="0005 with its INS poses and 01, camera only")
-    parser.add_argument("--pose-refinement", choices=("on", "off", "both", "all"),
+    parser.add_argument("--pose-refinement", choices=("on", "off", "both", "all", "lidar"),
                         help="reconstruct with --pose-refinement on or off (default: the config's), both, or all "
                              "(off, photometric, on)")
     parser.add_argument("--lidar", action="store_true", help="--quick: also 0005 with its Lidar ground")
     args = parser.parse_args()
     refinements = {"on": [("", "on")], "off": [("", "off")], "both": [("", "off"), ("/refined", "on")],
                    "all": [("", "off"), ("/photometric", "photometric"), ("/refined", "on")],
+                   "lidar": [("", "off"), ("/refined", "on"), ("/lidar", "lidar")],
                    None: [("", None)]}[args.pose_refinement]
     runs = {}
     with tempfile.TemporaryDirectory() as tmp:

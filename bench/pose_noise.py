@@ -5,15 +5,22 @@ On N random worlds (`roadlog simulate --scenario random --seed S`, as bench/worl
 smooth random pose error injected into the trajectory (`--pose-noise-m`, `--pose-noise-deg`: independent draws every
 `--every-s`, linear between; mapping/localization/pose_noise.py) without refinement (`noisy`), and the same with
 `--pose-refinement on` (`refined`); with Lidar also with `--pose-refinement photometric` (`photometric`: no Lidar
-ground registration first), the refinement before the registration, side by side; and with the exact poses and
-`--pose-refinement on` (`--clean-refined`: the refinement must not make a good map worse). Reported per run and as
+ground registration first), the refinement before the registration, side by side, and with `--pose-refinement
+lidar` (`lidar`: every axis from the Lidar ground, heights and intensity contrast, the drive read again with the
+corrected trajectory); and with the exact poses and `--pose-refinement on` / `lidar` (`--clean-refined`:
+`clean_refined`, `clean_lidar`: the refinement must not make a good map worse). Reported per run and as
 median / worst over the worlds: held-out PSNR, bird's-eye mIoU, lane-marking IoU, the costs against `exact` (dB,
 points), the vehicle pose's RMS error at the keyframes before and after refinement, and the wall times. The target
 (issue 17): 10-20 cm RMS pose noise costs at most 3 points of mIoU and 1 dB of PSNR. The last line is one JSON
 object.
 
     .venv/bin/python bench/pose_noise.py [--quick] [--worlds 3] [--seconds 6] [--noise-m 0.2] [--noise-deg 0.1]
-        [--every-s 0.5] [--modes lidar no_lidar] [--drives DIR]
+        [--every-s 0.5] [--modes lidar no_lidar] [--runs noisy refined photometric lidar ...]
+        [--noise-seed-per-world] [--drives DIR]
+
+Each run with refinement also reports what is left of the error as its mean over the keyframes (common along /
+across the track) and the turn of the whole drive (a shift and a turn of all of it, which a registration of the
+drive against itself cannot see), and the RMS left without them (non-rigid).
 """
 
 from __future__ import annotations
@@ -45,13 +52,19 @@ def run(log: Path, out: Path, noise: tuple[str, ...], *extra: str) -> dict:
             "pose_error_after_cm": (pose.get("keyframes_after") or {}).get("position_rms_cm"),
             "rotation_error_before_deg": (pose.get("keyframes_before") or {}).get("rotation_rms_deg"),
             "rotation_error_after_deg": (pose.get("keyframes_after") or {}).get("rotation_rms_deg"),
-            "pose_refinement_wall_s": m.get("pose_refinement_wall_s")}
+            "pose_refinement_wall_s": m.get("pose_refinement_wall_s") or m.get("lidar_pre_pass_wall_s"),
+            "pose_error_after": (pose.get("keyframes_after") or {}) or None}
+
+
+RUNS = ("noisy", "refined", "photometric", "lidar", "clean_refined", "clean_lidar")
+ONLY: tuple[str, ...] = RUNS  # --runs: those mapped besides `exact`
 
 
 def noisy_runs(mode: str, clean: bool) -> tuple[str, ...]:
-    """The runs of a mode besides `exact` (all but clean_refined with the noise injected)."""
-    return (("noisy", "refined") + (("photometric",) if mode == "lidar" else ())
-            + (("clean_refined",) if clean else ()))
+    """The runs of a mode besides `exact` (all but clean_refined with the noise injected), of those --runs asks."""
+    runs = (("noisy", "refined") + (("photometric", "lidar") if mode == "lidar" else ())
+            + (("clean_refined",) if clean else ()) + (("clean_lidar",) if clean and mode == "lidar" else ()))
+    return tuple(r for r in runs if r in ONLY)
 
 
 def world(seed: int, seconds: float, folder: Path, drives: Path, noise: tuple[str, ...], modes: dict,
@@ -62,15 +75,12 @@ def world(seed: int, seconds: float, folder: Path, drives: Path, noise: tuple[st
     result = {"seed": seed}
     for mode, extra in modes.items():
         exact = run(log, folder / f"{seed}_{mode}_exact", (), *extra)
-        noisy = run(log, folder / f"{seed}_{mode}_noisy", noise, *extra, "--pose-refinement", "off")
-        refined = run(log, folder / f"{seed}_{mode}_refined", noise, *extra, "--pose-refinement", "on")
-        runs = {"exact": exact, "noisy": noisy, "refined": refined}
-        if clean:
-            runs["clean_refined"] = run(log, folder / f"{seed}_{mode}_clean_refined", (), *extra,
-                                        "--pose-refinement", "on")
-        if mode == "lidar":
-            runs["photometric"] = run(log, folder / f"{seed}_{mode}_photometric", noise, *extra,
-                                      "--pose-refinement", "photometric")
+        runs = {"exact": exact}
+        settings = {"noisy": (noise, "off"), "refined": (noise, "on"), "photometric": (noise, "photometric"),
+                    "lidar": (noise, "lidar"), "clean_refined": ((), "on"), "clean_lidar": ((), "lidar")}
+        for name in noisy_runs(mode, clean):
+            injected, setting = settings[name]
+            runs[name] = run(log, folder / f"{seed}_{mode}_{name}", injected, *extra, "--pose-refinement", setting)
         costs = {f"{name}_{k}": (exact[figure] - r[figure]) if None not in (exact[figure], r[figure]) else None
                  for name, r in runs.items() if name != "exact"
                  for k, figure in (("psnr_cost_db", "psnr_db"), ("miou_cost_pts", "miou_pct"))}
@@ -94,7 +104,14 @@ def main() -> int:
                         help="also map each drive with the exact poses and the refinement on (clean_refined)")
     parser.add_argument("--drives", type=Path, default=Path("/tmp/maplab/pose_noise"),
                         help="the simulated drives are kept here and reused")
+    parser.add_argument("--noise-seed-per-world", action="store_true",
+                        help="draw each world's error with its own seed (the world's); by default every world gets "
+                             "the same draws (seed 0), so the worlds show one error along different roads")
+    parser.add_argument("--runs", nargs="+", choices=RUNS, default=list(RUNS),
+                        help="the runs besides `exact` (default: all that --modes and --clean-refined give)")
     args = parser.parse_args()
+    global ONLY
+    ONLY = tuple(args.runs)
     count, seconds = (1, 3.0) if args.quick else (args.worlds, args.seconds)
     modes = {"lidar": MODES["lidar"]} if args.quick else {mode: MODES[mode] for mode in args.modes}
     noise = ("--pose-noise-m", str(args.noise_m), "--pose-noise-deg", str(args.noise_deg),
@@ -102,54 +119,71 @@ def main() -> int:
     args.drives.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
-        results = [world(args.first_seed + i, seconds, Path(tmp), args.drives, noise, modes, args.clean_refined)
+        results = [world(args.first_seed + i, seconds, Path(tmp), args.drives,
+                         noise + (("--pose-noise-seed", str(args.first_seed + i)) if args.noise_seed_per_world else ()),
+                         modes, args.clean_refined)
                    for i in range(count)]
     stats = {}
     for mode in modes:
+        names = noisy_runs(mode, args.clean_refined)
         stats[mode] = {
             **{f"{kind}_{k}": summarise([r[mode][f"{kind}_{k}"] for r in results], "low")
-               for kind in noisy_runs(mode, args.clean_refined) for k in ("psnr_cost_db", "miou_cost_pts")},
+               for kind in names for k in ("psnr_cost_db", "miou_cost_pts")},
             **{f"{run_name}_{k}": summarise([r[mode][run_name][k] for r in results],
                                             "low" if "error" in k or "wall" in k else "high")
-               for run_name in ("exact", *noisy_runs(mode, args.clean_refined))
+               for run_name in ("exact", *names)
                for k in (*FIGURES, "pose_error_after_cm", "pose_refinement_wall_s")
                if not (run_name in ("exact", "noisy") and k in ("pose_error_after_cm", "pose_refinement_wall_s"))},
-            "pose_error_before_cm": summarise([r[mode]["noisy"]["pose_error_before_cm"] for r in results], "low"),
+            **{f"{run_name}_{k}": summarise([(r[mode][run_name]["pose_error_after"] or {}).get(k) for r in results],
+                                            "low")
+               for run_name in names if run_name not in ("noisy", "clean_refined", "clean_lidar")
+               for k in ("common_horizontal_cm", "relative_horizontal_rms_cm", "nonrigid_horizontal_rms_cm")},
         }
+        if "noisy" in names:
+            stats[mode]["pose_error_before_cm"] = summarise([r[mode]["noisy"]["pose_error_before_cm"]
+                                                             for r in results], "low")
         s = stats[mode]
-        stats[mode]["target_met"] = all(s[f"refined_{k}"]["worst"] is not None and s[f"refined_{k}"]["worst"] <= bound
-                                        for k, bound in (("psnr_cost_db", 1.0), ("miou_cost_pts", 3.0)))
-    print("| world | mode | run | PSNR dB | mIoU % | lane marking IoU % | pose error cm | wall s |")
-    print("|---|---|---|---|---|---|---|---|")
+        for name in ("refined", "lidar"):
+            if name in names:
+                s[f"{name}_target_met"] = all(
+                    s[f"{name}_{k}"]["worst"] is not None and s[f"{name}_{k}"]["worst"] <= bound
+                    for k, bound in (("psnr_cost_db", 1.0), ("miou_cost_pts", 3.0)))
+    print("| world | mode | run | PSNR dB | mIoU % | lane marking IoU % | pose error cm | common along / across cm, "
+          "turn deg, non-rigid cm | wall s |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in results:
         for mode in modes:
             for name in ("exact", *noisy_runs(mode, args.clean_refined)):
                 f = r[mode][name]
                 error = f["pose_error_before_cm"] if name == "noisy" else f["pose_error_after_cm"]
+                after = f["pose_error_after"] or {}
                 print(f"| {r['seed']} | {mode} | {name} | {fmt(f['psnr_db'])} | {fmt(f['miou_pct'])} | "
                       f"{fmt(f['lane_marking_iou_pct'])} | {fmt(error if name != 'exact' else 0.0)} | "
+                      f"{fmt(after.get('common_along_cm'))} / {fmt(after.get('common_across_cm'))}, "
+                      f"{fmt(after.get('rigid_turn_deg'))}, {fmt(after.get('nonrigid_horizontal_rms_cm'))} | "
                       f"{fmt(f['wall_s'])} |")
     for mode in modes:
         s = stats[mode]
-        if mode == "lidar":
-            print(f"lidar, photometric refinement only: PSNR cost median "
-                  f"{fmt(s['photometric_psnr_cost_db']['median'])} worst {fmt(s['photometric_psnr_cost_db']['worst'])}"
-                  f" dB; mIoU cost median {fmt(s['photometric_miou_cost_pts']['median'])} worst "
-                  f"{fmt(s['photometric_miou_cost_pts']['worst'])} points")
-        if args.clean_refined:
-            print(f"{mode}, refinement on with no noise: PSNR cost median "
-                  f"{fmt(s['clean_refined_psnr_cost_db']['median'])} worst "
-                  f"{fmt(s['clean_refined_psnr_cost_db']['worst'])} dB; mIoU cost median "
-                  f"{fmt(s['clean_refined_miou_cost_pts']['median'])} worst "
-                  f"{fmt(s['clean_refined_miou_cost_pts']['worst'])} points")
-        print(f"{mode}: PSNR cost noisy median {fmt(s['noisy_psnr_cost_db']['median'])} worst "
-              f"{fmt(s['noisy_psnr_cost_db']['worst'])} dB, refined median {fmt(s['refined_psnr_cost_db']['median'])} "
-              f"worst {fmt(s['refined_psnr_cost_db']['worst'])} dB; mIoU cost noisy median "
-              f"{fmt(s['noisy_miou_cost_pts']['median'])} worst {fmt(s['noisy_miou_cost_pts']['worst'])}, refined "
-              f"median {fmt(s['refined_miou_cost_pts']['median'])} worst {fmt(s['refined_miou_cost_pts']['worst'])} "
-              f"points: target {'met' if s['target_met'] else 'not met'}")
+        for name in noisy_runs(mode, args.clean_refined):
+            line = (f"{mode}, {name}: PSNR cost median {fmt(s[f'{name}_psnr_cost_db']['median'])} worst "
+                    f"{fmt(s[f'{name}_psnr_cost_db']['worst'])} dB; mIoU cost median "
+                    f"{fmt(s[f'{name}_miou_cost_pts']['median'])} worst {fmt(s[f'{name}_miou_cost_pts']['worst'])} "
+                    f"points")
+            if f"{name}_common_horizontal_cm" in s:
+                line += (f"; pose error after {fmt(s[f'{name}_pose_error_after_cm']['median'])} / "
+                         f"{fmt(s[f'{name}_pose_error_after_cm']['worst'])} cm, of it common "
+                         f"{fmt(s[f'{name}_common_horizontal_cm']['median'])} / "
+                         f"{fmt(s[f'{name}_common_horizontal_cm']['worst'])}, relative "
+                         f"{fmt(s[f'{name}_relative_horizontal_rms_cm']['median'])} / "
+                         f"{fmt(s[f'{name}_relative_horizontal_rms_cm']['worst'])}, non-rigid "
+                         f"{fmt(s[f'{name}_nonrigid_horizontal_rms_cm']['median'])} / "
+                         f"{fmt(s[f'{name}_nonrigid_horizontal_rms_cm']['worst'])} cm horizontal")
+            if f"{name}_target_met" in s:
+                line += f": target {'met' if s[f'{name}_target_met'] else 'not met'}"
+            print(line)
     print(json.dumps({"bench": "pose_noise", "worlds": count, "seconds": seconds, "noise_m": args.noise_m,
                       "noise_deg": args.noise_deg, "every_s": args.every_s,
+                      "noise_seed": "per world" if args.noise_seed_per_world else 0,
                       "cpus_available": len(os.sched_getaffinity(0)), "load_average_1min": os.getloadavg()[0],
                       "wall_s": round(time.perf_counter() - started, 1), "median_worst": stats, "runs": results}))
     return 0

@@ -182,6 +182,23 @@ class PoseRefinementConfig(StrictModel):
     lidar_huber_m: float = Field(0.03, gt=0)  # points further than this from their cell's height count less
     lidar_rounds: int = Field(4, ge=1)  # reweighted least-squares rounds
     lidar_max_points: int = Field(400_000, ge=1)  # an even subsample of the ground points when there are more
+    lidar_horizontal: bool = False  # with Lidar ground points: every axis from them, x, y and yaw too (mapping.fits
+    # .lidar_horizontal_registration: the intensity contrast, paint, and the kerbs' slopes, fitted with the heights);
+    # no photometric fit. Offline the drive is then read again with the corrected trajectory (`roadlog reconstruct
+    # --pose-refinement lidar`)
+    lidar_horizontal_blur_m: tuple[float, ...] = Field((0.4, 0.2, 0.1), min_length=1)  # its fields' Gaussian
+    # sigma (m), one stage per entry, coarse to fine
+    lidar_horizontal_rounds: int = Field(3, ge=1)  # Gauss-Newton steps per stage
+    lidar_horizontal_min_cell_m: float = Field(0.1, gt=0)  # its cells (each stage's sigma / 2) at least this size
+    lidar_contrast_sigma: float = Field(0.3, gt=0)  # a point's intensity contrast error (log units)
+    lidar_horizontal_huber: float = Field(1.0, gt=0)  # residuals beyond this many sigmas count less
+
+    @model_validator(mode="after")
+    def _horizontal_needs_the_height_registration(self) -> PoseRefinementConfig:
+        if self.lidar_horizontal and not self.lidar_registration:  # it starts from the heights' corrections
+            raise ValueError("lidar_horizontal needs lidar_registration (it starts from the height registration's "
+                             "corrections)")
+        return self
 
 
 class MasklessConfig(StrictModel):

@@ -29,12 +29,13 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from daemon.spine.mapper_config import PoseRefinementConfig
 from daemon.spine.semantic_classes import NUM_MAP_CLASSES
 from mapping.fits.photometric_elevation import grey_image
 from mapping.fits.vertex_observations import bilinear, label_at, project_points
-from mapping.localization.trajectory import HorizontalTrack
+from mapping.localization.trajectory import HorizontalTrack, Trajectory
 from mapping.method.compute_device import optimisation_loop
 from mapping.method.descent import Descent
 from mapping.method.mesh_renderer import project
@@ -88,6 +89,16 @@ def corrected(keyframes: list[Keyframe], trajectory: HorizontalTrack, correction
         T[:3, 3] = ref + dp + dR @ (kf.T_world_camera[:3, 3] - ref)
         out.append(replace(kf, T_world_camera=T))
     return out
+
+
+def corrected_trajectory(trajectory: Trajectory, path: HorizontalTrack, corrections: PoseCorrections) -> Trajectory:
+    """The vehicle's trajectory with the corrections applied to each pose (at its place on `path`, the trajectory's
+    horizontal track the corrections were fitted along; on the left, about the reference point, as `corrected`)."""
+    seconds = (trajectory.times_ns - trajectory.times_ns[0]) / 1e9 + path.times[0]
+    position, rotation = corrections.at(path.horizontal_distance_at(seconds))
+    rotations = Rotation.from_rotvec(rotation) * trajectory.rotations
+    return Trajectory(trajectory.times_ns, trajectory.positions + position, rotations.as_quat(),
+                      trajectory.origin_lat_deg, trajectory.origin_lon_deg, trajectory.origin_alt_m)
 
 
 def reference_points(trajectory: HorizontalTrack, times: np.ndarray) -> np.ndarray:

@@ -21,11 +21,12 @@ import numpy as np
 import torch
 
 from daemon.spine.local_frame import LocalFrame
-from daemon.spine.mapper_config import MapperConfig
+from daemon.spine.mapper_config import MapperConfig, PoseRefinementConfig
 from mapping.fits import faithful_fit, fast_fit
+from mapping.fits.lidar_horizontal_registration import register_horizontal
 from mapping.fits.lidar_occlusion import OcclusionTest
 from mapping.fits.lidar_registration import re_placed, register_ground
-from mapping.fits.pose_refinement import PoseCorrections, refine_poses
+from mapping.fits.pose_refinement import PoseCorrections, corrected, refine_poses
 from mapping.localization.keyframe_spacing import spaced_by_distance
 from mapping.localization.trajectory import HorizontalTrack
 from mapping.method.mesh_location import Located
@@ -115,6 +116,22 @@ def _waited_for(value, timings: dict[str, float], key: str):
     return ready
 
 
+def lidar_refinement_unavailable(refine: PoseRefinementConfig, lidar_supervision: bool, have_lidar: bool,
+                                 registered: bool) -> str | None:
+    """Why the Lidar registration of every axis (`mapper.pose_refinement.lidar_horizontal`), asked for, did not
+    run, so that the photometric refinement took its place (metrics `pose_refinement.lidar_unavailable`); None when
+    it was not asked for. `registered`: the height registration ran (the ground points had their firing times)."""
+    if not (refine.enabled and refine.lidar_horizontal):
+        return None
+    if not lidar_supervision:
+        return "the ablation fits without Lidar supervision"
+    if not have_lidar:
+        return "no Lidar ground points (a drive without Lidar, or --no-lidar)"
+    if not registered:
+        return "the Lidar ground points have no firing times"
+    return None
+
+
 def reconstruct(
     keyframes: list[Keyframe] | Future[list[Keyframe]],
     cameras: dict[str, CameraModel],
@@ -132,6 +149,7 @@ def reconstruct(
     origin: LocalFrame | None = None,
     phase: Callable[[str], None] = lambda _: None,
     lidar_ground_times: np.ndarray | None | Future[np.ndarray | None] = None,
+    lidar_ground_contrast: np.ndarray | None | Future[np.ndarray | None] = None,
 ) -> ReconstructionResult:
     """Reconstruct the road surface seen by `keyframes` along `trajectory`; evaluate; export if out_dir.
     `keyframes`, `lidar_ground_points` and `lidar_standing` may be Futures (inputs still loading): the mesh is
@@ -140,7 +158,9 @@ def reconstruct(
     (mapping.fits.lidar_occlusion; None: they are used whole). `origin`: the geodetic origin of the trajectory's
     ENU frame, which places the exported map on the earth (None: unknown). `phase` is told each phase as it ends.
     `lidar_ground_times`: each ground point's firing time (s from the track's start), which the pose refinement's
-    Lidar registration needs (None: photometric refinement only)."""
+    Lidar registration needs (None: photometric refinement only). `lidar_ground_contrast`: each ground point's
+    intensity contrast, which its horizontal registration aligns (`mapper.pose_refinement.lidar_horizontal`; None:
+    the heights only)."""
     start = time.perf_counter()
     runtime, model, windows = config.runtime, config.model, config.windows
     torch.set_num_threads(runtime.torch_threads_faithful_fit if faithful else runtime.torch_threads_fast_fit)
@@ -168,7 +188,7 @@ def reconstruct(
     try:
         truth_at = side.submit(Located.of, mesh, truth_cells(gt)[2]) if gt is not None else None
         have_lidar = lidar_ground_points is not None and len(lidar_ground_points) > 0
-        lidar_corrections, lidar_figures = None, None
+        lidar_corrections, lidar_figures, horizontal_figures = None, None, None
         refine = config.pose_refinement
         if not faithful and refine.enabled and refine.lidar_registration and have_lidar \
                 and variant.lidar_supervision:
@@ -176,6 +196,14 @@ def reconstruct(
             if ground_times is not None and len(ground_times) == len(lidar_ground_points):
                 lidar_corrections, lidar_figures = register_ground(lidar_ground_points, ground_times, trajectory,
                                                                    refine, timings)
+                if refine.lidar_horizontal:  # all six axes from the Lidar, from the heights' corrections
+                    contrast = _waited_for(lidar_ground_contrast, timings, "lidar_contrast_wait_s")
+                    if contrast is not None and len(contrast) != len(lidar_ground_points):
+                        contrast = None
+                    lidar_corrections, horizontal_figures = register_horizontal(
+                        lidar_ground_points, ground_times, contrast, trajectory, refine, timings, lidar_corrections)
+                    phase(f"Lidar ground registered horizontally ({horizontal_figures['position_rms_cm']:.1f} cm "
+                          f"RMS correction)")
                 lidar_ground_points = re_placed(lidar_ground_points, ground_times, trajectory, lidar_corrections)
                 supervision = lidar_ground_points
                 phase(f"Lidar ground registered ({lidar_figures['position_rms_cm']:.1f} cm RMS height correction)")
@@ -196,10 +224,18 @@ def reconstruct(
             elevation_first_last = fast_fit.fit_surface_from_images(road_map, train, cameras, trajectory, config,
                                                                     rng, timings, progress)
         corrections, pose_figures = None, None
-        if not faithful and config.pose_refinement.enabled:  # the corrected poses observe and are evaluated
+        lidar_unavailable = None if faithful or horizontal_figures is not None else lidar_refinement_unavailable(
+            config.pose_refinement, variant.lidar_supervision, have_lidar, lidar_figures is not None)
+        if horizontal_figures is not None:  # the Lidar fitted every axis: the cameras take its corrections
+            corrections = lidar_corrections
+            train, holdout = corrected(train, trajectory, corrections), corrected(holdout, trajectory, corrections)
+            pose_figures = {**corrections.figures(), "source": "lidar registration (height and horizontal)"}
+        elif not faithful and config.pose_refinement.enabled:  # the corrected poses observe and are evaluated
             train, holdout, corrections, pose_figures = refine_poses(
                 road_map, train, holdout, cameras, trajectory, config.pose_refinement, config.fast_fit.behind_m,
                 config.fast_fit.ahead_m, timings, lidar_corrections)
+            if lidar_unavailable is not None:  # asked for the Lidar's every axis, given the photometric fit
+                pose_figures.update(source="photometric", lidar_unavailable=lidar_unavailable)
             phase(f"poses refined ({pose_figures['position_rms_cm']:.1f} cm RMS correction)")
         semantics = semantics_status(train, road_map, config)
         if semantics.startswith("unavailable"):  # nothing to train them on: no semantics, not untrained logits
@@ -261,6 +297,7 @@ def reconstruct(
         **(maskless_figures(*tested, occlusion, not faithful and config.maskless.consensus) if maskless else {}),
         **({"pose_refinement": pose_figures} if pose_figures is not None else {}),
         **({"lidar_registration": lidar_figures} if lidar_figures is not None else {}),
+        **({"lidar_horizontal_registration": horizontal_figures} if horizontal_figures is not None else {}),
     )
     if out_dir is not None:
         path = Path(out_dir) / "metrics.json"

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 from collections import defaultdict
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -72,6 +73,8 @@ class DriveInputs:
     lidar_standing: StandingPoints | None = None  # what stands on the road, for the keyframes without masks
     lidar_ground_times: np.ndarray | None = None  # (N,) each ground point's firing time, s from the track's start
     gnss_std_m: tuple[float, float] | None = None  # gnss_std_m(): its fixes' reported accuracy; None: no fixes
+    lidar_ground_contrast: np.ndarray | None = None  # (N,) each ground point's intensity contrast
+    # (mapping.inputs.lidar_ground.intensity_contrast; NaN: the Lidar gave no intensity)
 
     @property
     def path(self) -> HorizontalTrack:
@@ -98,6 +101,7 @@ class LoadingDrive:
     lidar_standing: Future[StandingPoints | None]  # None: no Lidar, or every keyframe has a mask
     lidar_ground_times: Future[np.ndarray | None]  # (N,) each ground point's firing time, s from the track's start
     gnss_std_m: tuple[float, float] | None = None
+    lidar_ground_contrast: Future[np.ndarray | None] | None = None  # (N,) each ground point's intensity contrast
 
     @property
     def path(self) -> HorizontalTrack:
@@ -110,7 +114,8 @@ class LoadingDrive:
         if ground is not None:
             counts["lidar_ground_points"] = len(ground)
         return DriveInputs(self.cameras, keyframes, self.trajectory, ground, self.clocks, counts, self.report,
-                           self.lidar_standing.result(), self.lidar_ground_times.result(), self.gnss_std_m)
+                           self.lidar_standing.result(), self.lidar_ground_times.result(), self.gnss_std_m,
+                           None if self.lidar_ground_contrast is None else self.lidar_ground_contrast.result())
 
 
 def camera_models(config: CarConfig) -> dict[str, CameraModel]:
@@ -266,14 +271,16 @@ def load_drive(paths: list[str | Path], config: CarConfig, config_path: str | Pa
 def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path: str | Path | None = None, *,
                         origin: LocalFrame | None = None, use_lidar: bool = True,
                         standing: bool | None = None, progress: bool = False,
-                        pose_noise: PoseNoise | None = None) -> LoadingDrive:
+                        pose_noise: PoseNoise | None = None,
+                        trajectory_correction: Callable[[Trajectory], Trajectory] | None = None) -> LoadingDrive:
     """Read the log segments and fuse the trajectory; start extracting the Lidar ground (every
     `mapper.inputs.lidar_every_n_scans`-th scan) and decoding the keyframes (every
     `mapper.inputs.keyframe_spacing_m`) in the background. The Lidar's standing points come too when a keyframe
     has no mask and `mapper.maskless.lidar_occlusion` is on (`standing` True / False: always / never). `progress`:
     a bar with its ETA on stderr for each of the three (the messages read, the scans, the keyframes decoded).
     `pose_noise`: an error injected into the trajectory before anything is placed with it (benches:
-    mapping.localization.pose_noise)."""
+    mapping.localization.pose_noise). `trajectory_correction`: applied to the trajectory (after the noise) before
+    anything is placed with it (the pose refinement's Lidar pre-pass, mapping.offline.reconstruct_command)."""
     report = ReadReport()
     segmenter = segmenter_for(config, config_path)  # a bad model fails here, before the log is read
     cams = [c.name for c in config.sensors.cameras]
@@ -320,6 +327,8 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
         trajectory = fuse_log_trajectory(gnss, imu, wheels, config, origin, clocks, velocities)
     if pose_noise is not None:
         trajectory = perturbed(trajectory, pose_noise)
+    if trajectory_correction is not None:
+        trajectory = trajectory_correction(trajectory)
     chosen, counts = _keyframe_messages(config, frames, masks if segmenter is None else None, clocks, trajectory,
                                         config.mapper.inputs.keyframe_spacing_m)
     # one background thread, the Lidar first: the reconstruction needs it first (its elevation fit), and the
@@ -330,23 +339,24 @@ def start_loading_drive(paths: list[str | Path], config: CarConfig, config_path:
     # a bad metadata or calibration file fails here, before the background work
     scans = lidar_scans(packets, clouds, lambda: configured_decoding(lidar, config_path or "."),
                         config.mapper.inputs.lidar_every_n_scans, view_clouds) if lidar else None
-    ground, ground_times, standing_points = Future(), Future(), Future()
+    ground, ground_times, standing_points, contrast = Future(), Future(), Future(), Future()
     if scans is not None:
         occlusion = (counts["keyframes_without_mask"] > 0 and config.mapper.maskless.lidar_occlusion
                      if standing is None else standing)
         points = pool.submit(scans_ground, scans, clocks[scans.topic], config, trajectory,
                              GroundFilter(corridor_half_width_m=config.mapper.mesh.corridor_half_width_m),
                              int(trajectory.times_ns[0]) if occlusion else None, progress)
-        points.add_done_callback(lambda done: _split(done, ground, ground_times, standing_points))
+        points.add_done_callback(lambda done: _split(done, ground, ground_times, standing_points, contrast))
         counts.update(scans.counts)
     else:
         ground.set_result(None)
         ground_times.set_result(None)
         standing_points.set_result(None)
+        contrast.set_result(None)
     keyframes = pool.submit(_decode_keyframes, chosen, segmenter, progress)
     pool.shutdown(wait=False)
     return LoadingDrive(camera_models(config), keyframes, trajectory, ground, clocks, counts, report,
-                        standing_points, ground_times, gnss_std_m(gnss))
+                        standing_points, ground_times, gnss_std_m(gnss), contrast)
 
 
 def _split(done: Future, *parts: Future) -> None:

@@ -193,17 +193,17 @@ def cloud_scan_points(cloud: PointCloud) -> ScanPoints:
 
 
 def lidar_world_points(scan: ScanPoints, clock: ClockMap, T_vehicle_lidar: np.ndarray, trajectory: Trajectory,
-                       settings: GroundFilter) -> tuple[np.ndarray, np.ndarray]:
+                       settings: GroundFilter) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """World points (N, 3) of one scan, motion compensated, in the scan's order: those in the range band (distance
     from the Lidar frame's origin) fired within the trajectory's time span, each moved with the pose at its time
-    composed with the Lidar mounting (T_world_vehicle(t) @ T_vehicle_lidar); and each point's firing time (N,)
-    in seconds from the trajectory's start."""
+    composed with the Lidar mounting (T_world_vehicle(t) @ T_vehicle_lidar); each point's firing time (N,)
+    in seconds from the trajectory's start; and which of the scan's points they are (N,) (increasing)."""
     times = clock.to_host(scan.times_ns)
     inside = (times >= trajectory.times_ns[0]) & (times <= trajectory.times_ns[-1])
     rng = np.linalg.norm(scan.xyz, axis=1)
     flat = np.flatnonzero((rng > settings.min_range_m) & (rng < settings.max_range_m) & inside[scan.time_index])
     if not len(flat):
-        return np.zeros((0, 3)), np.zeros(0)
+        return np.zeros((0, 3)), np.zeros(0), flat
     used, point_time = np.unique(scan.time_index[flat], return_inverse=True)
     positions, quats = trajectory.interpolate(times[used])
     R_world_vehicle = Rotation.from_quat(quats)
@@ -212,7 +212,30 @@ def lidar_world_points(scan: ScanPoints, clock: ClockMap, T_vehicle_lidar: np.nd
     xyz = scan.xyz[flat].astype(np.float64)  # (N, 3) Lidar frame
     R, t = R[point_time.ravel()], t[point_time.ravel()]
     seconds = (np.asarray(times, np.int64)[scan.time_index[flat]] - int(trajectory.times_ns[0])) / 1e9
-    return (R[:, :, 0] * xyz[:, 0:1] + R[:, :, 1] * xyz[:, 1:2] + R[:, :, 2] * xyz[:, 2:3]) + t, seconds
+    return (R[:, :, 0] * xyz[:, 0:1] + R[:, :, 1] * xyz[:, 1:2] + R[:, :, 2] * xyz[:, 2:3]) + t, seconds, flat
+
+
+INTENSITY_GROUP = 256  # a ground point's intensity contrast: against the median of this many of its scan's ground
+# points nearest to it in range
+
+
+def intensity_contrast(intensity: np.ndarray | None, distance: np.ndarray) -> np.ndarray:
+    """Each ground point's intensity as a contrast to the road around it at its range: log(1 + I) less the median
+    of log(1 + I) over the INTENSITY_GROUP points of the scan nearest in range (the road there, mostly asphalt).
+    Whatever the sensor reports (an Ouster's signal falls with range, a Velodyne's reflectance less so), paint then
+    stands out by about the same amount near and far. NaN without intensities (mapping.fits.lidar_registration
+    then uses the heights only)."""
+    if intensity is None or len(distance) == 0:
+        return np.full(len(distance), np.nan, np.float32)
+    order = np.argsort(distance, kind="stable")
+    value = np.log1p(np.maximum(np.asarray(intensity, np.float64)[order], 0.0))
+    groups = max(1, len(value) // INTENSITY_GROUP)
+    bounds = np.linspace(0, len(value), groups + 1).astype(np.int64)
+    median = np.concatenate([np.full(b - a, np.median(value[a:b]))
+                             for a, b in zip(bounds[:-1], bounds[1:], strict=True)])
+    out = np.empty(len(value), np.float32)
+    out[order] = value - median
+    return out
 
 
 def _tile_key(tiles: np.ndarray) -> np.ndarray:
@@ -416,11 +439,12 @@ def lidar_scans(packets: list[LidarPacket], clouds: list[PointCloud],
 
 def scans_ground(scans: LidarScans, clock: ClockMap, config: CarConfig, trajectory: Trajectory,
                  settings: GroundFilter, standing_t0_ns: int | None = None, progress: bool = False
-                 ) -> tuple[np.ndarray, np.ndarray, StandingPoints | None]:
+                 ) -> tuple[np.ndarray, np.ndarray, StandingPoints | None, np.ndarray]:
     """Ground points of the scans, in scan order, their firing times (seconds from the trajectory's start: what
-    mapping.fits.lidar_registration re-places them with), and with `standing_t0_ns` the points standing on the
+    mapping.fits.lidar_registration re-places them with), their intensity contrast (intensity_contrast: what
+    the registration aligns horizontally), and with `standing_t0_ns` the points standing on the
     road scan by scan (heights: `mapper.maskless`), each scan at the host time of its middle firing in seconds from
-    standing_t0_ns (the keyframes' clock), else None. The scans are shared out over
+    standing_t0_ns (the keyframes' clock), else None (returned third, the contrast last). The scans are shared out over
     `mapper.runtime.lidar_ground_threads` threads (numpy releases the GIL in its array work); `progress`: a bar of
     the scans with its ETA on stderr."""
     T_vl = config.sensors.lidar.extrinsics.matrix()
@@ -430,26 +454,31 @@ def scans_ground(scans: LidarScans, clock: ClockMap, config: CarConfig, trajecto
 
     bar = tqdm(total=len(scans.scans), desc="lidar ground", unit="scan", disable=not progress, mininterval=0.5)
 
-    def scan_points(scan: object) -> tuple[np.ndarray, np.ndarray, tuple[float, np.ndarray] | None]:
+    def scan_points(scan: object) -> tuple[np.ndarray, np.ndarray, tuple[float, np.ndarray] | None, np.ndarray]:
         bar.update()
         points = scans.decode(scan)
-        world, seconds = lidar_world_points(points, clock, T_vl, trajectory, settings)
+        world, seconds, index = lidar_world_points(points, clock, T_vl, trajectory, settings)
         on_ground = ground_index(world, road, settings)
+        kept = index[on_ground]
+        contrast = intensity_contrast(None if points.intensity is None else points.intensity[kept],
+                                      np.linalg.norm(points.xyz[kept], axis=1))
         if standing_t0_ns is None or len(points.times_ns) == 0:
-            return world[on_ground], seconds[on_ground], None
+            return world[on_ground], seconds[on_ground], None, contrast
         middle = int(clock.to_host([int(points.times_ns[len(points.times_ns) // 2])])[0])
         return world[on_ground], seconds[on_ground], ((middle - standing_t0_ns) / 1e9, standing_points(
-            world, road, heights.standing_min_m, heights.standing_max_m))
+            world, road, heights.standing_min_m, heights.standing_max_m)), contrast
 
     with ThreadPoolExecutor(config.mapper.runtime.lidar_ground_threads, thread_name_prefix="lidar-ground") as pool:
         out = list(pool.map(scan_points, scans.scans))
     bar.close()
-    ground = np.concatenate([g for g, _, _ in out]) if out else np.zeros((0, 3))
-    times = np.concatenate([t for _, t, _ in out]) if out else np.zeros(0)
+    ground = np.concatenate([g for g, _, _, _ in out]) if out else np.zeros((0, 3))
+    times = np.concatenate([t for _, t, _, _ in out]) if out else np.zeros(0)
+    contrast = np.concatenate([c for _, _, _, c in out]) if out else np.zeros(0, np.float32)
     if settings.static is not None:
-        scan = np.repeat(np.arange(len(out)), [len(g) for g, _, _ in out])
+        scan = np.repeat(np.arange(len(out)), [len(g) for g, _, _, _ in out])
         static = static_index(ground, scan, settings.static)
-        ground, times = ground[static], times[static]
+        ground, times, contrast = ground[static], times[static], contrast[static]
     if standing_t0_ns is None:
-        return ground, times, None
-    return ground, times, StandingPoints.of(sorted((s for _, _, s in out if s is not None), key=lambda s: s[0]))
+        return ground, times, None, contrast
+    return ground, times, StandingPoints.of(sorted((s for _, _, s, _ in out if s is not None), key=lambda s: s[0])), \
+        contrast

@@ -52,6 +52,7 @@ class WindowInputs:
     # Lidar registration re-places the points with them, as `reconstruct` does offline)
     provenance: dict  # host time range, per-topic seq ranges, log segments, input counts (into the journal)
     standing: StandingPoints | None  # what the Lidar saw standing on the road, for keyframes without masks
+    ground_contrast: np.ndarray | None = None  # each ground point's intensity contrast (the registration's)
 
 
 def gather_window_inputs(worker: MappingWorker, k: int) -> WindowInputs:
@@ -104,12 +105,12 @@ def gather_window_inputs(worker: MappingWorker, k: int) -> WindowInputs:
     keyframes.sort(key=lambda kf: kf.timestamp)
     scans = lidar_scans(by_topic.get(LIDAR_PACKETS, []), by_topic.get(LIDAR_POINTS, []),
                         lambda: worker.lidar_decoding, 1)  # every n-th scan: kept by the bus thread
-    ground = ground_times = standing = None
+    ground = ground_times = standing = contrast = None
     if scans is not None:  # what stands on the road too, when a keyframe has no mask to leave it out
         occlusion = m.maskless.lidar_occlusion and any(kf.semantics is None for kf in keyframes)
-        ground, ground_times, standing = scans_ground(scans, clocks[scans.topic], worker.config, traj,
-                                                   GroundFilter(corridor_half_width_m=m.mesh.corridor_half_width_m),
-                                                   t_lo if occlusion else None)
+        ground, ground_times, standing, contrast = scans_ground(
+            scans, clocks[scans.topic], worker.config, traj,
+            GroundFilter(corridor_half_width_m=m.mesh.corridor_half_width_m), t_lo if occlusion else None)
         ground_times = ground_times + (int(traj.times_ns[0]) - t_lo) / 1e9  # from the fusion's start to t_lo's
     fed = dict(by_topic)
     for t in FUSION_TOPICS:
@@ -121,4 +122,4 @@ def gather_window_inputs(worker: MappingWorker, k: int) -> WindowInputs:
                   **(scans.counts if scans else {"lidar_packets": 0}),
                   "lidar_ground_points": 0 if ground is None else len(ground)}
     return WindowInputs(centre, s_lo, s_hi, t_lo, t_hi, traj, path, keyframes, ground, ground_times, provenance,
-                        standing)
+                        standing, contrast)

@@ -121,6 +121,8 @@ class WorkerState:
     lag_s: float = 0.0
     last_window_wall_s: float = 0.0
     wheel_messages_without_speed: int = 0
+    windows_without_lidar_refinement: int = 0  # mapper.pose_refinement.lidar_horizontal asked for, no Lidar ground
+    # in the window: the photometric refinement took its place (each window's reason in its journal metrics)
     finished: bool = False
 
 
@@ -172,6 +174,8 @@ class MappingWorker:
             self.state.windows_failed += w.status == "failed"
             self.state.windows_skipped += w.status == "skipped"
             self.state.skipped_m += self._central_m(w.index) if w.status == "skipped" else 0.0
+            self.state.windows_without_lidar_refinement += bool((w.metrics or {}).get(
+                "pose_refinement_lidar_unavailable"))
         self.journal.windows = []  # on disk; the final map reads them back: memory does not grow with the drive
         self.state.mapped_until_m = self.journal.mapped_until_m
         self.live_view = None
@@ -272,7 +276,14 @@ class MappingWorker:
         cfg = m.model_copy(update={"model": m.model.model_copy(update={"seed": seed})})
         result = reconstruct(inputs.keyframes, self.cameras, path, inputs.ground, cfg,
                              self.config.vehicle.reference_height_m, holdout_every=0, progress=False,
-                             lidar_standing=inputs.standing, lidar_ground_times=inputs.ground_times)
+                             lidar_standing=inputs.standing, lidar_ground_times=inputs.ground_times,
+                             lidar_ground_contrast=inputs.ground_contrast)
+        unavailable = result.metrics.get("pose_refinement", {}).get("lidar_unavailable")
+        if unavailable is not None:
+            self.state.windows_without_lidar_refinement += 1
+            if self.state.windows_without_lidar_refinement == 1:  # once; counted on /status
+                log.warning("window %d: mapper.pose_refinement.lidar_horizontal asked for, but %s: the photometric "
+                            "refinement instead", k, unavailable)
         bev = bev_rasters(result.road_map, self.cam_names, self.res, m.runtime.raster_threads)
         j0, i0 = (int(round(v / self.res)) for v in bev["origin_xy"])
         half = (m.windows.before_m + m.windows.after_m) / 4.0
@@ -306,7 +317,8 @@ class MappingWorker:
         extent = ([float(x) for x in path.positions[:, :2].min(0)] + [float(x) for x in path.positions[:, :2].max(0)])
         return WindowEntry(k, "done", centre_m=centre, start_m=s_lo, end_m=s_hi, seed=seed, wall_s=wall,
                            finished_mono_ns=time.monotonic_ns(), tiles=tiles, trajectory_xy_box=extent,
-                           metrics={x: result.metrics.get(x) for x in keep}, **inputs.provenance,
+                           metrics={**{x: result.metrics.get(x) for x in keep},
+                                    "pose_refinement_lidar_unavailable": unavailable}, **inputs.provenance,
                            config={"path": self.config_path, "sha256": self.config_sha256})
 
     def _error(self, what: str) -> None:
@@ -420,6 +432,7 @@ class MappingWorker:
             "spool_bytes": self.spool.bytes + self.small_spool.bytes,
             "errors": self.health.errors, "last_error": self.health.last_error, "bus_lost": self.reader.lost,
             "wheel_messages_without_speed": st.wheel_messages_without_speed,
+            "windows_without_lidar_refinement": st.windows_without_lidar_refinement,
             "live_view": None if self.live_view is None else {"port": self.live_view.port,
                                                               "windows_published": self.live_view.published},
             "held": self.reader.held() | {"odometry_knots": len(self.odometry.knots_t)},

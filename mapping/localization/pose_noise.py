@@ -63,11 +63,59 @@ def residual_error(noise: PoseNoise, trajectory: Trajectory, seconds: np.ndarray
                    correction_rotation: np.ndarray | None = None) -> dict:
     """RMS of the vehicle pose's error left at `seconds` (the keyframes' times) once a correction (position (M, 3)
     m, rotation vector (M, 3) rad, applied as the noise is: on the left, about the reference point) is applied
-    to the perturbed `trajectory`'s (None: none): position in cm (3-D and horizontal), rotation in degrees."""
+    to the perturbed `trajectory`'s (None: none): position in cm (3-D and horizontal), rotation in degrees, and
+    per component in the track's frame (along / across / vertical cm; roll / pitch / yaw degrees); the horizontal
+    error's mean over `seconds` (`common_horizontal_cm`; signed, in the track's frame, `common_along_cm` and
+    `common_across_cm`; and the yaw's, `common_yaw_deg`: a shift and turn of the whole drive, which no registration
+    of the drive against itself can see) and its RMS less that mean (`relative_horizontal_rms_cm`); the same with
+    the whole drive's turn too (`_rigid_part`)."""
     position, rotation = noise.error_at(trajectory, seconds)
     if correction_position is not None:
         position = position + correction_position
         rotation = (Rotation.from_rotvec(correction_rotation) * Rotation.from_rotvec(rotation)).as_rotvec()
-    return {"position_rms_cm": 100.0 * float(np.sqrt((position ** 2).sum(1).mean())),
+    # per component in the track's frame at each time: along / across the heading, up; roll (about the heading),
+    # pitch (about its left), yaw (about up)
+    seconds = np.asarray(seconds, np.float64)
+    places, quats = trajectory.interpolate(trajectory.times_ns[0] + np.rint(seconds * 1e9).astype(np.int64))
+    forward = Rotation.from_quat(quats).apply([1.0, 0.0, 0.0])
+    heading = np.arctan2(forward[:, 1], forward[:, 0])
+    c, s = np.cos(heading), np.sin(heading)
+
+    def in_track(v: np.ndarray) -> np.ndarray:
+        return np.stack([c * v[:, 0] + s * v[:, 1], -s * v[:, 0] + c * v[:, 1], v[:, 2]], 1)
+
+    def rms(v: np.ndarray) -> list[float]:
+        return [float(x) for x in np.sqrt((v ** 2).mean(0))]
+
+    along, across, up = rms(100.0 * in_track(position))
+    roll, pitch, yaw = rms(np.rad2deg(in_track(rotation)))
+    # what a registration of the drive against itself cannot see, the error common to all its poses (its mean), and
+    # what is left without it
+    common = position.mean(0)
+    relative = position[:, :2] - common[:2]
+    common_along, common_across, _ = (100.0 * in_track(position).mean(0)).tolist()
+    return {"common_horizontal_cm": 100.0 * float(np.hypot(*common[:2])),
+            "common_along_cm": common_along, "common_across_cm": common_across,
+            "relative_horizontal_rms_cm": 100.0 * float(np.sqrt((relative ** 2).sum(1).mean())),
+            "common_yaw_deg": float(np.rad2deg(rotation[:, 2].mean())),
+            **_rigid_part(position[:, :2], places[:, :2]),
+            "position_rms_cm": 100.0 * float(np.sqrt((position ** 2).sum(1).mean())),
             "horizontal_rms_cm": 100.0 * float(np.sqrt((position[:, :2] ** 2).sum(1).mean())),
-            "rotation_rms_deg": float(np.rad2deg(np.sqrt((rotation ** 2).sum(1).mean())))}
+            "rotation_rms_deg": float(np.rad2deg(np.sqrt((rotation ** 2).sum(1).mean()))),
+            "along_rms_cm": along, "across_rms_cm": across, "vertical_rms_cm": up,
+            "roll_rms_deg": roll, "pitch_rms_deg": pitch, "yaw_rms_deg": yaw}
+
+
+def _rigid_part(error: np.ndarray, places: np.ndarray) -> dict:
+    """The horizontal errors (M, 2) at `places` (M, 2) as a shift and turn of the whole drive (least squares; a turn
+    of a about the places' centroid moves a place q from it by a (-qy, qx)): `rigid_turn_deg` (a), and the RMS the
+    errors have left without shift and turn, `nonrigid_horizontal_rms_cm`. A registration of the drive against
+    itself cannot see a shift or a turn of all of it: from the Lidar and the cameras, this is the error it can
+    remove."""
+    q = places - places.mean(0)
+    left = error - error.mean(0)
+    turn_of = np.stack([-q[:, 1], q[:, 0]], 1)
+    a = float((turn_of * left).sum() / max((q ** 2).sum(), 1e-12))
+    rest = left - a * turn_of
+    return {"rigid_turn_deg": float(np.rad2deg(a)),
+            "nonrigid_horizontal_rms_cm": 100.0 * float(np.sqrt((rest ** 2).sum(1).mean()))}

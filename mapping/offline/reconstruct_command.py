@@ -9,8 +9,9 @@ A log without masks (and no segmentation model configured) still maps: colour an
 no semantics (`miou_pct` null, `semantics` says why, no bev_semantics.* files), and a warning on stderr naming
 the frames without a mask. When only some frames have masks, the semantics come from those.
 
-`--pose-refinement on|off|photometric` switches the fast fit's pose corrections (mapper.pose_refinement;
-photometric: without the Lidar ground registration first). `--pose-noise-m` /
+`--pose-refinement on|off|photometric|lidar` switches the fast fit's pose corrections (mapper.pose_refinement;
+photometric: without the Lidar ground registration first; lidar: every axis from the Lidar ground, its heights and
+intensity contrast, no photometric fit: `lidar_horizontal`). `--pose-noise-m` /
 `--pose-noise-deg` (benches) inject a smooth random error into the trajectory before anything is placed with it
 (mapping.localization.pose_noise); metrics `pose_noise` then give it and what the corrections left of it.
 """
@@ -23,7 +24,8 @@ import sys
 import tempfile
 import time
 import zipfile
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -42,9 +44,13 @@ from daemon.spine.health import process_memory_mb
 from daemon.spine.local_frame import LocalFrame
 from daemon.spine.recorded_config import known_mapper_keys, sectioned_recorded_config
 from daemon.spine.yaml_document import UnusableYaml, load_yaml
-from mapping.fits.reconstruction import ReconstructionResult, reconstruct
+from mapping.fits.lidar_horizontal_registration import register_horizontal
+from mapping.fits.lidar_registration import register_ground
+from mapping.fits.pose_refinement import PoseCorrections, corrected_trajectory
+from mapping.fits.reconstruction import ReconstructionResult, lidar_refinement_unavailable, reconstruct
 from mapping.inputs.drive_inputs import DriveInputs, missing_masks_warning, start_loading_drive
 from mapping.localization.pose_noise import PoseNoise, residual_error
+from mapping.localization.trajectory import HorizontalTrack, Trajectory
 from mapping.method.compute_device import DEVICES, resolve_device, with_device
 from mapping.method.road_map import ABLATIONS, variant_for
 from mapping.method.scene_data import GroundTruth
@@ -156,9 +162,22 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
     started = time.perf_counter()
     phase = PhaseLines(progress)
     phase(f"reading {len(logs)} log(s) in the background, writing to {out}")
+    refine = config.mapper.pose_refinement
+    pre_pass = None
+    if refine.enabled and refine.lidar_horizontal and use_lidar and not faithful \
+            and variant_for(ablation).lidar_supervision:
+        pre_pass = lidar_pre_pass(logs, config, config_path, truth, progress, pose_noise, phase)
+        if pre_pass is not None:  # the drive is read again with the corrected trajectory, nothing fitted twice
+            config = config.model_copy(update={"mapper": config.mapper.model_copy(
+                update={"pose_refinement": refine.model_copy(update={"enabled": False})})})
+    unavailable = None if faithful or pre_pass is not None else lidar_refinement_unavailable(
+        refine, variant_for(ablation).lidar_supervision, False, False)  # no pre-pass: no usable Lidar ground
+    if unavailable is not None:  # reconstruct reports it too, in metrics pose_refinement.lidar_unavailable
+        say(f"warning: --pose-refinement lidar (mapper.pose_refinement.lidar_horizontal) asked for, but "
+            f"{unavailable}: the photometric refinement instead")
     loading = start_loading_drive(logs, config, config_path, origin=truth.origin if truth else None,
-                                  use_lidar=use_lidar, progress=progress,
-                                  pose_noise=pose_noise)
+                                  use_lidar=use_lidar, progress=progress, pose_noise=pose_noise,
+                                  trajectory_correction=None if pre_pass is None else pre_pass.correct)
     phase("drive path read")
     warning = missing_masks_warning(loading.counts["frames"], loading.counts["frames_without_mask"])
     if warning is not None:
@@ -171,7 +190,8 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
                          config.mapper, config.vehicle.reference_height_m, out_dir=out, ablation=ablation,
                          gt=truth.elevation if truth else None, faithful=faithful, progress=progress,
                          lidar_standing=loading.lidar_standing, origin=loading.trajectory.local_frame,
-                         phase=phase, lidar_ground_times=loading.lidar_ground_times)
+                         phase=phase, lidar_ground_times=loading.lidar_ground_times,
+                         lidar_ground_contrast=loading.lidar_ground_contrast)
     drive = loading.result()
     lidar = drive.lidar_ground_points
     metrics = result.metrics
@@ -180,8 +200,16 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
             from mapping.outputs.map_metrics import elev_error_cm
 
             metrics["elev_error_cm"] = elev_error_cm(result.road_map, truth.lidar_points)
+    if pre_pass is not None:
+        result = replace(result, pose_corrections=pre_pass.corrections)
+        metrics.update(pre_pass.timings, lidar_registration=pre_pass.height_figures,
+                       lidar_horizontal_registration=pre_pass.horizontal_figures,
+                       pose_refinement={**pre_pass.corrections.figures(),
+                                        "source": "Lidar pre-pass (height and horizontal registration), the drive "
+                                                  "read again with the corrected trajectory"})
     if pose_noise is not None:
-        metrics["pose_noise"] = pose_noise_figures(pose_noise, result, drive)
+        metrics["pose_noise"] = pose_noise_figures(pose_noise, result, drive,
+                                                   None if pre_pass is None else pre_pass.path)
     wall = time.perf_counter() - started
     # the one real-time factor (docs/map-outputs.md): drive seconds over this wall time
     metrics.update(drive_s=drive.drive_s, wall_s=wall, rtf=drive.drive_s / wall if wall > 0 else None,
@@ -195,27 +223,69 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
     return result, drive
 
 
-def pose_noise_figures(noise: PoseNoise, result: ReconstructionResult, drive: DriveInputs) -> dict:
+@dataclass(frozen=True)
+class LidarPrePass:
+    """The pose refinement's Lidar pre-pass (`mapper.pose_refinement.lidar_horizontal`, offline): corrections of
+    every axis from the Lidar ground alone (mapping.fits.lidar_registration, then
+    mapping.fits.lidar_horizontal_registration), fitted along the trajectory as first read (`path`); the drive is
+    then read again with the corrected trajectory, so that the Lidar ground filter, its motion compensation, the
+    keyframes and the mesh all take the corrected poses."""
+
+    path: HorizontalTrack
+    corrections: PoseCorrections
+    height_figures: dict
+    horizontal_figures: dict
+    timings: dict
+
+    def correct(self, trajectory: Trajectory) -> Trajectory:
+        return corrected_trajectory(trajectory, self.path, self.corrections)
+
+
+def lidar_pre_pass(logs: list[str], config: CarConfig, config_path: Path, truth: DriveTruth | None, progress: bool,
+                   pose_noise: PoseNoise | None, phase: Callable[[str], None]) -> LidarPrePass | None:
+    """The Lidar pre-pass (LidarPrePass); None when the drive has no Lidar ground points with their times."""
+    started = time.perf_counter()
+    first = start_loading_drive(logs, config, config_path, origin=truth.origin if truth else None, use_lidar=True,
+                                progress=progress, pose_noise=pose_noise)
+    first.keyframes.cancel()  # queued behind the Lidar: only the ground points are needed here
+    points, seconds = first.lidar_ground_points.result(), first.lidar_ground_times.result()
+    contrast = first.lidar_ground_contrast.result() if first.lidar_ground_contrast is not None else None
+    if points is None or seconds is None or len(points) == 0 or len(seconds) != len(points):
+        return None
+    path, refine, timings = first.path, config.mapper.pose_refinement, {}
+    height, height_figures = register_ground(points, seconds, path, refine, timings)
+    corrections, horizontal_figures = register_horizontal(points, seconds, contrast, path, refine, timings, height)
+    timings["lidar_pre_pass_wall_s"] = time.perf_counter() - started
+    phase(f"Lidar pre-pass: poses corrected ({corrections.figures()['position_rms_cm']:.1f} cm RMS), reading the "
+          f"drive again")
+    return LidarPrePass(path, corrections, height_figures, horizontal_figures, timings)
+
+
+def pose_noise_figures(noise: PoseNoise, result: ReconstructionResult, drive: DriveInputs,
+                       path: HorizontalTrack | None = None) -> dict:
     """The injected pose error (metrics `pose_noise`) and the RMS error of the vehicle pose at the keyframes'
     times as the map was made: `keyframes_before` as injected, `keyframes_after` once the pose refinement's
-    corrections are applied (None without refinement)."""
+    corrections are applied (None without refinement; `path`: the track they were fitted along, if not the
+    drive's own: the Lidar pre-pass's)."""
     seconds = np.array([kf.timestamp for kf in drive.keyframes])
     after = None
     if result.pose_corrections is not None:
-        position, rotation = result.pose_corrections.at(drive.path.horizontal_distance_at(seconds))
+        position, rotation = result.pose_corrections.at((path or drive.path).horizontal_distance_at(seconds))
         after = residual_error(noise, drive.trajectory, seconds, position, rotation)
     return {**noise.figures(), "keyframes_before": residual_error(noise, drive.trajectory, seconds),
             "keyframes_after": after}
 
 
 def with_pose_refinement(car: CarConfig, setting: str | None) -> CarConfig:
-    """The car config with mapper.pose_refinement from `--pose-refinement on|off|photometric` (None: as it is;
-    photometric: on without the Lidar ground registration)."""
+    """The car config with mapper.pose_refinement from `--pose-refinement on|off|photometric|lidar` (None: as it
+    is; photometric: on without the Lidar ground registration; lidar: on with the Lidar's horizontal registration
+    too, `lidar_horizontal`)."""
     if setting is None:
         return car
     update = {"enabled": setting != "off"}
     if setting != "off":
-        update["lidar_registration"] = setting == "on"
+        update["lidar_registration"] = setting in ("on", "lidar")
+        update["lidar_horizontal"] = setting == "lidar"
     refinement = car.mapper.pose_refinement.model_copy(update=update)
     return car.model_copy(update={"mapper": car.mapper.model_copy(update={"pose_refinement": refinement})})
 
@@ -235,9 +305,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", choices=DEVICES,
                         help="torch device of the fit: auto (cuda when there is a GPU), cpu or cuda (default: the "
                              "config's mapper.device)")
-    parser.add_argument("--pose-refinement", choices=("on", "off", "photometric"),
+    parser.add_argument("--pose-refinement", choices=("on", "off", "photometric", "lidar"),
                         help="fit corrections of the poses to the map (fast path; default: the config's "
-                             "mapper.pose_refinement.enabled); photometric: without the Lidar ground registration")
+                             "mapper.pose_refinement.enabled); photometric: without the Lidar ground registration; "
+                             "lidar: every axis from the Lidar ground (heights and intensity), no photometric fit")
     parser.add_argument("--pose-noise-m", type=float, default=0.0,
                         help="benches: inject a smooth random pose error of this 3-D RMS (m) into the trajectory")
     parser.add_argument("--pose-noise-deg", type=float, default=0.0,
