@@ -28,8 +28,6 @@ worker moves on. With
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import hashlib
 import json
 import logging
@@ -68,6 +66,7 @@ from mapping.inputs.lidar_ground import configured_decoding
 from mapping.live import lag_policy, live_view, map_tiles
 from mapping.live.bus_reader import BusReader
 from mapping.live.final_map import FinalMapMetadata, TileStore, write_final_map
+from mapping.live.heap_trim import return_freed_memory
 from mapping.live.keyframe_spool import KeyframeSpool
 from mapping.live.map_images import preview_images, write_previews
 from mapping.live.odometry import Odometry, wheel_speed_mps
@@ -92,19 +91,6 @@ ODOMETRY_PERIOD_S = 1.0
 TILE_M = 40.0
 WINDOW_ATTEMPTS = 2
 log = logging.getLogger(__name__)
-
-
-def return_freed_memory() -> None:
-    """Give the heap memory freed after a window back to the system (glibc's malloc_trim; a no-op elsewhere).
-
-    A default window's working set is ~1 GB here; after it glibc kept ~600 MB of it as free heap in its per-thread
-    arenas (RSS 1,160 MB after a window, 545 MB after the trim), and with windows of different sizes and the
-    fits' thread pools that free memory grew from window to window in the 10-minute soak."""
-    name = ctypes.util.find_library("c")
-    try:
-        ctypes.CDLL(name).malloc_trim(0)
-    except (OSError, AttributeError, TypeError):
-        pass
 
 
 @dataclass
