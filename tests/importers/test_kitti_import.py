@@ -194,11 +194,14 @@ def test_kitti_raw_without_its_ins_poses_is_mapped_through_pose_fusion(tmp_path,
     error = (positions - ins_positions(times, records, trajectory.local_frame)[inside])[:, :2]
     offset = error.mean(axis=0)
     shape = np.sqrt(np.mean(np.sum((error - offset) ** 2, axis=1)))
-    assert shape < 0.35, shape  # measured 0.21 m (0.72 m without the velocities: the lat/lon's wander)
+    assert shape < 0.1, shape  # measured 0.03 m (0.21 with the fixes at their stated sigma, 0.72 without velocities)
     assert np.linalg.norm(offset) < 1.0, offset  # measured 0.76 m
     heading_error = np.degrees(Rotation.from_quat(quaternions).as_euler("ZYX")[:, 0] - records[inside, 5])
     heading_rms = np.sqrt(np.mean(((heading_error + 180) % 360 - 180) ** 2))
-    assert heading_rms < 3.0  # measured 1.45 deg (4.0 without the velocities)
+    # measured 1.98 deg (1.45 with the fixes at their stated sigma, 4.0 without velocities), mostly a constant
+    # -1.6: the OXTS's own velocity runs 1.37 deg off its x axis on average (vl / vf), which the fusion's
+    # zero-sideways-velocity constraint (no wheel speeds here) takes as the car's heading
+    assert heading_rms < 3.0
 
 
 @pytest.mark.parametrize("damage, message", [
