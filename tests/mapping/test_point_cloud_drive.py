@@ -14,6 +14,7 @@ import json
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from daemon.bus import pubsub
 from daemon.processes.replay import replay
@@ -53,8 +54,12 @@ def test_a_point_cloud_log_gives_the_lidar_ground_of_its_packet_log(points_drive
         assert b.clocks[LIDAR_POINTS].kind == "utc" and "lidar/packets" not in b.clocks
         ground_a, ground_b = a.lidar_ground_points, b.lidar_ground_points
         assert len(ground_a) > 10_000 * (4 - every_n)
-        assert ground_a.shape == ground_b.shape, every_n
-        assert np.abs(ground_a - ground_b).max() < 1e-6, every_n
+        # the same points within float32 rounding (the cloud log stores float32), so the ground filter's thresholds
+        # may take or drop a point lying on them differently: 1 of 446,706 at every 2nd scan since the fusion's
+        # fixes weigh x3 (a43e398)
+        assert abs(len(ground_a) - len(ground_b)) <= 1e-4 * len(ground_a), (every_n, len(ground_a), len(ground_b))
+        distance, _ = cKDTree(ground_b).query(ground_a)
+        assert np.mean(distance < 1e-6) > 1 - 1e-4, every_n
 
 
 def _reconstruct(log, out, truth_path) -> dict:
@@ -67,7 +72,8 @@ def test_reconstruct_maps_a_point_cloud_log_as_its_packet_log(points_drive, tmp_
     truth = packets_log.with_name("city.gt.npz")
     a = _reconstruct(packets_log, tmp_path / "packets", truth)
     b = _reconstruct(points_log, tmp_path / "points", truth)
-    assert b["inputs"]["lidar_ground_points"] == a["inputs"]["lidar_ground_points"] > 10_000
+    points_a, points_b = a["inputs"]["lidar_ground_points"], b["inputs"]["lidar_ground_points"]
+    assert points_a > 10_000 and abs(points_b - points_a) <= 1e-4 * points_a, (points_a, points_b)  # float32 clouds
     assert b["lidar_supervision"] and b["inputs"]["lidar_point_clouds"] > 0 and "lidar_packets" not in b["inputs"]
     assert b["elev_error_cm"] < 3
     assert abs(b["elev_error_cm"] - a["elev_error_cm"]) < 0.05
