@@ -19,9 +19,8 @@ from dataclasses import dataclass
 import pynmea2
 
 from daemon.spine.messages import GnssVelocity
+from drivers.gnss.receiver_epochs import RECENT_EPOCHS, UNKNOWN_COVARIANCE, covariance_diagonal, epoch_key
 
-EPOCH_KEY_NS = 1_000_000  # epochs are told apart to the millisecond
-RECENT_VELOCITY_EPOCHS = 64  # epochs remembered as already given a velocity
 MAX_VELOCITY_MPS = 500.0  # a car's receiver reporting more is garbled (u-blox's own dynamic limit is 500 m/s)
 KNOT_MPS = 1852.0 / 3600.0
 # NMEA gives no velocity accuracy: a stated, conservative 1-sigma per horizontal axis. Above what real receivers show:
@@ -46,10 +45,6 @@ class _PendingVtg:
     host_mono_ns: int
 
 
-def _epoch_key(sensor_time_ns: int) -> int:
-    return round(sensor_time_ns / EPOCH_KEY_NS)
-
-
 class EpochVelocity:
     """Stateful, owned by a GnssDecoder: keeps the held NMEA velocity, the VTG waiting for its epoch and the epochs
     already given a velocity. Counts into the decoder's `counts`; rejects and drops through the decoder's callables;
@@ -61,7 +56,7 @@ class EpochVelocity:
         self._reject = reject
         self._drop = drop
         self._nmea_utc_ns = nmea_utc_ns
-        self._recent_velocity_ms: deque[int] = deque(maxlen=RECENT_VELOCITY_EPOCHS)
+        self._recent_velocity_ms: deque[int] = deque(maxlen=RECENT_EPOCHS)
         self._ubx_velocity_seen = False  # then NMEA velocities are not used: UBX gives the vertical and sAcc
         self._held_nmea_velocity: GnssVelocity | None = None  # until a message of another epoch (or a UBX one) comes
         self._nmea_velocity_at_once = False  # an epoch passed without a UBX velocity: NMEA ones go out at once
@@ -87,7 +82,7 @@ class EpochVelocity:
         if self._held_nmea_velocity is not None:  # this epoch's: the receiver's own velocity replaces it
             self._held_nmea_velocity = None
             self._counts["ignored_nmea_velocity_ubx_gives_it"] += 1
-        if _epoch_key(sensor_time) in self._recent_velocity_ms:
+        if epoch_key(sensor_time) in self._recent_velocity_ms:
             self._counts["duplicate_velocity_epoch"] += 1
             return out
         velocity = (msg.velE / 1000.0, msg.velN / 1000.0, -msg.velD / 1000.0)
@@ -99,8 +94,7 @@ class EpochVelocity:
         self._first_velocity_of_epoch(sensor_time)
         self._counts["velocity"] += 1
         known = s_acc > 0
-        variance = s_acc**2
-        covariance = (variance, 0.0, 0.0, 0.0, variance, 0.0, 0.0, 0.0, variance) if known else (0.0,) * 9
+        covariance = covariance_diagonal(s_acc, s_acc, s_acc) if known else UNKNOWN_COVARIANCE
         return out + [GnssVelocity(sensor_time_ns=sensor_time, host_mono_ns=host_mono_ns, velocity_enu_mps=velocity,
                                    velocity_covariance=covariance, covariance_type=2 if known else 0)]
 
@@ -182,13 +176,13 @@ class EpochVelocity:
             sigma2 += speed**2 / 2.0  # each axis of a speed in a uniformly unknown direction
         else:
             east, north = speed * math.sin(math.radians(course)), speed * math.cos(math.radians(course))
+        sigma = math.sqrt(sigma2)
         velocity = GnssVelocity(sensor_time_ns=sensor_time, host_mono_ns=host_mono_ns,
                                 velocity_enu_mps=(east, north, 0.0),
-                                velocity_covariance=(sigma2, 0.0, 0.0, 0.0, sigma2, 0.0, 0.0, 0.0,
-                                                     NMEA_VERTICAL_SIGMA_MPS**2),
+                                velocity_covariance=covariance_diagonal(sigma, sigma, NMEA_VERTICAL_SIGMA_MPS),
                                 covariance_type=1)
         out = self._release(sensor_time)
-        if self._held_nmea_velocity is not None or _epoch_key(sensor_time) in self._recent_velocity_ms:
+        if self._held_nmea_velocity is not None or epoch_key(sensor_time) in self._recent_velocity_ms:
             self._counts["duplicate_velocity_epoch"] += 1  # e.g. the VTG after its epoch's RMC
             return out
         if not self._nmea_velocity_at_once:
@@ -214,7 +208,7 @@ class EpochVelocity:
 
     def _first_velocity_of_epoch(self, sensor_time_ns: int) -> bool:
         """True once per epoch (remembered); a second velocity of an epoch is counted."""
-        epoch_ms = _epoch_key(sensor_time_ns)
+        epoch_ms = epoch_key(sensor_time_ns)
         if epoch_ms in self._recent_velocity_ms:
             self._counts["duplicate_velocity_epoch"] += 1
             return False

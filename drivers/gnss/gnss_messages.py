@@ -29,10 +29,18 @@ from pyubx2 import UBXReader
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import GnssFix, GnssVelocity, ImuSample, Vec3
 from drivers.gnss.epoch_velocity import NMEA_NOT_VALID_MODES, EpochVelocity
+from drivers.gnss.receiver_epochs import (
+    NS_PER_MS,
+    NS_PER_S,
+    RECENT_EPOCHS,
+    UNKNOWN_COVARIANCE,
+    Covariance,
+    covariance_diagonal,
+    covariance_from_ellipse,
+    epoch_key,
+)
 from drivers.gnss.stream_framer import Frame
 
-NS_PER_S = 1_000_000_000
-NS_PER_MS = 1_000_000
 DAY_NS = 86_400 * NS_PER_S
 WEEK_NS = 7 * DAY_NS
 _UNIX_EPOCH_ORDINAL = dt.date(1970, 1, 1).toordinal()
@@ -61,30 +69,8 @@ UBX_WANTED = {
     b"\x10\x15": "ESF-INS",
 }
 NMEA_WANTED = ("GGA", "RMC", "GST", "ZDA", "VTG")
-RECENT_FIX_EPOCHS = 64
-
-Covariance = tuple[float, ...]
-_UNKNOWN_COVARIANCE: Covariance = (0.0,) * 9
 # Field values that are wrong in a checksum-valid message: counted as rejected, never raised.
 _BAD_FIELD_ERRORS = (ValueError, TypeError, ArithmeticError, AttributeError, IndexError, KeyError)
-
-
-def covariance_diagonal(east_m: float, north_m: float, up_m: float) -> Covariance:
-    """Row-major ENU covariance (m^2) from three standard deviations."""
-    return (east_m**2, 0.0, 0.0, 0.0, north_m**2, 0.0, 0.0, 0.0, up_m**2)
-
-
-def covariance_from_ellipse(
-    major_m: float, minor_m: float, orientation_deg: float, up_m: float
-) -> Covariance:
-    """Row-major ENU covariance (m^2) from an error ellipse: semi-axis sigmas, major axis in degrees from
-    north towards east, and the vertical sigma."""
-    s, c = math.sin(math.radians(orientation_deg)), math.cos(math.radians(orientation_deg))
-    # major axis along (east, north) = (s, c); minor axis along (c, -s)
-    ee = major_m**2 * s * s + minor_m**2 * c * c
-    nn = major_m**2 * c * c + minor_m**2 * s * s
-    en = (major_m**2 - minor_m**2) * s * c
-    return (ee, en, 0.0, en, nn, 0.0, 0.0, 0.0, up_m**2)
 
 
 def utc_ns(year: int, month: int, day: int, hour: int, minute: int, second: int, nano: int = 0) -> int:
@@ -144,7 +130,7 @@ class GnssDecoder:
         self._gst_seen = False
         self._week_start_utc_ns: int | None = None  # UTC time of GPS time-of-week 0, from the receiver
         self._week_anchor_itow_ms = 0
-        self._recent_fix_ms: deque[int] = deque(maxlen=RECENT_FIX_EPOCHS)
+        self._recent_fix_ms: deque[int] = deque(maxlen=RECENT_EPOCHS)
         self._velocities = EpochVelocity(self.counts, self._reject, self._drop, self._nmea_utc_ns)
         self._imu_source_rank = 0
         self._imu_pending: dict[str, tuple[int, Vec3]] = {}
@@ -183,7 +169,7 @@ class GnssDecoder:
             self._health.dropped += 1
 
     def _emit_fix(self, fix: GnssFix) -> list[GnssFix | GnssVelocity | ImuSample]:
-        epoch_ms = round(fix.sensor_time_ns / NS_PER_MS)
+        epoch_ms = epoch_key(fix.sensor_time_ns)
         if epoch_ms in self._recent_fix_ms:
             self.counts["duplicate_epoch"] += 1
             return []
@@ -273,7 +259,7 @@ class GnssDecoder:
         if math.isfinite(sigma):
             hdop_cov, hdop_type = covariance_diagonal(sigma, sigma, 2.0 * sigma), 1
         else:
-            hdop_cov, hdop_type = _UNKNOWN_COVARIANCE, 0
+            hdop_cov, hdop_type = UNKNOWN_COVARIANCE, 0
         fix = GnssFix(sensor_time_ns=sensor_time, host_mono_ns=host_mono_ns, latitude_deg=lat,
                       longitude_deg=lon, altitude_m=altitude)
         if self._early_gst is not None and self._early_gst[0] == time_of_day:

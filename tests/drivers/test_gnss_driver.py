@@ -26,7 +26,8 @@ from daemon.spine.config import GnssConfig
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import DriverHealth, GnssFix, ImuSample
 from daemon.spine.topics import GNSS_FIX, GNSS_VELOCITY, IMU, health_topic
-from drivers.gnss.gnss_messages import covariance_from_ellipse, utc_ns
+from drivers.gnss.gnss_messages import utc_ns
+from drivers.gnss.receiver_epochs import covariance_from_ellipse
 from drivers.gnss.serial_driver import GnssDriverStats, run_gnss_driver
 
 PROBE = pynmea2.TXT("GN", "TXT", ("01", "01", "02", "roadlog probe")).render().encode() + b"\r\n"

@@ -11,7 +11,8 @@ from pyubx2 import GET, UBXMessage, UBXReader
 
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import GnssFix, ImuSample
-from drivers.gnss.gnss_messages import WEEK_NS, GnssDecoder, covariance_from_ellipse, utc_ns
+from drivers.gnss.gnss_messages import WEEK_NS, GnssDecoder, utc_ns
+from drivers.gnss.receiver_epochs import covariance_from_ellipse
 from drivers.gnss.stream_framer import Frame, StreamFramer, nmea_checksum, ubx_checksum
 
 DATA = Path("/work/shared/data")
