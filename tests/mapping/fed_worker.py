@@ -10,12 +10,14 @@ SMALL_WINDOWS = {"windows": {"before_m": 10.0, "after_m": 10.0}, "mesh": {"side_
                  "inputs": {"keyframe_spacing_m": 2.0}}
 
 
-def worker_fed(folder: Path, drive: Path, shift_ns: int = 0, topic_by_topic: bool = False) -> MappingWorker:
-    """A worker (small windows) fed the log: arrivals moved by shift_ns, in log order or per topic."""
+def worker_fed(folder: Path, drive: Path, shift_ns: int = 0, topic_by_topic: bool = False,
+               mapper: dict | None = None, leave_out: tuple[str, ...] = ()) -> MappingWorker:
+    """A worker (small windows, and any `mapper` settings) fed the log but the topics in `leave_out`: arrivals moved
+    by shift_ns, in log order or per topic."""
     folder.mkdir()
-    config, config_path = private_config(folder, mapper=SMALL_WINDOWS)
+    config, config_path = private_config(folder, mapper=SMALL_WINDOWS | (mapper or {}))
     worker = MappingWorker(config, str(config_path), str(folder / "data"))
-    records = [r for r in read_log([drive]) if r.topic in worker.reader.topics]
+    records = [r for r in read_log([drive]) if r.topic in worker.reader.topics and r.topic not in leave_out]
     if topic_by_topic:
         records.sort(key=lambda r: r.topic)  # stable: each topic still in its own order
     for r in records:

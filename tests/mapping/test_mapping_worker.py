@@ -24,7 +24,15 @@ from daemon.bus import pubsub
 from daemon.log_format.reader import read_log
 from daemon.processes.replay import replay
 from daemon.spine.messages import CameraFrame, GnssFix
-from daemon.spine.topics import GNSS_FIX, WHEEL_SPEEDS, camera_topic, health_topic, topic_table
+from daemon.spine.topics import (
+    GNSS_FIX,
+    LIDAR_IMU,
+    LIDAR_PACKETS,
+    WHEEL_SPEEDS,
+    camera_topic,
+    health_topic,
+    topic_table,
+)
 from mapping.live import map_tiles
 from mapping.live.final_map import FinalMapMetadata, map_semantics, write_final_map
 from mapping.live.keyframe_spool import KeyframeSpool
@@ -33,10 +41,7 @@ from mapping.live.worker_journal import JOURNAL_NAME, read_journal
 from mapping.live.worker_loop import MappingWorker
 from sim.drive_log import simulate_drive
 from tests.daemon_fixtures import REPO, private_config
-from tests.mapping.fed_worker import worker_fed
-
-SMALL_WINDOWS = {"windows": {"before_m": 10.0, "after_m": 10.0}, "mesh": {"side_m": 0.25, "corridor_half_width_m": 6.0},
-                 "inputs": {"keyframe_spacing_m": 2.0}}
+from tests.mapping.fed_worker import SMALL_WINDOWS, worker_fed
 
 
 # ---- spool, tiles, schedule (odometry: test_replay_determinism.py) ------------------------------------
@@ -247,6 +252,24 @@ def test_health_counts_the_wheel_speeds_that_arrive_while_a_window_is_fitted(cit
     assert worker.state.distance_m > 1.5 * half
     assert reported["distance_m"] == pytest.approx(worker.state.distance_m, abs=0.01)
     assert reported["lag_m"] == pytest.approx(worker.state.distance_m, abs=0.01)  # nothing mapped yet
+
+
+# ---- the Lidar pose refinement asked for on a drive without Lidar ---------------------------------------------
+def test_windows_without_the_asked_lidar_pose_refinement_are_counted_on_status_and_survive_a_restart(
+        city_drive, tmp_path, caplog):
+    refine = {"pose_refinement": {"enabled": True, "lidar_horizontal": True, "steps": 5, "blur_px": [2.0]}}
+    worker = worker_fed(tmp_path / "run", city_drive, mapper=refine, leave_out=(LIDAR_PACKETS, LIDAR_IMU))
+    with caplog.at_level(logging.WARNING, logger="mapping.live.worker_loop"):
+        assert worker.step(end_of_drive=True) and worker.step(end_of_drive=True)  # windows 0 and 1, journalled
+    entries = read_journal(tmp_path / "run" / "data" / "map").windows
+    assert [e.status for e in entries] == ["done", "done"]
+    assert all(e.metrics["pose_refinement_lidar_unavailable"].startswith("no Lidar ground") for e in entries)
+    warnings = [r.getMessage() for r in caplog.records if "lidar_horizontal asked for" in r.getMessage()]
+    assert len(warnings) == 1 and warnings[0].startswith("window 0: ")  # once; the count says the rest
+    assert json.loads(worker.health_message().detail)["windows_without_lidar_refinement"] == 2
+    config, config_path = private_config(tmp_path / "run", mapper=SMALL_WINDOWS | refine)
+    restarted = MappingWorker(config, str(config_path), str(tmp_path / "run" / "data"))  # reads its journal
+    assert json.loads(restarted.health_message().detail)["windows_without_lidar_refinement"] == 2
 
 
 # ---- a drive without masks -----------------------------------------------------------------------------
