@@ -91,6 +91,19 @@ def test_a_live_backlog_read_in_one_burst_is_cut_by_its_own_time(car, tmp_path):
     assert all(json.loads(c["before_segment_start_per_topic"]) == {} for c in counts)
 
 
+def test_a_live_recorder_with_nothing_to_record_still_closes_its_segments_on_time(car, tmp_path):  # noqa: F811
+    """No driver publishes: the live recorder's own time anchors (1 Hz) move the clock, so its segments are closed,
+    complete on disk, one slot of 1.5 s after another (no endless open segment while the car stands)."""
+    config_path = car(segment_seconds=1.5)
+    out = tmp_path / "logs"
+    rec = RecorderProcess(config_path, out)
+    detail = rec.wait_for(lambda d: d["segments_closed"] >= 2, timeout_s=20)
+    assert detail["segment_clock"]["gaps"] == 0 and detail["segment_clock"]["ahead"] == {}
+    assert rec.stop() == 0, rec.stderr
+    closed = sorted(out.glob("*.mcap"))
+    assert len(closed) >= 3 and all("roadlog.counts" in read_metadata(p) for p in closed)
+
+
 def _replayed_segments(log: Path, config_path: Path, out: Path, rate: str) -> list[list[int]]:
     run = roadlog("replay", str(log), "--config", str(config_path), "--rate", rate, "--output-dir", str(out),
                   timeout=180)
