@@ -10,18 +10,22 @@ viewing clouds, the fused pose); they go into whichever segment is open.
 The first clock message starts the first slot of log time; the first one at or after its end starts the next, which
 begins where the last one ended (the slots tile the log time) or, after a stretch of no clock message longer than a
 segment (a replay of logs far apart), at that message. Live, the recorder's own time anchors (1 Hz) keep the clock
-moving when no driver publishes, so an idle segment still closes on time and is complete on disk.
+moving when no driver publishes, so an idle segment still closes on time and is complete on disk. There is no
+wall-clock timer: a replay waiting for its mapper, or slowed by a busy machine, keeps its segment open and cuts it
+where a fast replay does (nothing is at risk: its complete chunks are fsynced, and its source log is on disk).
 
 A bad clock never cuts a segment per message nor keeps one open forever. Live (`now_ns` given), a host time cannot be
-ahead of this host's clock (it is stamped on it before the message is published): a message stamped ahead is taken as
-stamped now (`ahead`), so the clock never runs ahead of the host's and the anchors move it on. A clock message stamped before its slot began
-(a late one, or a clock behind) is written into the open segment and counted (`before_start`). Replayed messages come
-in log-time order (the player merges its logs), so a replay has neither.
+ahead of this host's clock (it is stamped on it before the message is published): a message stamped ahead is taken
+as stamped now (`ahead`), so the clock never runs ahead of the host's and the anchors move it on. A clock message
+stamped before its slot began (a late one, or a clock behind) is written into the open segment and counted
+(`before_start`). Replayed messages come in log-time order (the player merges its logs): a replay has such messages
+only when the recorder counts them late too.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+
 
 def _count(counts: dict[str, int], topic: str) -> None:
     counts[topic] = counts.get(topic, 0) + 1
