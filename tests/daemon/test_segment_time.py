@@ -112,17 +112,16 @@ def _replayed_segments(log: Path, config_path: Path, out: Path, rate: str) -> li
             for s in sorted(out.rglob("*.mcap")) if any(True for _ in read_log([s], topics=[CAN_FRAMES]))]
 
 
-def test_a_replay_is_cut_at_the_same_messages_at_rate_1_and_max(tmp_path):
-    """`roadlog replay` of a 2.2 s log at rate 1 (2.2 s of wall time) and at `max` (a fraction of that) through the
+def test_a_replay_is_cut_at_the_same_messages_at_rate_1_4_and_max(tmp_path):
+    """`roadlog replay` of a 2.2 s log at rate 1 (2.2 s of wall time), 4 and `max` (a fraction of that) through the
     real daemon: the re-recorded segments hold the same messages, 0.5 s of the log's time each."""
     config, config_path = private_config(tmp_path, mapper={"enabled": False}, status={"port": 0},
                                          recorder={"segment_seconds": S, "min_free_gib": 0.0, "min_free_pct": 0.0})
     log = can_only_log(tmp_path / "drive.mcap", config, frames=220)  # 10 ms apart
     try:
-        at_1 = _replayed_segments(log, config_path, tmp_path / "rate1", "1.0")
-        at_max = _replayed_segments(log, config_path, tmp_path / "max", "max")
+        cut = {rate: _replayed_segments(log, config_path, tmp_path / f"rate_{rate}", rate)
+               for rate in ("1", "4", "max")}
     finally:
         pubsub.unlink_all(config)
     expected = [[i * 10_000_000 for i in range(k * 50, min(220, (k + 1) * 50))] for k in range(5)]
-    assert at_1 == expected
-    assert at_max == expected
+    assert cut == {"1": expected, "4": expected, "max": expected}
