@@ -22,9 +22,7 @@ def test_demo_logs_every_message_and_maps_even_when_run_again(tmp_path):
         rows = re.findall(r"^(\w+)\s+(\d+)\s+(\d+)\s+(\d+)$", run.stdout, re.MULTILINE)
         assert {r[0] for r in rows} >= {"camera", "lidar", "gnss", "imu", "can", "wheel_speeds", "mask"}
         assert all(sent == logged and lost == "0" for _, sent, logged, lost in rows), rows
-        # the recorder rotates by wall time (recorder.segment_seconds): a slow machine's replay of the 4 s drive can
-        # close two; the table counts exactly this run's (not the first run's segments beside them)
-        closed = re.search(r"stopped: (\d+) segments closed", run.stderr + run.stdout)
-        assert closed, run.stderr[-3000:]
-        assert f"every message logged: yes; segments: {closed.group(1)}, incomplete: 0" in run.stdout
+        # one: the 4 s drive is within segment_seconds of log time (the recorder's segments follow the messages' time,
+        # not how long the replay and its map took); the table counts this run's, not the first run's beside them
+        assert "every message logged: yes; segments: 1, incomplete: 0" in run.stdout
         assert (tmp_path / "data" / "map" / "final" / "mesh.ply").stat().st_size > 0

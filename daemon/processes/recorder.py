@@ -1,8 +1,9 @@
 """The recorder process: every logged topic from the bus into time-named, self-contained MCAP segments.
 
 A segment is written as `roadlog_<UTC start>_<index>.mcap.open` and renamed to `.mcap` once closed; it
-is rotated every `recorder.segment_seconds` or `recorder.segment_bytes`; its complete chunks are fsynced
-once a second. At start-up every `.open` segment that a crash or power cut left behind is recovered into
+is rotated once its messages span `recorder.segment_seconds` of log time (segment_clock.py: the messages' own time,
+so a replay is cut at the same messages at any rate or load), or at `recorder.segment_bytes`; its complete chunks
+are fsynced once a second. At start-up every `.open` segment that a crash or power cut left behind is recovered into
 a readable `.mcap` holding each of its intact chunks (segment_files.recover_unclosed); one with bytes that
 could not be read is also kept whole as `.mcap.damaged` (quarantined), counted and reported in the health
 detail. A recorder the supervisor restarted then resumes each topic after the last message that its daemon
@@ -52,6 +53,7 @@ from daemon.log_format.reader import read_metadata
 from daemon.log_format.writer import LogWriter
 from daemon.processes import disk_policy
 from daemon.processes.reorder_buffer import ReorderBuffer
+from daemon.processes.segment_clock import SegmentClock
 from daemon.processes.segment_files import (
     OPEN_SUFFIX,
     check_output_dir,
@@ -66,7 +68,7 @@ from daemon.spine.config import CarConfig, load_config, reports_config_errors
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import TimeAnchor
 from daemon.spine.process_logging import setup_logging
-from daemon.spine.process_table import RESTARTS_ENV
+from daemon.spine.process_table import RESTARTS_ENV, played_topics
 from daemon.spine.topics import TIME_ANCHOR, health_topic, topic_table
 
 PROCESS = "recorder"
@@ -121,9 +123,10 @@ def _delta(now: dict[str, int], before: dict[str, int]) -> dict[str, int]:
 
 
 class Recorder:
-    """The recorder's state: the open segment, the disk state and the per-topic tallies."""
+    """The recorder's state: the open segment, the disk state and the per-topic tallies. `live`: the bus's host times
+    are this host's clock (a replay's may run ahead of it)."""
 
-    def __init__(self, config: CarConfig, output_dir: Path, config_path: str | Path | None = None):
+    def __init__(self, config: CarConfig, output_dir: Path, config_path: str | Path | None = None, live: bool = True):
         self.config = config
         self.config_path = config_path
         self.rc = config.recorder
@@ -136,7 +139,8 @@ class Recorder:
         self.next_index = next_segment_index(output_dir)
         self.writer: LogWriter | None = None
         self.open_path: Path | None = None
-        self.opened_mono = 0.0
+        self.clock = SegmentClock(self.rc.segment_seconds, time.monotonic_ns if live else None)
+        self.clock_topics = played_topics(config)
         self._sync_fd: int | None = None
         self._last_sync = 0.0
         self.segments_closed = 0
@@ -187,7 +191,7 @@ class Recorder:
             self.open_path = None
             raise
         self._sync_fd = os.open(self.open_path, os.O_RDONLY)  # fsync through it: LogWriter keeps its file private
-        self.opened_mono = self._last_sync = time.monotonic()
+        self._last_sync = time.monotonic()
         self._bytes_at_disk_check = 0
         log.info("opened segment %s", self.open_path.name)
 
@@ -207,10 +211,11 @@ class Recorder:
         self._at_last_close = TopicTally(dict(self.tally.written), dict(self.tally.lost_bus),
                                          dict(self.tally.dropped_disk_full))
         try:
+            clock = {name: json.dumps(counts) for name, counts in self.clock.take_segment_counts().items()}
             writer.close(extra_metadata={"lost_per_topic": json.dumps(lost),
                                          "lost_bus_per_topic": json.dumps(lost_bus),
                                          "dropped_disk_full_per_topic": json.dumps(dropped),
-                                         "late_per_topic": json.dumps(late)})
+                                         "late_per_topic": json.dumps(late), **clock})
             final = path.with_name(path.name[: -len(OPEN_SUFFIX)])
             os.replace(path, final)
         except OSError as exc:  # the `.open` file stays; recover_unclosed turns it into a readable file
@@ -236,12 +241,6 @@ class Recorder:
         if self._sync_fd is not None:
             os.close(self._sync_fd)
             self._sync_fd = None
-
-    def rotate_if_due(self) -> None:
-        """Close a segment open for `segment_seconds` (`write` rotates by size)."""
-        if self.writer is not None and time.monotonic() - self.opened_mono >= self.rc.segment_seconds:
-            self.close_segment()
-            self.check_disk(force=True)
 
     # --- disk ----------------------------------------------------------------------------------
 
@@ -316,7 +315,12 @@ class Recorder:
         return dict(sorted(late.items()))
 
     def write(self, topic: str, message: object) -> None:
-        """Write one message to the open segment (opening one if needed), or count it as dropped."""
+        """Write one message to the open segment (opening one if needed: after the last closed by time, by size or
+        for a full disk), or count it as dropped."""
+        if topic in self.clock_topics and self.clock.begins_segment(topic, int(message.host_mono_ns)) and \
+                self.writer is not None:
+            self.close_segment()
+            self.check_disk(force=True)
         if self.disk_full:
             self.tally.dropped_disk_full[topic] = self.tally.dropped_disk_full.get(topic, 0) + 1
             return
@@ -366,6 +370,7 @@ class Recorder:
             "lost_bus": dict(sorted(self.tally.lost_bus.items())),
             "dropped_disk_full": dict(sorted(self.tally.dropped_disk_full.items())),
             "late": self.late(),
+            "segment_clock": self.clock.report(),
             "reorder_held": len(self.reorder) + len(self.reorder_lagging),
             "recovered": self.recovered,
             "segments_quarantined": sum(1 for r in self.recovered if r["quarantined"]),
@@ -411,7 +416,7 @@ def _read_round(rec: Recorder, subscribers: dict[str, pubsub.Subscriber]) -> int
 def run(config: CarConfig, output_dir: Path, stop: threading.Event, config_path: str | Path | None = None,
         time_anchors: bool = True, lossless: bool = False) -> Recorder:
     """Record until `stop` is set, then write what is still waiting in the rings and close the segment."""
-    rec = Recorder(config, output_dir, config_path)
+    rec = Recorder(config, output_dir, config_path, live=time_anchors)  # the live recorder stamps the anchors
     # in replay mode the log player publishes the recorded anchors instead
     anchor_pub = pubsub.open_publisher(config, TIME_ANCHOR) if time_anchors else None
     health_pub = pubsub.open_publisher(config, health_topic(PROCESS))
@@ -444,14 +449,13 @@ def run(config: CarConfig, output_dir: Path, stop: threading.Event, config_path:
                     anchor_pub.publish(TimeAnchor(sensor_time_ns=mono, host_mono_ns=mono, utc_ns=utc))
                 health_pub.publish(rec.health_message())
             got = _read_round(rec, subscribers)
-            rec.rotate_if_due()
             rec.sync_if_due()
             rec.check_disk()
             if not got:
                 stop.wait(IDLE_SLEEP_S)
         drain_until = time.monotonic() + DRAIN_LIMIT_S
         while _read_round(rec, subscribers) and time.monotonic() < drain_until:
-            rec.rotate_if_due()
+            pass
     finally:
         rec.release_everything()
         rec.close_segment()
@@ -470,7 +474,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--config", required=True, help="car config YAML")
     parser.add_argument("--output-dir", help="folder for the segments (default: recorder.output_dir)")
     parser.add_argument("--no-time-anchors", action="store_true",
-                        help="do not publish monotonic/UTC anchors (replay: the player publishes the recorded ones)")
+                        help="do not publish monotonic/UTC anchors (replay: the player publishes the recorded ones, "
+                             "and its host times may run ahead of this host's clock)")
     parser.add_argument("--lossless", action="store_true",
                         help="read losslessly: publishers wait for the recorder (replay at max speed only)")
     args = parser.parse_args(argv)

@@ -34,7 +34,7 @@ from daemon.spine.config import CarConfig, ConfigError, load_config, reports_con
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import HOST_CLOCK_WITHIN_NS
 from daemon.spine.process_logging import setup_logging
-from daemon.spine.process_table import playback_rate, required_drivers
+from daemon.spine.process_table import playback_rate, played_topics
 from daemon.spine.topics import TIME_ANCHOR, health_topic, topic_table
 
 PROCESS = "replay"
@@ -45,9 +45,7 @@ log = logging.getLogger(__name__)
 
 def replayed_topics(config: CarConfig) -> set[str]:
     """The topics the car's drivers publish (their health excepted): what a replay stands in for."""
-    drivers = set(required_drivers(config))
-    return {name for name, t in topic_table(config).items()
-            if t.source in drivers and name != health_topic(t.source)}
+    return played_topics(config) - {TIME_ANCHOR}
 
 
 def _first_log_time(path: Path) -> int | None:
@@ -198,7 +196,7 @@ def replay(config: CarConfig, paths: list[str | Path], *, rate: float | None = 1
     progress = ReplayProgress(log_start_ns=start_ns, log_end_ns=span.end_ns if end_ns is None else min(end_ns,
                                                                                                       span.end_ns))
     table = topic_table(config)
-    playable = replayed_topics(config) | {TIME_ANCHOR}
+    playable = played_topics(config)
     player = _Player(config, progress, lossless=rate is None, stop=stop)
     wall0 = time.monotonic_ns()
     shift = wall0 - start_ns  # recorded host times -> this host's clock

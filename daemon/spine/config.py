@@ -239,6 +239,8 @@ class BusConfig(StrictModel):
 
 class RecorderConfig(StrictModel):
     output_dir: str = "logs"
+    # a segment closes once its messages span this much log time (their own time, not the wall clock: a replay at any
+    # rate is cut at the same messages; daemon/processes/segment_clock.py), or at segment_bytes, whichever comes first
     segment_seconds: float = Field(60.0, gt=0)
     segment_bytes: int = Field(2 * 1024**3, gt=0)
     min_free_gib: float = Field(5.0, ge=0)

@@ -10,7 +10,16 @@ from dataclasses import dataclass
 from typing import Literal
 
 from daemon.spine.config import POINT_CLOUD_LIDAR, CarConfig, ConfigError
-from daemon.spine.topics import LIDAR_VIEW_PROCESS, VEHICLE_POSE_PROCESS, camera_process, fuses_pose, views_lidar
+from daemon.spine.topics import (
+    LIDAR_VIEW_PROCESS,
+    TIME_ANCHOR,
+    VEHICLE_POSE_PROCESS,
+    camera_process,
+    fuses_pose,
+    health_topic,
+    topic_table,
+    views_lidar,
+)
 
 Mode = Literal["live", "replay"]
 MAP_STOP_TIMEOUT_S = 600.0  # how long the mapper may take after SIGTERM (its remaining windows, the final map)
@@ -135,3 +144,12 @@ def required_drivers(config: CarConfig) -> list[str]:
     the `required` driver processes, one per configured sensor (a point-cloud Lidar's too: a replay plays its
     topic)."""
     return sorted(spec.name for spec in driver_processes(config, "") if spec.required)
+
+
+def played_topics(config: CarConfig) -> set[str]:
+    """The topics the car's drivers publish (their health excepted) and the time anchors: what a replay plays, and so
+    what the recorder's segment clock runs on, live and replay alike (the other topics are stamped by processes
+    running now)."""
+    drivers = set(required_drivers(config))
+    return {name for name, t in topic_table(config).items()
+            if t.source in drivers and name != health_topic(t.source)} | {TIME_ANCHOR}
