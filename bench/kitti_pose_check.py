@@ -256,6 +256,7 @@ def tile_pattern(rend: np.ndarray, obs: np.ndarray, mask: np.ndarray, dist: np.n
                           "err_best": float(errs[best][0]),
                           "err_cv": float(0.5 * (errs[on_even][2] + errs[on_odd][1])),
                           "dist": float(np.median(dist[sl][m])), "col": (j + TILE[1] / 2) / ww,
+                          "centre": (i + TILE[0] / 2, j + TILE[1] / 2),
                           "bright": float((obs[sl][m] > 0.6).mean())})
     return tiles
 
@@ -287,13 +288,23 @@ def tiles_report(road_map, drive, config, selected, label: str) -> dict:
             return db(float((np.array([x[key] for x in t]) * n).sum() / n.sum()))
 
         dy, dx = np.array([x["dy"] for x in t]), np.array([x["dx"] for x in t])
+        # each tile's shift split along / across the radial line from the focus of expansion (about the
+        # principal point for this forward motion): a wrong depth (surface height) moves content along the
+        # epipolar lines, i.e. radially; a rotation or a sideways translation error moves it across them too
+        focus = np.array([185.2, 607.2]) / EVAL_STRIDE
+        radial = np.array([x["centre"] for x in t]) - focus
+        radial /= np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-9)
+        along_r = dy * radial[:, 0] + dx * radial[:, 1]
+        across_r = -dy * radial[:, 1] + dx * radial[:, 0]
         band = {"tiles": len(t), "psnr_db": round(pooled("err0"), 2), "tile_gain_db": round(pooled("err_best")
                                                                                           - pooled("err0"), 2),
                 "cross_validated_gain_db": round(pooled("err_cv") - pooled("err0"), 2),
                 "shifted_pct": round(100 * float(np.mean((dy != 0) | (dx != 0))), 1),
                 "mean_abs_dy_px": round(float(np.abs(dy).mean()), 2),
                 "mean_abs_dx_px": round(float(np.abs(dx).mean()), 2),
-                "mean_dy_px": round(float(dy.mean()), 2), "mean_dx_px": round(float(dx.mean()), 2)}
+                "mean_dy_px": round(float(dy.mean()), 2), "mean_dx_px": round(float(dx.mean()), 2),
+                "radial_share_of_shift_pct": round(100 * float((along_r ** 2).sum()
+                                                               / max((along_r ** 2 + across_r ** 2).sum(), 1e-9)), 1)}
         band["pixels_pct"] = round(100 * float(n.sum()) / sum(x["n"] for x in tiles), 1)
         band["error_share_pct"] = round(100 * float(sum(x["err0"] * x["n"] for x in t))
                                         / sum(x["err0"] * x["n"] for x in tiles), 1)
