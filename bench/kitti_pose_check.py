@@ -5,25 +5,30 @@ measurements:
    bench/kitti.py --quick). For each held-out view and each training view, a rigid correction of that one view's
    pose (camera frame: lateral x, vertical y (down), along-track z; pitch about x, yaw about y, roll about z) is
    fitted to the frozen map: the map's surface points and rendered grey that the view sees at its recorded pose are
-   projected into its (blurred, coarse to fine) image through the corrected pose, with a free gain and offset,
-   minimising the squared difference (torch L-BFGS). Fitted with all 6 DoF, and with the along-track shift alone.
+   projected into its (blurred, coarse to fine) image through the corrected pose (optionally with a free gain and
+   offset), minimising the squared difference (torch L-BFGS; unbounded and ill-conditioned on a planar road: at a map's
+   last view it can slide a metre along the track, where the evaluated pixels change); and by a bounded coordinate
+   search on the metric's own PSNR (the figure to use), with its basin checked from an offset start for held-out
+   views; and each axis alone, scanned.
    Per view: the correction, the view's PSNR (the metric's pixels, re-rendered at the corrected pose, no gain)
    before and after, and the PSNR with 48x24-px tiles (of the 2x evaluation grid) each shifted by up to 3 px to
    their best fit, before and after the rigid correction (how much of the tile gain one rigid correction takes).
 2. **Geometry that does not use our map**: SIFT matches between consecutive raw frames (and frames 2 apart); per
    pair the Sampson epipolar error (px) of the matches under the recorded relative pose and under an essential
    matrix fitted to them (RANSAC), and the fitted relative rotation and translation direction against the
-   recorded ones (deg; the direction's difference times the step in cm). The recorded track's steps against a
-   smooth fit (speed jitter, cm).
+   recorded ones (deg; the direction's difference times the step in cm); the same Sampson error with each view's
+   map-fitted correction applied to its frame (a real pose error would lower it). Along-track (invisible to
+   epipolar geometry): the road's plane-induced homography between consecutive frames (step / camera height per
+   pair) and the recorded track's steps against a smooth fit (speed jitter, cm). `--tiles`: where the tiles'
+   shifts are (distance band, image third, markings) and how far along the radial (epipolar) lines.
 3. The held-out PSNR with every held-out view's pose first aligned to the frozen map (test-time pose alignment,
    as pose-refining NeRF papers evaluate): a second figure, not the benchmark's. `--refined` also maps with
    `mapper.pose_refinement` on and aligns its held-out views the same way.
 
-    .venv/bin/python bench/kitti_pose_check.py [--quick] [--refined] [--seed 0]
+    .venv/bin/python bench/kitti_pose_check.py [--quick] [--refined] [--seed 0] [--tiles] [--skip-map]
 
-Without `--quick`: the held-out views and every 3rd training view; `--quick`: every 4th, no frames-2-apart
-pairs. The last line is one JSON
-object.
+Without `--quick`: the held-out views and every 3rd training view (~20 min at a load of 5 on 2 cores); `--quick`:
+every 4th, no frames-2-apart pairs. The last line is one JSON object.
 """
 
 from __future__ import annotations
