@@ -2,7 +2,8 @@
 fast-fit settings changed (`--set name=value`, mapper.fast_fit fields), mapped in-process one after the other
 (as bench/kitti_error.py: 01 with its recorded poses, 0005 with its INS poses, maskless).
 
-    .venv/bin/python bench/kitti_seeds.py [--seeds 0,1,2,3] [--drive 01|0005|both] --set photometric_patch_m=0.4
+    .venv/bin/python bench/kitti_seeds.py [--quick] [--seeds 0,1,2,3] [--drive 01|0005|both] \
+        --set photometric_patch_m=0.4
 
 The last line is one JSON object: per drive and variant, the PSNR per seed and its mean.
 """
@@ -38,12 +39,14 @@ def main() -> int:
     parser.add_argument("--seeds", default="0,1,2,3")
     parser.add_argument("--drive", choices=("01", "0005", "both"), default="both")
     parser.add_argument("--set", action="append", default=[], help="mapper.fast_fit NAME=VALUE (float)")
+    parser.add_argument("--quick", action="store_true", help="01 and seed 0 only")
     args = parser.parse_args()
-    seeds = [int(s) for s in args.seeds.split(",")]
+    seeds = [0] if args.quick else [int(s) for s in args.seeds.split(",")]
+    drive = "01" if args.quick else args.drive
     changes = {k: float(v) for k, v in (s.split("=") for s in args.set)}
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for name in (("01", "0005") if args.drive == "both" else (args.drive,)):
+        for name in (("01", "0005") if drive == "both" else (drive,)):
             fmt, folder, extra = DRIVES[name]
             log = Path(tmp) / f"{folder}.mcap"
             subprocess.run([ROADLOG, "import", fmt, str(DATA / folder), "--out", str(log), *extra], check=True,
