@@ -23,7 +23,10 @@ order; a message older than one already written is written at once and counted a
 derived topics published seconds after the time they are stamped at (viewing clouds, fused poses: a Topic's
 `stamp_lag_s`) go through a reorder buffer of their own, written in batches of LAGGING_BATCH_S in chunks of their own,
 so they never hold the sensors' messages back: a power cut loses at most REORDER_SLACK_NS plus a sync period of
-what the sensors sent, and the last few seconds of the derived topics (which `reconstruct` derives again).
+what the sensors sent, and the last few seconds of the derived topics (which `reconstruct` derives again). In a
+replay the played topics run on the log's clock, behind this host's at a rate below 1, ahead of it above: a played
+ring read to its end bounds what it can still give by the newest played message read (the player publishes in
+log-time order), and the topics not played (the processes' health, on this host's clock) are ordered on their own.
 
 The recorder is a normal (non-lossless) bus reader: one thread polls every subscriber in turn, so it
 can never slow a driver down; if it falls behind a ring, it loses (and counts) the oldest messages.
@@ -47,9 +50,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from daemon.bus import pubsub
-from daemon.bus.ring_layout import process_start_ticks
-from daemon.log_format.metadata_records import COUNTS_METADATA_NAME, METADATA_NAME
-from daemon.log_format.reader import read_metadata
 from daemon.log_format.writer import LogWriter
 from daemon.processes import disk_policy
 from daemon.processes.reorder_buffer import ReorderBuffer
@@ -57,8 +57,9 @@ from daemon.processes.segment_clock import SegmentClock
 from daemon.processes.segment_files import (
     OPEN_SUFFIX,
     check_output_dir,
-    closed_segments,
+    daemon_run,
     drive_seconds,
+    last_recorded_seqs,
     next_segment_index,
     oldest_first,
     recover_unclosed,
@@ -99,25 +100,6 @@ class TopicTally:
         return {t: self.lost_bus.get(t, 0) + self.dropped_disk_full.get(t, 0) for t in sorted(topics)}
 
 
-def daemon_run() -> str:
-    """Which daemon run this process belongs to: its parent (the supervisor) by pid and start time."""
-    parent = os.getppid()
-    return f"{parent}:{process_start_ticks(parent) or 0}"
-
-
-def last_recorded_seqs(output_dir: Path, run: str) -> dict[str, int]:
-    """Per topic, the highest seq in the closed segments (recovered ones included) that recorders of daemon
-    run `run` wrote: the newest segments, back to the first from another run."""
-    out: dict[str, int] = {}
-    for segment in reversed(closed_segments(output_dir)):
-        meta = read_metadata(segment.path)
-        if meta.get(METADATA_NAME, {}).get("daemon_run") != run:
-            break
-        for topic, seq in json.loads(meta.get(COUNTS_METADATA_NAME, {}).get("last_seq_per_topic", "{}")).items():
-            out[topic] = max(out.get(topic, -1), seq)
-    return out
-
-
 def _delta(now: dict[str, int], before: dict[str, int]) -> dict[str, int]:
     return {t: n - before.get(t, 0) for t, n in sorted(now.items()) if n != before.get(t, 0)}
 
@@ -139,8 +121,10 @@ class Recorder:
         self.next_index = next_segment_index(output_dir)
         self.writer: LogWriter | None = None
         self.open_path: Path | None = None
+        self.live = live
         self.clock = SegmentClock(self.rc.segment_seconds, time.monotonic_ns if live else None)
         self.clock_topics = played_topics(config)
+        self.played_newest_ns: int | None = None  # the newest host time read of the clock topics
         self._sync_fd: int | None = None
         self._last_sync = 0.0
         self.segments_closed = 0
@@ -156,8 +140,12 @@ class Recorder:
         # fused pose: Topic.stamp_lag_s)
         self.stamp_slack_ns = {name: max(REORDER_SLACK_NS, int(t.stamp_lag_s * 1e9))
                                for name, t in topic_table(config).items()}
-        # the topics stamped longer before they are published than a driver's message: ordered on their own
+        # the topics stamped longer before they are published than a driver's message: ordered on their own; in a
+        # replay also every topic not played (the processes' health, stamped on this host's clock while the played
+        # ones run on the log's, ahead of it or behind it): each clock's messages ordered on their own
         self.lagging = {name for name, slack in self.stamp_slack_ns.items() if slack > REORDER_SLACK_NS}
+        if not live:
+            self.lagging |= set(self.stamp_slack_ns) - self.clock_topics
         self.reorder_lagging = ReorderBuffer(int(self.rc.reorder_window_s * 1e9) + max(self.stamp_slack_ns.values(),
                                              default=0), REORDER_MAX_BYTES // 4)
         self._lagging_released_ns: int | None = None  # the safe bound the last batch of them was written up to
@@ -387,7 +375,8 @@ def _read_round(rec: Recorder, subscribers: dict[str, pubsub.Subscriber]) -> int
     """Take what each subscriber has waiting (at most READ_BURST per topic), write what the reorder buffers then
     release; the number read. No ring can still give a message older than its bound: a ring read to its end gives
     nothing stamped before the time it was read (less REORDER_SLACK_NS, or its topic's stamp lag) or its last message
-    (a replay's host times may lie ahead), one the recorder is behind on nothing before its last message. The
+    (a replay's host times may lie ahead), in a replay a played ring nothing before the newest played message read
+    (the player publishes in log-time order), one the recorder is behind on nothing before its last message. The
     sensors' messages are released up to the lowest bound of their rings, the lagging topics' up to theirs."""
     got = 0
     safe: dict[bool, int] = {}  # is the topic lagging -> the lowest bound of those rings
@@ -401,11 +390,18 @@ def _read_round(rec: Recorder, subscribers: dict[str, pubsub.Subscriber]) -> int
                 break
             rec.accept(topic, msg)
             rec.read_positions[topic] = int(msg.host_mono_ns)
+            if topic in rec.clock_topics:
+                rec.played_newest_ns = max(rec.played_newest_ns or 0, int(msg.host_mono_ns))
             got += 1
         rec.set_lost(topic, sub.lost)
         position = rec.read_positions.get(topic)
         slack = rec.stamp_slack_ns.get(topic, REORDER_SLACK_NS)
-        bound = max(read_at - slack, position or 0) if drained else position
+        if drained and not rec.live and topic in rec.clock_topics:
+            # a replay publishes these in log-time order, on the log's clock (behind this host's at a rate below 1):
+            # what this ring gives later was published after, so stamped no earlier than, all read of them so far
+            bound = max(rec.played_newest_ns or 0, position or 0) or None
+        else:
+            bound = max(read_at - slack, position or 0) if drained else position
         if bound is not None:
             lagging = topic in rec.lagging
             safe[lagging] = min(safe.get(lagging, bound), bound)

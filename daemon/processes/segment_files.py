@@ -1,5 +1,6 @@
 """The recorder's segment files in its folder: their names (which sort by time), which are closed or quarantined,
-and the recovery of the unclosed ones a crash or power cut left behind.
+the recovery of the unclosed ones a crash or power cut left behind, and where a restarted recorder resumes: the
+highest seq per topic that its daemon run's segments hold.
 
     roadlog_<UTC start>_<index>.mcap            a closed segment
     roadlog_<UTC start>_<index>.mcap.open       the segment being written (or left by a crash)
@@ -9,12 +10,14 @@ and the recovery of the unclosed ones a crash or power cut left behind.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 from datetime import UTC, datetime
 from pathlib import Path
 
-from daemon.log_format.metadata_records import METADATA_NAME
+from daemon.bus.ring_layout import process_start_ticks
+from daemon.log_format.metadata_records import COUNTS_METADATA_NAME, METADATA_NAME
 from daemon.log_format.reader import read_metadata
 from daemon.log_format.record_scan import trusted_summary
 from daemon.log_format.recovery import recover_log
@@ -165,3 +168,22 @@ def check_output_dir(config: CarConfig, config_path: str | Path, override: str |
     if not os.access(existing, os.W_OK | os.X_OK):
         raise ConfigError(f"recorder.output_dir {str(folder)!r}: {str(existing)!r} is not writable by this user")
     return folder
+
+
+def daemon_run() -> str:
+    """Which daemon run this process belongs to: its parent (the supervisor) by pid and start time."""
+    parent = os.getppid()
+    return f"{parent}:{process_start_ticks(parent) or 0}"
+
+
+def last_recorded_seqs(output_dir: Path, run: str) -> dict[str, int]:
+    """Per topic, the highest seq in the closed segments (recovered ones included) that recorders of daemon
+    run `run` wrote: the newest segments, back to the first from another run."""
+    out: dict[str, int] = {}
+    for segment in reversed(closed_segments(output_dir)):
+        meta = read_metadata(segment.path)
+        if meta.get(METADATA_NAME, {}).get("daemon_run") != run:
+            break
+        for topic, seq in json.loads(meta.get(COUNTS_METADATA_NAME, {}).get("last_seq_per_topic", "{}")).items():
+            out[topic] = max(out.get(topic, -1), seq)
+    return out

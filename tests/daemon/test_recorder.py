@@ -26,8 +26,7 @@ from daemon.log_format.reader import read_log, read_metadata
 from daemon.log_format.writer import LogWriter
 from daemon.processes import disk_policy
 from daemon.processes.disk_policy import Segment, deletable, freed, required_free_bytes
-from daemon.processes.recorder import OPEN_SUFFIX, closed_segments, segment_name
-from daemon.processes.segment_files import recover_unclosed
+from daemon.processes.segment_files import OPEN_SUFFIX, closed_segments, recover_unclosed, segment_name
 from daemon.processes.status_server import HealthBoard, make_server
 from daemon.spine.config import CarConfig, load_config
 from daemon.spine.messages import CameraFrame, CanFrame, ImuSample, LidarPacket

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from daemon.bus import pubsub
 from daemon.log_format.reader import read_log, read_metadata
+from daemon.log_format.writer import LogWriter
 from daemon.processes.segment_clock import SegmentClock
 from daemon.spine.config import load_config
 from daemon.spine.messages import CanFrame, ImuSample
@@ -125,3 +126,46 @@ def test_a_replay_is_cut_at_the_same_messages_at_rate_1_4_and_max(tmp_path):
         pubsub.unlink_all(config)
     expected = [[i * 10_000_000 for i in range(k * 50, min(220, (k + 1) * 50))] for k in range(5)]
     assert cut == {"1": expected, "4": expected, "max": expected}
+
+
+def _two_topic_log(path: Path, config, frames: int) -> Path:
+    """CAN frames and IMU samples interleaved 5 ms apart (each topic every 10 ms), over frames x 10 ms."""
+    with LogWriter(path, config) as writer:
+        for i in range(frames):
+            t = 10**9 + i * 10_000_000
+            writer.write(CAN_FRAMES, CanFrame(sensor_time_ns=i * 10_000_000, arbitration_id=0x100, channel="can0",
+                                              data=bytes(8), host_mono_ns=t))
+            writer.write(IMU, ImuSample(sensor_time_ns=i * 10_000_000 + 5_000_000, host_mono_ns=t + 5_000_000,
+                                        accel_mps2=(0.0, 0.0, 9.81)))
+    return path
+
+
+def test_a_slow_replay_of_several_topics_keeps_each_message_in_its_slot(tmp_path):
+    """At rate 0.5 the replayed host times fall behind this host's clock; the recorder reads its rings in turn while
+    the player publishes them in log-time order, so a message one ring gives after another ring's newer one was
+    released would be late and land in the next segment; and the processes' health, stamped on this host's clock,
+    runs ahead of them by more than the reorder window (0.3 s here) and must not release them early. Each segment must
+    hold exactly its slot's messages of both topics, as at `max`, and nothing be counted late."""
+    config, config_path = private_config(tmp_path, mapper={"enabled": False}, status={"port": 0},
+                                         recorder={"segment_seconds": S, "min_free_gib": 0.0, "min_free_pct": 0.0,
+                                                   "reorder_window_s": 0.3})
+    log = _two_topic_log(tmp_path / "drive.mcap", config, frames=120)
+    cut = {}
+    try:
+        for rate in ("0.5", "max"):
+            out = tmp_path / f"rate_{rate}"
+            run = roadlog("replay", str(log), "--config", str(config_path), "--rate", rate, "--output-dir", str(out),
+                          timeout=180)
+            assert run.returncode == 0, run.stderr[-3000:]
+            segments = sorted(out.rglob("*.mcap"))
+            cut[rate] = [sorted((r.topic, r.message.sensor_time_ns) for r in read_log([s], topics=[CAN_FRAMES, IMU]))
+                         for s in segments]
+            cut[rate] = [c for c in cut[rate] if c]
+            late = [json.loads(read_metadata(s)["roadlog.counts"]["late_per_topic"]) for s in segments]
+            assert all(not any(d.values()) for d in late), (rate, late)
+    finally:
+        pubsub.unlink_all(config)
+    expected = [sorted([(CAN_FRAMES, i * 10_000_000) for i in range(k * 50, min(120, (k + 1) * 50))]
+                       + [(IMU, i * 10_000_000 + 5_000_000) for i in range(k * 50, min(120, (k + 1) * 50))])
+                for k in range(3)]
+    assert cut == {"0.5": expected, "max": expected}
