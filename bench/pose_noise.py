@@ -71,7 +71,8 @@ def run(log: Path, out: Path, noise: tuple[str, ...], *extra: str) -> dict:
             "rotation_error_before_deg": (pose.get("keyframes_before") or {}).get("rotation_rms_deg"),
             "rotation_error_after_deg": (pose.get("keyframes_after") or {}).get("rotation_rms_deg"),
             "pose_refinement_wall_s": m.get("pose_refinement_wall_s") or m.get("lidar_pre_pass_wall_s"),
-            "pose_error_after": (pose.get("keyframes_after") or {}) or None}
+            "pose_error_after": (pose.get("keyframes_after") or {}) or None,
+            **{k: figures[k] for k in ("miou_pct_raster", "miou_pct_registered", "shift_to_truth_cm") if k in figures}}
 
 
 RUNS = ("noisy", "refined", "photometric", "lidar", "clean_refined", "clean_lidar")
