@@ -37,6 +37,7 @@ from daemon.spine.local_frame import LocalFrame  # noqa: E402
 from daemon.spine.messages import GnssFix, TimeAnchor  # noqa: E402
 from daemon.spine.semantic_classes import NUM_MAP_CLASSES  # noqa: E402
 from daemon.spine.topics import FUSION_TOPICS, GNSS_FIX, GNSS_VELOCITY, IMU, TIME_ANCHOR, WHEEL_SPEEDS  # noqa: E402
+from mapping.fleet.drive_merge import DriveLayer  # noqa: E402
 from mapping.inputs.drive_inputs import fuse_log_trajectory  # noqa: E402
 from mapping.localization.pose_noise import _rigid_part  # noqa: E402
 from mapping.localization.sensor_time import fit_clock  # noqa: E402
@@ -187,7 +188,8 @@ def registered_miou(out: Path, gt_path: Path) -> dict:
     .estimate_shift on the markings', curbs' and manholes' layers, sub-cell; chosen by the features, not by the
     score). No turn is searched: the fused tracks' rigid turns are below 0.01 deg here (fused_error). An evaluation
     lens, as a SLAM benchmark aligns a trajectory before its ATE: what the map scores had the positioning put it
-    where it belongs; the target is the map as placed."""
+    where it belongs; the target is the map as placed. The truth is taken onto the map's grid for the shift by
+    interpolation, not by the nearest cell (the map's cell centres can lie on the truth's cell edges)."""
     bev = json.loads((out / "bev.json").read_text())
     labels = np.load(out / "bev_semantics.npy")
     height = np.load(out / "bev_elevation.npy")
@@ -198,13 +200,30 @@ def registered_miou(out: Path, gt_path: Path) -> dict:
     t_cls, t_z = gt["semantic"], gt["elevation"]
     t_rows, t_cols = t_cls.shape
 
-    jj, ii = np.meshgrid(np.arange(cols), np.arange(rows))  # the truth on the map's grid, for the shift
-    ti, tj = np.floor((y0 + ii * res - ty) / t_res).astype(np.int64), np.floor((x0 + jj * res - tx) / t_res).astype(
-        np.int64)
-    inside = (ti >= 0) & (ti < t_rows) & (tj >= 0) & (tj < t_cols)
-    ti, tj = np.where(inside, ti, 0), np.where(inside, tj, 0)
-    truth = fleet_bench.one_hot_layer("truth", np.where(inside, t_z[ti, tj], np.nan),
-                                      np.where(inside, t_cls[ti, tj], 255).astype(np.uint8))
+    # the truth on the map's grid, for the shift: its classes (one-hot) and heights interpolated bilinearly at the
+    # map's cell centres (which may fall on the truth's cell edges: a nearest cell would be a coin toss there)
+    jj, ii = np.meshgrid(np.arange(cols), np.arange(rows))
+    fi, fj = (y0 + ii * res - ty) / t_res - 0.5, (x0 + jj * res - tx) / t_res - 0.5
+    i0, j0 = np.floor(fi).astype(np.int64), np.floor(fj).astype(np.int64)
+    wi, wj = fi - i0, fj - j0
+    prob = np.zeros((rows, cols, NUM_MAP_CLASSES), np.float32)
+    z_sum, z_weight = np.zeros((rows, cols)), np.zeros((rows, cols))
+    for di_, dj_, w in ((0, 0, (1 - wi) * (1 - wj)), (0, 1, (1 - wi) * wj), (1, 0, wi * (1 - wj)), (1, 1, wi * wj)):
+        ti, tj = i0 + di_, j0 + dj_
+        inside = (ti >= 0) & (ti < t_rows) & (tj >= 0) & (tj < t_cols)
+        ti, tj = np.where(inside, ti, 0), np.where(inside, tj, 0)
+        cls, z = t_cls[ti, tj], t_z[ti, tj]
+        known = inside & (cls < NUM_MAP_CLASSES)
+        r, c = np.nonzero(known)
+        prob[r, c, cls[known]] += w[known]
+        ok = inside & np.isfinite(z)
+        z_sum[ok] += w[ok] * z[ok]
+        z_weight[ok] += w[ok]
+    total = prob.sum(-1)
+    labelled_truth = total > 0.5
+    prob = np.where(labelled_truth[..., None], prob / np.maximum(total, 1e-6)[..., None], 0.0).astype(np.float32)
+    height_truth = np.where(z_weight > 0.5, z_sum / np.maximum(z_weight, 1e-6), np.nan).astype(np.float32)
+    truth = DriveLayer("truth", height_truth, (labelled_truth & np.isfinite(height_truth)).astype(np.float32), prob, {})
     found = fleet_bench.estimate_shift(truth, fleet_bench.one_hot_layer("map", height, labels),
                                        int(np.ceil(MAX_SHIFT_M / res)), res)
     di, dj = found.shift or (0.0, 0.0)  # the map's cell x matches the truth's at x + (di, dj) cells
