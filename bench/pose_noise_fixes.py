@@ -178,18 +178,19 @@ _fleet_spec = importlib.util.spec_from_file_location("fleet_bench", Path(__file_
 fleet_bench = importlib.util.module_from_spec(_fleet_spec)
 _fleet_spec.loader.exec_module(fleet_bench)
 MAX_SHIFT_M = 0.5  # the shifts searched
+POLISH_M, POLISH_STEP_M = 0.03, 0.01  # the registered shift polished on the score this far around fleet's
 
 
 def registered_miou(out: Path, gt_path: Path) -> dict:
     """The map's bird's-eye mIoU from its `bev_semantics.npy` (at every other 5 cm true cell, as
     mapping.outputs.map_metrics.truth_cells, the map's classes interpolated there, where both have a class) as
-    placed, and registered: with
-    the map moved by the horizontal shift that overlays it best on the truth, bench/fleet.py's (drive_merge
-    .estimate_shift on the markings', curbs' and manholes' layers, sub-cell; chosen by the features, not by the
-    score). No turn is searched: the fused tracks' rigid turns are below 0.01 deg here (fused_error). An evaluation
-    lens, as a SLAM benchmark aligns a trajectory before its ATE: what the map scores had the positioning put it
-    where it belongs; the target is the map as placed. The truth is taken onto the map's grid for the shift by
-    interpolation, not by the nearest cell (the map's cell centres can lie on the truth's cell edges)."""
+    placed, and registered: with the map moved by the horizontal shift that overlays it best on the truth, first
+    bench/fleet.py's (drive_merge.estimate_shift on the markings', curbs' and manholes' layers, sub-cell), then
+    polished on the score within POLISH_M (the raster's 10 cm cells hold its thin classes at a phase). No turn is
+    searched: the fused tracks' rigid turns are below 0.01 deg here (fused_error). The truth is taken onto the
+    map's grid for the shift by interpolation, not by the nearest cell (the map's cell centres can lie on the
+    truth's cell edges). An evaluation lens, as a SLAM benchmark aligns a trajectory before its ATE: what the map
+    scores had the positioning put it where it belongs; the target is the map as placed."""
     bev = json.loads((out / "bev.json").read_text())
     labels = np.load(out / "bev_semantics.npy")
     height = np.load(out / "bev_elevation.npy")
@@ -255,5 +256,16 @@ def registered_miou(out: Path, gt_path: Path) -> dict:
         return miou_pct(confusion(pred.astype(np.int64), t_cls[qi[rest], qj[rest]].astype(np.int64),
                                   np.ones(len(rest), bool)))
 
-    return {"miou_pct_raster": score(np.zeros(2)), "miou_pct_registered": score(shift),
+    # the raster's 10 cm cells hold its thin classes (a 14 cm line) at a phase: its score moves by steps with a
+    # shift (measured: 0.1 point at 2 cm, 8 points at 4 cm), so the shift is polished on the score itself within
+    # POLISH_M of fleet's (every POLISH_STEP_M), the same for every map, the exact poses' included
+    found_shift, best = shift, score(shift)
+    steps = np.arange(-POLISH_M, POLISH_M + 1e-9, POLISH_STEP_M)
+    for dx in steps:
+        for dy in steps:
+            value = score(found_shift + np.array([dx, dy]))
+            if value is not None and (best is None or value > best):
+                best, shift = value, found_shift + np.array([dx, dy])
+    return {"miou_pct_raster": score(np.zeros(2)), "miou_pct_registered": best,
+            "fleet_shift_to_truth_cm": (100.0 * found_shift).tolist(),
             "shift_to_truth_cm": (100.0 * shift).tolist(), "shift_overlap_cells": found.overlap_cells}
