@@ -12,7 +12,32 @@ import numpy as np
 import torch
 from kitti_error import DATA
 
+from importers.kitti_files import calibration_matrix, read_calibration
+from importers.kitti_odometry import KITTI_ODOMETRY_CALIBRATION, read_poses
+
 FOLDER = DATA / "kitti_odometry_01"
+
+
+def recorded_poses_and_k() -> tuple[np.ndarray, np.ndarray]:
+    """The sequence's camera 0 -> world poses (N, 4, 4) and its K (from P0), read as the importer reads them."""
+    calib = FOLDER / "calib.txt"
+    p0 = calibration_matrix(read_calibration(calib, unnamed=KITTI_ODOMETRY_CALIBRATION), "P0", (3, 4), calib)
+    return read_poses(FOLDER / "poses.txt"), p0[:, :3]
+
+
+def ratio_matches(feat_a, feat_b, matcher) -> tuple[np.ndarray, np.ndarray]:
+    """The two frames' SIFT matches that pass Lowe's ratio test (0.75): their pixels in each, (M, 2) each."""
+    (k1, d1), (k2, d2) = feat_a, feat_b
+    pairs = [m for m, n in matcher.knnMatch(d1, d2, k=2) if m.distance < 0.75 * n.distance]
+    return np.float64([k1[m.queryIdx].pt for m in pairs]), np.float64([k2[m.trainIdx].pt for m in pairs])
+
+
+def inlier_matches(feat_a, feat_b, k: np.ndarray, matcher) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ratio-test matches that an essential matrix fitted to them (RANSAC, 1 px) keeps, and that matrix."""
+    p1, p2 = ratio_matches(feat_a, feat_b, matcher)
+    e, inl = cv2.findEssentialMat(p1, p2, k, cv2.RANSAC, 0.999, 1.0)
+    inl = inl.ravel() > 0
+    return p1[inl], p2[inl], e
 
 
 def rotation(w: torch.Tensor) -> torch.Tensor:
@@ -50,9 +75,7 @@ def sampson(f: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
 
 def epipolar(gaps: tuple[int, ...]) -> dict:
     """Map-independent: the recorded relative poses against SIFT matches of the raw frames."""
-    poses = np.loadtxt(FOLDER / "poses.txt").reshape(-1, 3, 4)
-    poses = np.concatenate([poses, np.tile([[[0, 0, 0, 1.0]]], (len(poses), 1, 1))], 1)
-    k = np.loadtxt(FOLDER / "calib.txt")[0].reshape(3, 4)[:, :3]
+    poses, k = recorded_poses_and_k()
     kinv = np.linalg.inv(k)
     images = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in sorted((FOLDER / "image_0").glob("*.png"))]
     sift = cv2.SIFT_create(nfeatures=4000)
@@ -62,24 +85,19 @@ def epipolar(gaps: tuple[int, ...]) -> dict:
     for gap in gaps:
         rows = []
         for i in range(len(images) - gap):
-            (k1, d1), (k2, d2) = feats[i], feats[i + gap]
-            pairs = [m for m, n in matcher.knnMatch(d1, d2, k=2) if m.distance < 0.75 * n.distance]
-            p1 = np.float64([k1[m.queryIdx].pt for m in pairs])
-            p2 = np.float64([k2[m.trainIdx].pt for m in pairs])
+            p1, p2, e = inlier_matches(feats[i], feats[i + gap], k, matcher)
             r_rec, t_rec = relative(poses[i], poses[i + gap])
             f_rec = kinv.T @ skew(t_rec) @ r_rec @ kinv
-            e, inl = cv2.findEssentialMat(p1, p2, k, cv2.RANSAC, 0.999, 1.0)
-            inl = inl.ravel() > 0
-            _, r_e, t_e, _ = cv2.recoverPose(e, p1[inl], p2[inl], k)
+            _, r_e, t_e, _ = cv2.recoverPose(e, p1, p2, k)
             t_e = t_e.ravel()
             f_e = kinv.T @ skew(t_e) @ r_e @ kinv
-            s_rec, s_e = sampson(f_rec, p1[inl], p2[inl]), sampson(f_e, p1[inl], p2[inl])
+            s_rec, s_e = sampson(f_rec, p1, p2), sampson(f_e, p1, p2)
             d_rot = cv2.Rodrigues(r_e @ r_rec.T)[0].ravel()  # fitted vs recorded, camera axes
             step = np.linalg.norm(t_rec)
             dirn = t_rec / step
             d_dir = t_e - dirn * (t_e @ dirn)  # the fitted direction's part across the recorded one (unit)
-            far = p1[inl, 1] < 185.2  # above the principal point: far scenery, rotation dominates
-            rows.append({"frame": i, "matches": int(inl.sum()), "sampson_recorded_px": float(np.median(s_rec)),
+            far = p1[:, 1] < 185.2  # above the principal point: far scenery, rotation dominates
+            rows.append({"frame": i, "matches": len(p1), "sampson_recorded_px": float(np.median(s_rec)),
                          "sampson_fitted_px": float(np.median(s_e)),
                          "sampson_recorded_rms_px": float(np.sqrt((s_rec ** 2).mean())),
                          "sampson_fitted_rms_px": float(np.sqrt((s_e ** 2).mean())),
@@ -145,10 +163,7 @@ def road_scale(images, feats, poses, k: np.ndarray) -> dict:
     matcher = cv2.BFMatcher(cv2.NORM_L2)
     rows = []
     for i in range(len(images) - 1):
-        (k1, d1), (k2, d2) = feats[i], feats[i + 1]
-        pairs = [m for m, n in matcher.knnMatch(d1, d2, k=2) if m.distance < 0.75 * n.distance]
-        p1 = np.float64([k1[m.queryIdx].pt for m in pairs])
-        p2 = np.float64([k2[m.trainIdx].pt for m in pairs])
+        p1, p2 = ratio_matches(feats[i], feats[i + 1], matcher)
         low = (p1[:, 1] > ROAD_ROW) & (p2[:, 1] > ROAD_ROW)
         p1, p2 = p1[low], p2[low]
         if len(p1) < 12:
@@ -211,9 +226,7 @@ def epipolar_of_corrections(rows: list[dict], key: str = "searched") -> dict:
     """Would the views' rigid corrections (fitted against the map) make the raw frames' SIFT matches agree better
     with the poses? Per corrected view k: the median Sampson error (px) of the matches of frames k-1 -> k and
     k -> k+1 under the recorded poses and with frame k's pose corrected. A real pose error of frame k lowers it."""
-    poses = np.loadtxt(FOLDER / "poses.txt").reshape(-1, 3, 4)
-    poses = np.concatenate([poses, np.tile([[[0, 0, 0, 1.0]]], (len(poses), 1, 1))], 1)
-    k = np.loadtxt(FOLDER / "calib.txt")[0].reshape(3, 4)[:, :3]
+    poses, k = recorded_poses_and_k()
     kinv = np.linalg.inv(k)
     files = sorted((FOLDER / "image_0").glob("*.png"))
     sift = cv2.SIFT_create(nfeatures=4000)
@@ -226,14 +239,9 @@ def epipolar_of_corrections(rows: list[dict], key: str = "searched") -> dict:
         return cache[i]
 
     def median_sampson(a, b, pa, pb):
-        (k1, d1), (k2, d2) = feats(a), feats(b)
-        pairs = [m for m, n in matcher.knnMatch(d1, d2, k=2) if m.distance < 0.75 * n.distance]
-        p1 = np.float64([k1[m.queryIdx].pt for m in pairs])
-        p2 = np.float64([k2[m.trainIdx].pt for m in pairs])
-        _, inl = cv2.findEssentialMat(p1, p2, k, cv2.RANSAC, 0.999, 1.0)
-        inl = inl.ravel() > 0
+        p1, p2, _ = inlier_matches(feats(a), feats(b), k, matcher)
         r, t = relative(pa, pb)
-        return float(np.median(sampson(kinv.T @ skew(t) @ r @ kinv, p1[inl], p2[inl])))
+        return float(np.median(sampson(kinv.T @ skew(t) @ r @ kinv, p1, p2)))
 
     out = []
     for row in rows:
