@@ -90,6 +90,14 @@ def noisy_runs(mode: str, clean: bool) -> tuple[str, ...]:
     return tuple(r for r in runs if r in ONLY)
 
 
+def every_run(results: list[dict], modes: list[str], clean: bool):
+    """(world's result, mode, run name, its figures) for every run of every world, the exact one first."""
+    for r in results:
+        for mode in modes:
+            for name in ("exact", *noisy_runs(mode, clean)):
+                yield r, mode, name, r[mode][name]
+
+
 def perturbed_fixes_log(log: Path, fix_noise) -> tuple[Path, dict]:
     """The drive `log` with its GNSS fixes perturbed (bench/pose_noise_fixes.py), kept beside it with its truth."""
     n = fix_noise
@@ -232,28 +240,22 @@ def main() -> int:
         print("| world | mode | run | raster mIoU % placed / registered | the map's shift onto the truth cm (e, n): "
               "fleet's, polished on the score |")
         print("|---|---|---|---|---|")
-        for r in results:
-            for mode in modes:
-                for name in ("exact", *noisy_runs(mode, args.clean_refined)):
-                    f = r[mode][name]
-                    print(f"| {r['seed']} | {mode} | {name} | {fmt(f['miou_pct_raster'])} / "
-                          f"{fmt(f['miou_pct_registered'])} | {fmt(f['fleet_shift_to_truth_cm'][0])}, "
-                          f"{fmt(f['fleet_shift_to_truth_cm'][1])}; {fmt(f['shift_to_truth_cm'][0])}, "
-                          f"{fmt(f['shift_to_truth_cm'][1])} |")
+        for r, mode, name, f in every_run(results, modes, args.clean_refined):
+            print(f"| {r['seed']} | {mode} | {name} | {fmt(f['miou_pct_raster'])} / "
+                  f"{fmt(f['miou_pct_registered'])} | {fmt(f['fleet_shift_to_truth_cm'][0])}, "
+                  f"{fmt(f['fleet_shift_to_truth_cm'][1])}; {fmt(f['shift_to_truth_cm'][0])}, "
+                  f"{fmt(f['shift_to_truth_cm'][1])} |")
     print("| world | mode | run | PSNR dB | mIoU % | lane marking IoU % | pose error cm | common along / across cm, "
           "turn deg, non-rigid cm | wall s |")
     print("|---|---|---|---|---|---|---|---|---|")
-    for r in results:
-        for mode in modes:
-            for name in ("exact", *noisy_runs(mode, args.clean_refined)):
-                f = r[mode][name]
-                error = f["pose_error_before_cm"] if name == "noisy" else f["pose_error_after_cm"]
-                after = f["pose_error_after"] or {}
-                print(f"| {r['seed']} | {mode} | {name} | {fmt(f['psnr_db'])} | {fmt(f['miou_pct'])} | "
-                      f"{fmt(f['lane_marking_iou_pct'])} | {fmt(error if name != 'exact' else 0.0)} | "
-                      f"{fmt(after.get('common_along_cm'))} / {fmt(after.get('common_across_cm'))}, "
-                      f"{fmt(after.get('rigid_turn_deg'))}, {fmt(after.get('nonrigid_horizontal_rms_cm'))} | "
-                      f"{fmt(f['wall_s'])} |")
+    for r, mode, name, f in every_run(results, modes, args.clean_refined):
+        error = f["pose_error_before_cm"] if name == "noisy" else f["pose_error_after_cm"]
+        after = f["pose_error_after"] or {}
+        print(f"| {r['seed']} | {mode} | {name} | {fmt(f['psnr_db'])} | {fmt(f['miou_pct'])} | "
+              f"{fmt(f['lane_marking_iou_pct'])} | {fmt(error if name != 'exact' else 0.0)} | "
+              f"{fmt(after.get('common_along_cm'))} / {fmt(after.get('common_across_cm'))}, "
+              f"{fmt(after.get('rigid_turn_deg'))}, {fmt(after.get('nonrigid_horizontal_rms_cm'))} | "
+              f"{fmt(f['wall_s'])} |")
     for mode in modes:
         s = stats[mode]
         for name in noisy_runs(mode, args.clean_refined):
