@@ -30,7 +30,7 @@ from daemon.spine.config import load_config, resolve_path  # noqa: E402
 from daemon.spine.local_frame import LocalFrame  # noqa: E402
 from daemon.spine.topics import GNSS_FIX, GNSS_VELOCITY, IMU, WHEEL_SPEEDS  # noqa: E402
 from mapping.inputs.drive_inputs import fuse_log_trajectory  # noqa: E402
-from mapping.localization.sensor_time import fit_clock  # noqa: E402
+from mapping.localization.sensor_time import fit_clocks  # noqa: E402
 from sim import drive_log  # noqa: E402
 from sim.sensors.sensor_clocks import HOST_MONO_AT_START_NS, drive_clocks, host_mono_ns, utc_start_ns  # noqa: E402
 from sim.world.random_world import scenario_for  # noqa: E402
@@ -52,8 +52,7 @@ def fused_errors(name: str, seed: int, seconds: float, velocity: bool = True) ->
     for _, topic, message in items:
         if topic in by_topic:
             by_topic[topic].append(message)
-    fit = {t: fit_clock([m.sensor_time_ns for m in ms], [m.host_mono_ns for m in ms], anchors)
-           for t, ms in by_topic.items() if ms}
+    fit = fit_clocks(by_topic, anchors)
     trajectory = fuse_log_trajectory(by_topic[GNSS_FIX], by_topic[IMU], by_topic[WHEEL_SPEEDS], scene.config, frame,
                                      fit, by_topic[GNSS_VELOCITY] if velocity else [])
     position, quat = trajectory.interpolate(trajectory.times_ns)

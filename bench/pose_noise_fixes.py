@@ -11,8 +11,8 @@ logged: they do not share the position error and are accurate to a few cm/s (the
 `perturb_log` writes a copy of a log with only its `gnss/fix` messages moved; `fused_error` fuses a log's trajectory
 as the mapper does and gives its error against the simulator's true trajectory, split into the drive's common shift
 and turn (which nothing on board can see against the receiver) and the rest. `registered_miou` scores a map's
-bird's-eye semantics against the truth as placed and after the map's best rigid 2-D shift and turn (an evaluation
-lens, as a SLAM benchmark aligns a trajectory before its ATE; the shift is bench/fleet.py's, the turn searched).
+bird's-eye semantics against the truth as placed and after the map's best 2-D shift (an evaluation lens, as a SLAM
+benchmark aligns a trajectory before its ATE; the shift is bench/fleet.py's, polished on the score; no turn).
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ from daemon.spine.topics import FUSION_TOPICS, GNSS_FIX, GNSS_VELOCITY, IMU, TIM
 from mapping.fleet.drive_merge import DriveLayer  # noqa: E402
 from mapping.inputs.drive_inputs import fuse_log_trajectory  # noqa: E402
 from mapping.localization.pose_noise import _rigid_part  # noqa: E402
-from mapping.localization.sensor_time import fit_clock  # noqa: E402
+from mapping.localization.sensor_time import fit_clocks  # noqa: E402
 from mapping.offline.reconstruct_command import config_from_logs  # noqa: E402
 from mapping.outputs.map_metrics import confusion, miou_pct  # noqa: E402
 
@@ -139,8 +139,7 @@ def fused_trajectory(log: Path, origin: LocalFrame):
             anchors.append((rec.message.host_mono_ns, rec.message.utc_ns))
         else:
             by_topic[rec.topic].append(rec.message)
-    clocks = {t: fit_clock([m.sensor_time_ns for m in ms], [m.host_mono_ns for m in ms], anchors)
-              for t, ms in by_topic.items() if ms}
+    clocks = fit_clocks(by_topic, anchors)
     return fuse_log_trajectory(by_topic[GNSS_FIX], by_topic[IMU], by_topic[WHEEL_SPEEDS], config, origin, clocks,
                                by_topic[GNSS_VELOCITY])
 

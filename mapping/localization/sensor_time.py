@@ -68,6 +68,12 @@ def fit_clock(stamps_ns: np.ndarray, host_ns: np.ndarray, anchors: list[tuple[in
     return ClockMap("free", scale, offset, int(stamps[0]))
 
 
+def fit_clocks(messages_by_topic: dict[str, list], anchors: list[tuple[int, int]]) -> dict[str, ClockMap]:
+    """`fit_clock` for each topic that has messages, from the messages' own sensor_time_ns and host_mono_ns."""
+    return {topic: fit_clock([m.sensor_time_ns for m in messages], [m.host_mono_ns for m in messages], anchors)
+            for topic, messages in messages_by_topic.items() if messages}
+
+
 FREE_CLOCK_RATE_FIT_MIN_S = 600.0  # shorter spans: a free-running clock is taken at rate 1
 
 

@@ -33,7 +33,7 @@ from daemon.spine.topics import (
 from drivers.lidar.pcap_udp import read_pcap_udp
 from mapping.inputs.drive_inputs import fuse_log_trajectory, load_drive
 from mapping.inputs.lidar_ground import configured_decoding, lidar_scans
-from mapping.localization.sensor_time import fit_clock
+from mapping.localization.sensor_time import fit_clocks
 from mapping.offline.reconstruct_command import config_from_logs
 from mapping.viewing.lidar_view import ViewingClouds
 from mapping.viewing.vehicle_pose import LivePose
@@ -150,7 +150,7 @@ def test_the_live_pose_follows_the_offline_trajectory_at_its_rate(city_drive):
     assert all(p.host_mono_ns == p.sensor_time_ns and p.frame_id == MAP_FRAME for p in poses)
     by = {t: [m for tp, m in messages if tp == t] for t in (GNSS_FIX, IMU, WHEEL_SPEEDS)}
     anchors = [(m.host_mono_ns, m.utc_ns) for tp, m in messages if tp == TIME_ANCHOR]
-    clocks = {t: fit_clock([m.sensor_time_ns for m in v], [m.host_mono_ns for m in v], anchors) for t, v in by.items()}
+    clocks = fit_clocks(by, anchors)
     offline = fuse_log_trajectory(by[GNSS_FIX], by[IMU], by[WHEEL_SPEEDS], config, live.origin, clocks)
     positions, _ = offline.interpolate(times)
     error = np.linalg.norm(np.array([p.position_m for p in poses]) - positions, axis=1)
