@@ -19,7 +19,13 @@ from dataclasses import dataclass
 import pynmea2
 
 from daemon.spine.messages import GnssVelocity
-from drivers.gnss.receiver_epochs import RECENT_EPOCHS, UNKNOWN_COVARIANCE, covariance_diagonal, epoch_key
+from drivers.gnss.receiver_epochs import (
+    RECENT_EPOCHS,
+    UNKNOWN_COVARIANCE,
+    covariance_diagonal,
+    covariance_of_variances,
+    epoch_key,
+)
 
 MAX_VELOCITY_MPS = 500.0  # a car's receiver reporting more is garbled (u-blox's own dynamic limit is 500 m/s)
 KNOT_MPS = 1852.0 / 3600.0
@@ -176,10 +182,10 @@ class EpochVelocity:
             sigma2 += speed**2 / 2.0  # each axis of a speed in a uniformly unknown direction
         else:
             east, north = speed * math.sin(math.radians(course)), speed * math.cos(math.radians(course))
-        sigma = math.sqrt(sigma2)
         velocity = GnssVelocity(sensor_time_ns=sensor_time, host_mono_ns=host_mono_ns,
                                 velocity_enu_mps=(east, north, 0.0),
-                                velocity_covariance=covariance_diagonal(sigma, sigma, NMEA_VERTICAL_SIGMA_MPS),
+                                velocity_covariance=covariance_of_variances(sigma2, sigma2,
+                                                                            NMEA_VERTICAL_SIGMA_MPS**2),
                                 covariance_type=1)
         out = self._release(sensor_time)
         if self._held_nmea_velocity is not None or epoch_key(sensor_time) in self._recent_velocity_ms:

@@ -21,7 +21,12 @@ def epoch_key(sensor_time_ns: int) -> int:
 
 def covariance_diagonal(east: float, north: float, up: float) -> Covariance:
     """Row-major ENU covariance from three standard deviations (m -> m^2, m/s -> m^2/s^2)."""
-    return (east**2, 0.0, 0.0, 0.0, north**2, 0.0, 0.0, 0.0, up**2)
+    return covariance_of_variances(east**2, north**2, up**2)
+
+
+def covariance_of_variances(east: float, north: float, up: float) -> Covariance:
+    """Row-major ENU covariance from the three axes' variances."""
+    return (east, 0.0, 0.0, 0.0, north, 0.0, 0.0, 0.0, up)
 
 
 def covariance_from_ellipse(
