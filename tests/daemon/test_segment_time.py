@@ -105,12 +105,17 @@ def test_a_live_recorder_with_nothing_to_record_still_closes_its_segments_on_tim
     assert len(closed) >= 3 and all("roadlog.counts" in read_metadata(p) for p in closed)
 
 
-def _replayed_segments(log: Path, config_path: Path, out: Path, rate: str) -> list[list[int]]:
+def _replayed(log: Path, config_path: Path, out: Path, rate: str, topics: list[str]
+              ) -> tuple[list[list[tuple[str, int]]], list[dict[str, int]]]:
+    """`roadlog replay` of the log into `out`: per re-recorded segment holding any of `topics`, their (topic,
+    sensor time) in log order; and every segment's late count per topic."""
     run = roadlog("replay", str(log), "--config", str(config_path), "--rate", rate, "--output-dir", str(out),
                   timeout=180)
     assert run.returncode == 0, run.stderr[-3000:]
-    return [[r.message.sensor_time_ns for r in read_log([s], topics=[CAN_FRAMES])]
-            for s in sorted(out.rglob("*.mcap")) if any(True for _ in read_log([s], topics=[CAN_FRAMES]))]
+    segments = sorted(out.rglob("*.mcap"))
+    cut = [[(r.topic, r.message.sensor_time_ns) for r in read_log([s], topics=topics)] for s in segments]
+    late = [json.loads(read_metadata(s)["roadlog.counts"]["late_per_topic"]) for s in segments]
+    return [c for c in cut if c], late
 
 
 def test_a_replay_is_cut_at_the_same_messages_at_rate_1_4_and_max(tmp_path):
@@ -120,8 +125,8 @@ def test_a_replay_is_cut_at_the_same_messages_at_rate_1_4_and_max(tmp_path):
                                          recorder={"segment_seconds": S, "min_free_gib": 0.0, "min_free_pct": 0.0})
     log = can_only_log(tmp_path / "drive.mcap", config, frames=220)  # 10 ms apart
     try:
-        cut = {rate: _replayed_segments(log, config_path, tmp_path / f"rate_{rate}", rate)
-               for rate in ("1", "4", "max")}
+        cut = {rate: [[t for _, t in segment] for segment in _replayed(
+            log, config_path, tmp_path / f"rate_{rate}", rate, [CAN_FRAMES])[0]] for rate in ("1", "4", "max")}
     finally:
         pubsub.unlink_all(config)
     expected = [[i * 10_000_000 for i in range(k * 50, min(220, (k + 1) * 50))] for k in range(5)]
@@ -153,15 +158,8 @@ def test_a_slow_replay_of_several_topics_keeps_each_message_in_its_slot(tmp_path
     cut = {}
     try:
         for rate in ("0.5", "max"):
-            out = tmp_path / f"rate_{rate}"
-            run = roadlog("replay", str(log), "--config", str(config_path), "--rate", rate, "--output-dir", str(out),
-                          timeout=180)
-            assert run.returncode == 0, run.stderr[-3000:]
-            segments = sorted(out.rglob("*.mcap"))
-            cut[rate] = [sorted((r.topic, r.message.sensor_time_ns) for r in read_log([s], topics=[CAN_FRAMES, IMU]))
-                         for s in segments]
-            cut[rate] = [c for c in cut[rate] if c]
-            late = [json.loads(read_metadata(s)["roadlog.counts"]["late_per_topic"]) for s in segments]
+            segments, late = _replayed(log, config_path, tmp_path / f"rate_{rate}", rate, [CAN_FRAMES, IMU])
+            cut[rate] = [sorted(segment) for segment in segments]
             assert all(not any(d.values()) for d in late), (rate, late)
     finally:
         pubsub.unlink_all(config)
