@@ -103,6 +103,22 @@ class InputsConfig(StrictModel):
     lidar_every_n_scans: int = Field(2, ge=1)  # Lidar scans used: every n-th (a scan: one frame id's packets)
 
 
+class CameraCheckConfig(StrictModel):
+    """Each camera's orientation checked against the poses by its own images (mapping.localization
+    .camera_orientation) in every reconstruction (`roadlog reconstruct`, the fleet's and the live worker's windows),
+    on its training keyframes: the turn of its mount that makes the poses agree with their epipolar geometry."""
+
+    mode: Literal["off", "report", "apply"] = "off"  # report: the check in metrics.json, a warning for a camera
+    # that is off (see warn_deg); apply: also the keyframes of such a camera corrected by it before the fits (a bad
+    # extrinsic calibration, or the poses' constant heading error, which the check cannot tell apart and which the
+    # map takes the same way). Off by default: ~0.3 s a keyframe pair on 2 cores
+    max_pairs: int = Field(80, ge=3)  # keyframe pairs of a camera matched at most (evenly along the drive)
+    min_inliers: int = Field(20, ge=8)  # matches a pair's essential matrix needs to be used
+    min_step_m: float = Field(0.5, gt=0)  # the camera's travel a pair needs (the direction of a shorter one is noise)
+    warn_deg: float = Field(1.0, gt=0)  # a camera is off when its yaw or pitch correction is above this (degrees)
+    # and above three standard errors: the check reads up to ~0.6 deg on mounts that are right (bench/RESULTS.md)
+
+
 class FastFitConfig(StrictModel):
     """The fast fit (the default; mapping.fits.fast_fit): the model fitted to what the keyframes saw at each
     vertex: elevation MLP on a lattice against the Lidar, the Lidar detail, label frequencies, colour encoder."""
@@ -278,6 +294,7 @@ class MapperConfig(StrictModel):
     windows: WindowsConfig = WindowsConfig()
     model: ModelConfig = ModelConfig()
     inputs: InputsConfig = InputsConfig()
+    camera_check: CameraCheckConfig = CameraCheckConfig()
     fast_fit: FastFitConfig = FastFitConfig()
     faithful_fit: FaithfulFitConfig = FaithfulFitConfig()
     pose_refinement: PoseRefinementConfig = PoseRefinementConfig()

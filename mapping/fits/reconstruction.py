@@ -27,6 +27,7 @@ from mapping.fits.lidar_horizontal_registration import register_horizontal
 from mapping.fits.lidar_occlusion import OcclusionTest
 from mapping.fits.lidar_registration import re_placed, register_ground
 from mapping.fits.pose_refinement import PoseCorrections, corrected, refine_poses
+from mapping.localization.camera_orientation import camera_check_figures, check_orientations, corrected_keyframes
 from mapping.localization.keyframe_spacing import spaced_by_distance
 from mapping.localization.trajectory import HorizontalTrack
 from mapping.method.mesh_location import Located
@@ -220,6 +221,14 @@ def reconstruct(
         phase(f"camera frames read: {len(selected)} keyframes selected, {len(train)} to train on")
         if not train:
             raise ValueError(f"no training keyframes after selection (of {len(selected)} keyframes selected)")
+        camera_checks = None
+        if config.camera_check.mode != "off":  # fitted on the training views, a calibration of every view
+            camera_checks = check_orientations(train, cameras, config.camera_check)
+            if config.camera_check.mode == "apply":
+                train, holdout = (corrected_keyframes(views, camera_checks, config.camera_check)
+                                  for views in (train, holdout))
+            phase("camera orientations checked against the poses"
+                  + (" and corrected" if config.camera_check.mode == "apply" else ""))
         if not faithful and supervision is None and not variant.flat_init:  # camera-only: from the images
             elevation_first_last = fast_fit.fit_surface_from_images(road_map, train, cameras, trajectory, config,
                                                                     rng, timings, progress)
@@ -296,6 +305,8 @@ def reconstruct(
         drive_s=drive_s,
         **(maskless_figures(*tested, occlusion, not faithful and config.maskless.consensus) if maskless else {}),
         **({"pose_refinement": pose_figures} if pose_figures is not None else {}),
+        **({"camera_check": camera_check_figures(camera_checks, config.camera_check)}
+           if camera_checks is not None else {}),
         **({"lidar_registration": lidar_figures} if lidar_figures is not None else {}),
         **({"lidar_horizontal_registration": horizontal_figures} if horizontal_figures is not None else {}),
     )

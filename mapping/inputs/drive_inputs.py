@@ -119,8 +119,8 @@ class LoadingDrive:
 
 
 def camera_models(config: CarConfig) -> dict[str, CameraModel]:
-    return {c.name: CameraModel(c.name, c.intrinsics.matrix(), tuple(c.distortion), c.width, c.height)
-            for c in config.sensors.cameras}
+    return {c.name: CameraModel(c.name, c.intrinsics.matrix(), tuple(c.distortion), c.width, c.height,
+                                c.extrinsics.rotation_matrix()) for c in config.sensors.cameras}
 
 
 def decode_image(frame: CameraFrame) -> np.ndarray:

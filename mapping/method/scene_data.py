@@ -20,6 +20,7 @@ class CameraModel:
     distortion: tuple[float, float, float, float, float]
     width: int
     height: int
+    mount_rotation: np.ndarray | None = None  # 3x3 camera -> vehicle rotation of its extrinsics; None: unknown
 
     @property
     def distorted(self) -> bool:

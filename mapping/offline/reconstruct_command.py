@@ -207,6 +207,8 @@ def run_reconstruction(logs: list[str], out: Path, config: CarConfig, config_pat
                        pose_refinement={**pre_pass.corrections.figures(),
                                         "source": "Lidar pre-pass (height and horizontal registration), the drive "
                                                   "read again with the corrected trajectory"})
+    for line in camera_check_warnings(metrics.get("camera_check", {"cameras": {}})):
+        say(f"warning: {line}")
     if pose_noise is not None:
         metrics["pose_noise"] = pose_noise_figures(pose_noise, result, drive,
                                                    None if pre_pass is None else pre_pass.path)
@@ -276,6 +278,21 @@ def pose_noise_figures(noise: PoseNoise, result: ReconstructionResult, drive: Dr
             "keyframes_after": after}
 
 
+def camera_check_warnings(figures: dict) -> list[str]:
+    """The warnings of metrics' camera_check (mapper.camera_check): a camera with too few keyframe pairs, one whose
+    yaw or pitch is off by more than its warn_deg and three standard errors."""
+    lines = []
+    for name, check in figures["cameras"].items():
+        if check is None:
+            lines.append(f"camera {name}: too few keyframe pairs with an essential matrix for the orientation check")
+        elif check["warned"]:
+            lines.append(f"camera {name}: its images put it {check['yaw_deg']:+.2f} deg yaw, {check['pitch_deg']:+.2f} "
+                         f"deg pitch from where its extrinsics and the poses place it ({check['pairs_used']} keyframe "
+                         "pairs)" + (": corrected" if figures["mode"] == "apply"
+                                     else "; --camera-check apply corrects the keyframes"))
+    return lines
+
+
 def with_pose_refinement(car: CarConfig, setting: str | None) -> CarConfig:
     """The car config with mapper.pose_refinement from `--pose-refinement on|off|photometric|lidar` (None: as it
     is; photometric: on without the Lidar ground registration; lidar: on with the Lidar's horizontal registration
@@ -309,6 +326,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="fit corrections of the poses to the map (fast path; default: the config's "
                              "mapper.pose_refinement.enabled); photometric: without the Lidar ground registration; "
                              "lidar: every axis from the Lidar ground (heights and intensity), no photometric fit")
+    parser.add_argument("--camera-check", choices=("off", "report", "apply"),
+                        help="check each camera's orientation against the poses by its images' epipolar geometry "
+                             "(metrics camera_check); apply: correct the keyframes by it before the fit (default: "
+                             "the config's mapper.camera_check.mode)")
     parser.add_argument("--pose-noise-m", type=float, default=0.0,
                         help="benches: inject a smooth random pose error of this 3-D RMS (m) into the trajectory")
     parser.add_argument("--pose-noise-deg", type=float, default=0.0,
@@ -335,6 +356,9 @@ def main(argv: list[str] | None = None) -> int:
     else:
         config, config_path = config_from_logs(args.logs)
     config = with_pose_refinement(with_device(config, args.device), args.pose_refinement)
+    if args.camera_check is not None:
+        check = config.mapper.camera_check.model_copy(update={"mode": args.camera_check})
+        config = config.model_copy(update={"mapper": config.mapper.model_copy(update={"camera_check": check})})
     source = "--device" if args.device is not None else f"{args.config or args.logs[0]}: mapper.device"
     resolve_device(config.mapper.device, source)  # cuda without a GPU: one error line, exit 2
     if args.epochs is not None:

@@ -1,0 +1,225 @@
+"""Each camera's orientation checked against the poses by its own images' epipolar geometry.
+
+A camera frame is placed in the world by the vehicle's pose and the camera's extrinsics. Between two keyframes of
+one camera, the poses say in which direction the camera moved (in the first frame's camera axes); SIFT matches of
+the two images, through an essential matrix (OpenCV, RANSAC), say the same from the pixels alone. If the camera's
+extrinsics (or the poses' heading) are off by a fixed rotation, every pair's image direction turned by it is the
+poses' direction. `check_orientations` fits that rotation per camera (robust least squares over pairs one and two
+keyframes apart) about the two axes across the direction of travel, and reports it as a turn of the mount in yaw and
+pitch: a turn about the direction of travel (roll) does not move it and is not checked. The check cannot tell a
+mount's error from a constant heading error of the poses: both place that camera's pixels the same way, and the
+correction fixes both for the map. `corrected_keyframes` applies the significant corrections to the keyframes' poses.
+
+The image's own rotation is not used: a small turn and a small sideways step look alike in a narrow view (the
+bas-relief ambiguity), so a direction solved under the poses' rotation inherits that rotation's error many times
+over (on KITTI 01, 0.02 deg of relative yaw became 0.7 deg of direction); the free essential matrix's direction is
+noisier per pair but not biased by the poses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from daemon.spine.mapper_config import CameraCheckConfig
+from mapping.method.scene_data import CameraModel, Keyframe
+
+SIFT_FEATURES = 2000  # per image, the strongest
+SIFT_CONTRAST = 0.01  # OpenCV's default 0.04 finds ~100 features in a side camera's view of plain asphalt
+RATIO_TEST = 0.75  # Lowe's ratio for a SIFT match
+RANSAC_PX = 1.0  # the essential matrix's inlier distance (pixels)
+ROBUST_SCALE_RAD = np.deg2rad(0.3)  # soft-L1 scale of a pair's residual: pairs further off count less
+PAIR_GAPS = (1, 2)  # keyframe pairs this many keyframes apart (the longer step sees the direction better)
+
+
+@dataclass(frozen=True)
+class PairMotion:
+    """One keyframe pair of one camera: the second camera's centre as a unit direction in the first camera's axes,
+    from the images and from the poses."""
+
+    image_direction: np.ndarray  # (3,)
+    pose_direction: np.ndarray  # (3,)
+    inliers: int
+
+
+@dataclass(frozen=True)
+class CameraOrientation:
+    """What a camera's images say about its orientation: the turn of its mount (degrees, yaw about the vehicle's z
+    up, pitch about its y left) that makes the poses agree with them, with each one's standard error, the
+    camera-axes rotation that corrects its keyframes, and the pairs it rests on."""
+
+    camera: str
+    pitch_deg: float
+    yaw_deg: float
+    std_deg: tuple[float, float]  # pitch, yaw
+    pairs_used: int
+    pairs_refused: int  # too few matches, too short a step, or no essential matrix
+    median_angle_before_deg: float  # the pairs' direction disagreement, median, before and after the correction
+    median_angle_after_deg: float
+    camera_rotation: np.ndarray  # (3, 3) C: a keyframe's T_world_camera[:3, :3] @ C is its corrected orientation
+
+    def summary(self) -> dict:
+        return {"pitch_deg": round(self.pitch_deg, 3), "yaw_deg": round(self.yaw_deg, 3),
+                "std_deg": [round(s, 3) for s in self.std_deg],
+                "pairs_used": self.pairs_used, "pairs_refused": self.pairs_refused,
+                "median_angle_before_deg": round(self.median_angle_before_deg, 3),
+                "median_angle_after_deg": round(self.median_angle_after_deg, 3)}
+
+
+def _undistorted_pixels(points: np.ndarray, camera: CameraModel) -> np.ndarray:
+    if not camera.distorted:
+        return points
+    return cv2.undistortPoints(points.reshape(-1, 1, 2), camera.K, np.float64(camera.distortion),
+                               P=camera.K).reshape(-1, 2)
+
+
+def image_direction(features_a, features_b, camera: CameraModel, matcher, min_inliers: int,
+                    pose_direction: np.ndarray) -> tuple[np.ndarray, int] | None:
+    """The second camera's centre direction in the first's axes from the two images' SIFT features (keypoints,
+    descriptors) through an essential matrix (RANSAC), or None when fewer than `min_inliers` matches fit one. Of
+    its two signs, the one within 90 degrees of `pose_direction`."""
+    (k1, d1), (k2, d2) = features_a, features_b
+    if d1 is None or d2 is None or len(k1) < min_inliers or len(k2) < min_inliers:
+        return None
+    pairs = [m for m, n in (p for p in matcher.knnMatch(d1, d2, k=2) if len(p) == 2)
+             if m.distance < RATIO_TEST * n.distance]
+    if len(pairs) < min_inliers:
+        return None
+    p1 = _undistorted_pixels(np.float64([k1[m.queryIdx].pt for m in pairs]), camera)
+    p2 = _undistorted_pixels(np.float64([k2[m.trainIdx].pt for m in pairs]), camera)
+    try:  # degenerate matches (all on one line, all alike) fail inside OpenCV's five-point solver
+        e, inl = cv2.findEssentialMat(p1, p2, camera.K, cv2.RANSAC, 0.999, RANSAC_PX)
+        if e is None or e.shape != (3, 3):
+            return None
+        count, r, t, _ = cv2.recoverPose(e, p1, p2, camera.K, mask=inl)
+    except cv2.error:
+        return None
+    if count < min_inliers:
+        return None
+    centre = -r.T @ t.ravel()
+    return (centre if centre @ pose_direction >= 0 else -centre), int(count)
+
+
+def pose_motion(a: Keyframe, b: Keyframe) -> tuple[np.ndarray, float]:
+    """What the keyframes' poses say: the second camera's centre direction in the first's axes, and the step's
+    length (m)."""
+    step = a.T_world_camera[:3, :3].T @ (b.T_world_camera[:3, 3] - a.T_world_camera[:3, 3])
+    length = float(np.linalg.norm(step))
+    return step / max(length, 1e-12), length
+
+
+def pair_motions(keyframes: list[Keyframe], camera: CameraModel, *, max_pairs: int, min_step_m: float,
+                 min_inliers: int) -> tuple[list[PairMotion], int]:
+    """Pairs of one camera's keyframes one and two apart (every k-th so that at most `max_pairs` are tried) measured
+    both ways, and the count of pairs refused."""
+    frames = sorted((k for k in keyframes if k.camera == camera.name), key=lambda k: k.timestamp)
+    candidates = [(frames[i], frames[i + gap]) for i in range(len(frames)) for gap in PAIR_GAPS
+                  if i + gap < len(frames)]
+    stride = max(1, -(-len(candidates) // max_pairs))
+    candidates = candidates[::stride]
+    sift = cv2.SIFT_create(nfeatures=SIFT_FEATURES, contrastThreshold=SIFT_CONTRAST)
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    features: dict[int, tuple] = {}
+
+    def feats(k: Keyframe):
+        if id(k) not in features:
+            features[id(k)] = sift.detectAndCompute(cv2.cvtColor(k.image, cv2.COLOR_RGB2GRAY), None)
+        return features[id(k)]
+
+    motions, refused = [], 0
+    for a, b in candidates:
+        direction, length = pose_motion(a, b)
+        seen = (image_direction(feats(a), feats(b), camera, matcher, min_inliers, direction)
+                if length >= min_step_m else None)
+        if seen is None:
+            refused += 1
+            continue
+        motions.append(PairMotion(seen[0], direction, seen[1]))
+    return motions, refused
+
+
+def _angles_deg(directions_a: np.ndarray, directions_b: np.ndarray) -> np.ndarray:
+    """The angles (degrees) between the rows of two (N, 3) arrays of unit vectors."""
+    return np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", directions_a, directions_b), -1, 1)))
+
+
+def fit_orientation(camera: str, motions: list[PairMotion], refused: int,
+                    camera_to_vehicle: np.ndarray | None) -> CameraOrientation | None:
+    """The camera-axes rotation C, about the two axes across the mean direction of travel, that turns the images'
+    directions into the poses' (soft-L1 least squares; None without 3 pairs), reported about the vehicle's axes
+    through the camera's extrinsic rotation `camera_to_vehicle` (3x3; None: unknown, the angles are then about the
+    camera's own x right (pitch) and y down (yaw) axes)."""
+    if len(motions) < 3:
+        return None
+    to_vehicle = np.eye(3) if camera_to_vehicle is None else camera_to_vehicle
+    seen = np.array([m.image_direction for m in motions])
+    placed = np.array([m.pose_direction for m in motions])
+    travel = placed.mean(axis=0)
+    travel /= np.linalg.norm(travel)
+    across = np.linalg.svd(travel[None, :])[2][1:]  # (2, 3): two unit axes across the direction of travel
+
+    def turn(ab: np.ndarray) -> np.ndarray:
+        return Rotation.from_rotvec(ab @ across).as_matrix()
+
+    def residuals(ab: np.ndarray) -> np.ndarray:  # ~ each pair's angle, about its axis
+        return np.cross(seen @ turn(ab).T, placed).ravel()
+
+    fit = least_squares(residuals, np.zeros(2), loss="soft_l1", f_scale=ROBUST_SCALE_RAD)
+    c = turn(fit.x)
+    scale = 1.4826 * np.median(np.abs(fit.fun - np.median(fit.fun)))  # the residuals' robust scale (MAD)
+    cov_camera = across.T @ np.linalg.pinv(fit.jac.T @ fit.jac) @ across * scale ** 2
+    cov_vehicle = to_vehicle @ cov_camera @ to_vehicle.T
+    # the correction as a turn of the mount in the vehicle's axes: R_vc' = Q R_vc with Q = R_vc C R_vc^T
+    _, pitch, yaw = np.degrees(Rotation.from_matrix(to_vehicle @ c @ to_vehicle.T).as_rotvec())
+    std = tuple(float(np.degrees(np.sqrt(max(cov_vehicle[i, i], 0.0)))) for i in (1, 2))
+    before, after = _angles_deg(seen, placed), _angles_deg(seen @ c.T, placed)
+    return CameraOrientation(camera, float(pitch), float(yaw), std, len(motions), refused,
+                             float(np.median(before)), float(np.median(after)), c)
+
+
+def check_orientations(keyframes: list[Keyframe], cameras: dict[str, CameraModel],
+                       setting: CameraCheckConfig) -> dict[str, CameraOrientation | None]:
+    """Every camera's orientation check (None for a camera with fewer than 3 usable pairs)."""
+    out = {}
+    for name, camera in cameras.items():
+        motions, refused = pair_motions(keyframes, camera, max_pairs=setting.max_pairs,
+                                        min_step_m=setting.min_step_m, min_inliers=setting.min_inliers)
+        out[name] = fit_orientation(name, motions, refused, camera.mount_rotation)
+    return out
+
+
+def significant(check: CameraOrientation | None, setting: CameraCheckConfig) -> bool:
+    """Whether a camera's check says its orientation is off: its yaw or pitch above `warn_deg` and above three
+    standard errors (what a warning names and what `apply` corrects; a smaller reading is the check's own noise)."""
+    if check is None:
+        return False
+    angles = (check.pitch_deg, check.yaw_deg)
+    return any(abs(angle) > max(setting.warn_deg, 3 * std) for angle, std in zip(angles, check.std_deg, strict=True))
+
+
+def camera_check_figures(checks: dict[str, CameraOrientation | None], setting: CameraCheckConfig) -> dict:
+    """metrics.json's camera_check: the mode, and per camera the check's summary (None: too few pairs) and whether
+    it is significant (`warned`; under `apply` those cameras' keyframes were corrected)."""
+    return {"mode": setting.mode, "warn_deg": setting.warn_deg,
+            "cameras": {name: None if check is None else {**check.summary(), "warned": significant(check, setting)}
+                        for name, check in checks.items()}}
+
+
+def corrected_keyframes(keyframes: list[Keyframe], checks: dict[str, CameraOrientation | None],
+                        setting: CameraCheckConfig) -> list[Keyframe]:
+    """The keyframes with the orientation of each camera whose check is significant corrected (T_world_camera's
+    rotation times C); the other cameras' as they were."""
+    out = []
+    for k in keyframes:
+        check = checks.get(k.camera)
+        if not significant(check, setting):
+            out.append(k)
+            continue
+        pose = k.T_world_camera.copy()
+        pose[:3, :3] = pose[:3, :3] @ check.camera_rotation
+        out.append(Keyframe(k.camera, k.timestamp, pose, k.image, k.semantics))
+    return out
