@@ -2,7 +2,7 @@
 
 A camera frame is placed in the world by the vehicle's pose and the camera's extrinsics. Between two keyframes of
 one camera, the poses say in which direction the camera moved (in the first frame's camera axes); SIFT matches of
-the two images, through an essential matrix (OpenCV, RANSAC), say the same from the pixels alone. If the camera's
+the two images, through an essential matrix (OpenCV, MAGSAC++), say the same from the pixels alone. If the camera's
 extrinsics (or the poses' heading) are off by a fixed rotation, every pair's image direction turned by it is the
 poses' direction. `check_orientations` fits that rotation per camera (robust least squares over pairs one and two
 keyframes apart) about the two axes across the direction of travel, and reports it as a turn of the mount in yaw and
@@ -26,6 +26,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from daemon.spine.mapper_config import CameraCheckConfig
+from daemon.spine.semantic_classes import SemanticClass
 from mapping.method.scene_data import CameraModel, Keyframe
 
 SIFT_FEATURES = 2000  # per image, the strongest
@@ -33,7 +34,9 @@ SIFT_CONTRAST = 0.01  # OpenCV's default 0.04 finds ~100 features in a side came
 RATIO_TEST = 0.75  # Lowe's ratio for a SIFT match
 RANSAC_PX = 1.0  # the essential matrix's inlier distance (pixels)
 ROBUST_SCALE_RAD = np.deg2rad(0.3)  # soft-L1 scale of a pair's residual: pairs further off count less
+OBSTACLE_MARGIN_PX = 15  # features this near an obstacle's pixels are left out too (a feature spans ~10 px)
 PAIR_GAPS = (1, 2)  # keyframe pairs this many keyframes apart (the longer step sees the direction better)
+MIN_PAIRS = 8  # pairs a camera's check needs (fewer: no reading; their spread says too little of its error)
 
 
 @dataclass(frozen=True)
@@ -80,7 +83,7 @@ def _undistorted_pixels(points: np.ndarray, camera: CameraModel) -> np.ndarray:
 def image_direction(features_a, features_b, camera: CameraModel, matcher, min_inliers: int,
                     pose_direction: np.ndarray) -> tuple[np.ndarray, int] | None:
     """The second camera's centre direction in the first's axes from the two images' SIFT features (keypoints,
-    descriptors) through an essential matrix (RANSAC), or None when fewer than `min_inliers` matches fit one. Of
+    descriptors) through an essential matrix (MAGSAC++), or None when fewer than `min_inliers` matches fit one. Of
     its two signs, the one within 90 degrees of `pose_direction`."""
     (k1, d1), (k2, d2) = features_a, features_b
     if d1 is None or d2 is None or len(k1) < min_inliers or len(k2) < min_inliers:
@@ -91,8 +94,13 @@ def image_direction(features_a, features_b, camera: CameraModel, matcher, min_in
         return None
     p1 = _undistorted_pixels(np.float64([k1[m.queryIdx].pt for m in pairs]), camera)
     p2 = _undistorted_pixels(np.float64([k2[m.trainIdx].pt for m in pairs]), camera)
-    try:  # degenerate matches (all on one line, all alike) fail inside OpenCV's five-point solver
-        e, inl = cv2.findEssentialMat(p1, p2, camera.K, cv2.RANSAC, 0.999, RANSAC_PX)
+    # SIFT gives one spot several keypoints (one per orientation): each match once
+    _, first = np.unique(np.round(np.c_[p1, p2], 1), axis=0, return_index=True)
+    p1, p2 = p1[np.sort(first)], p2[np.sort(first)]
+    if len(p1) < min_inliers:
+        return None
+    try:  # OpenCV's plain RANSAC five-point solver asserts on some samples (solvePoly); MAGSAC++ did not here
+        e, inl = cv2.findEssentialMat(p1, p2, camera.K, cv2.USAC_MAGSAC, 0.999, RANSAC_PX)
         if e is None or e.shape != (3, 3):
             return None
         count, r, t, _ = cv2.recoverPose(e, p1, p2, camera.K, mask=inl)
@@ -102,6 +110,17 @@ def image_direction(features_a, features_b, camera: CameraModel, matcher, min_in
         return None
     centre = -r.T @ t.ravel()
     return (centre if centre @ pose_direction >= 0 else -centre), int(count)
+
+
+def static_mask(keyframe: Keyframe) -> np.ndarray | None:
+    """Where a keyframe's features may be found: away from what its semantics label an obstacle (cars and people
+    move, and a car ahead matched frame to frame gives the essential matrix of its own motion); None (anywhere)
+    without semantics."""
+    if keyframe.semantics is None:
+        return None
+    moving = (keyframe.semantics == SemanticClass.OBSTACLE).astype(np.uint8)
+    return np.where(cv2.dilate(moving, np.ones((OBSTACLE_MARGIN_PX, OBSTACLE_MARGIN_PX), np.uint8)) > 0, 0,
+                    255).astype(np.uint8)
 
 
 def pose_motion(a: Keyframe, b: Keyframe) -> tuple[np.ndarray, float]:
@@ -127,7 +146,7 @@ def pair_motions(keyframes: list[Keyframe], camera: CameraModel, *, max_pairs: i
 
     def feats(k: Keyframe):
         if id(k) not in features:
-            features[id(k)] = sift.detectAndCompute(cv2.cvtColor(k.image, cv2.COLOR_RGB2GRAY), None)
+            features[id(k)] = sift.detectAndCompute(cv2.cvtColor(k.image, cv2.COLOR_RGB2GRAY), static_mask(k))
         return features[id(k)]
 
     motions, refused = [], 0
@@ -150,10 +169,10 @@ def _angles_deg(directions_a: np.ndarray, directions_b: np.ndarray) -> np.ndarra
 def fit_orientation(camera: str, motions: list[PairMotion], refused: int,
                     camera_to_vehicle: np.ndarray | None) -> CameraOrientation | None:
     """The camera-axes rotation C, about the two axes across the mean direction of travel, that turns the images'
-    directions into the poses' (soft-L1 least squares; None without 3 pairs), reported about the vehicle's axes
-    through the camera's extrinsic rotation `camera_to_vehicle` (3x3; None: unknown, the angles are then about the
-    camera's own x right (pitch) and y down (yaw) axes)."""
-    if len(motions) < 3:
+    directions into the poses' (soft-L1 least squares; None with fewer than MIN_PAIRS pairs), reported about the
+    vehicle's axes through the camera's extrinsic rotation `camera_to_vehicle` (3x3; None: unknown, the angles are
+    then about the camera's own x right (pitch) and y down (yaw) axes)."""
+    if len(motions) < MIN_PAIRS:
         return None
     to_vehicle = np.eye(3) if camera_to_vehicle is None else camera_to_vehicle
     seen = np.array([m.image_direction for m in motions])
@@ -183,7 +202,7 @@ def fit_orientation(camera: str, motions: list[PairMotion], refused: int,
 
 def check_orientations(keyframes: list[Keyframe], cameras: dict[str, CameraModel],
                        setting: CameraCheckConfig) -> dict[str, CameraOrientation | None]:
-    """Every camera's orientation check (None for a camera with fewer than 3 usable pairs)."""
+    """Every camera's orientation check (None for a camera with fewer than MIN_PAIRS usable pairs)."""
     out = {}
     for name, camera in cameras.items():
         motions, refused = pair_motions(keyframes, camera, max_pairs=setting.max_pairs,
