@@ -10,9 +10,11 @@ Velodyne also gets `elev_vs_velodyne_cm`: its elevation raster against the drive
 maps every run twice, `.../refined` with it on; `all` three times, also `.../photometric` (on without the Lidar
 ground registration: the Lidar runs differ); `lidar` maps every run three times: off, `.../refined` (on) and
 `.../lidar` (`--pose-refinement lidar`: every axis from the Lidar ground; camera only it is the photometric fit).
-`--lidar` adds 0005's Lidar run to `--quick`.
+`--lidar` adds 0005's Lidar run to `--quick`. `--camera-check` maps every camera-only run again with
+`--camera-check apply` (`.../camera-check`: each camera's yaw and pitch checked against the poses, and a camera
+found off turned; its `camera_check` figures come with it).
 
-    .venv/bin/python bench/kitti.py [--quick] [--lidar] [--pose-refinement on|off|both|all|lidar]
+    .venv/bin/python bench/kitti.py [--quick] [--lidar] [--pose-refinement on|off|both|all|lidar] [--camera-check]
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ KEYS = ("psnr_db", "psnr_train_db", "psnr_pixels", "psnr_by_distance_db", "satur
         "saturation_observed_pct", "saturation_ratio", "edge_sawtooth_cm", "smear_pct", "elev_error_cm",
         "maskless_hidden_pct", "semantics", "wall_s", "rtf", "vertices", "pose_refinement",
         "pose_refinement_wall_s", "lidar_registration", "lidar_registration_wall_s",
-        "lidar_horizontal_registration", "lidar_pre_pass_wall_s")
+        "lidar_horizontal_registration", "lidar_pre_pass_wall_s", "camera_check")
 BANDS_M = ((0.0, 2.0), (2.0, 4.0), (4.0, 8.0), (8.0, 15.0))  # distance from the car's path (m)
 
 
@@ -93,6 +95,8 @@ def main() -> int:
                         help="reconstruct with --pose-refinement on or off (default: the config's), both, or all "
                              "(off, photometric, on)")
     parser.add_argument("--lidar", action="store_true", help="--quick: also 0005 with its Lidar ground")
+    parser.add_argument("--camera-check", action="store_true",
+                        help="also map each camera-only run with --camera-check apply")
     args = parser.parse_args()
     refinements = {"on": [("", "on")], "off": [("", "off")], "both": [("", "off"), ("/refined", "on")],
                    "all": [("", "off"), ("/photometric", "photometric"), ("/refined", "on")],
@@ -109,13 +113,15 @@ def main() -> int:
             log = tmp / f"{name}.mcap"
             timing = imported(fmt, folder, log, *extra)
             variants = [("camera-only", ("--no-lidar",))]
+            if args.camera_check:
+                variants.append(("camera-only/camera-check", ("--no-lidar", "--camera-check", "apply")))
             if fmt == "kitti-raw" and (args.lidar or not args.quick):
                 variants.append(("lidar", ()))
             for (variant, flags), (suffix, refinement) in ((v, r) for v in variants for r in refinements):
                 refine = ("--pose-refinement", refinement) if refinement else ()
-                out = tmp / f"{name}-{variant}{suffix.replace('/', '-')}"
+                out = tmp / f"{name}-{variant.replace('/', '-')}{suffix.replace('/', '-')}"
                 figures = timing | mapped(log, out, *flags, *refine)
-                if fmt == "kitti-raw" and variant == "camera-only":
+                if fmt == "kitti-raw" and variant.startswith("camera-only"):
                     figures["elev_vs_velodyne_cm"] = velodyne_gap(log, out)
                 runs[f"{name}/{variant}{suffix}"] = figures
                 print(f"{name}/{variant}{suffix}", json.dumps(figures), flush=True)
