@@ -189,12 +189,13 @@ def fit_orientation(camera: str, motions: list[PairMotion], refused: int,
 
     fit = least_squares(residuals, np.zeros(2), loss="soft_l1", f_scale=ROBUST_SCALE_RAD)
     c = turn(fit.x)
-    scale = 1.4826 * np.median(np.abs(fit.fun - np.median(fit.fun)))  # the residuals' robust scale (MAD)
-    cov_camera = across.T @ np.linalg.pinv(fit.jac.T @ fit.jac) @ across * scale ** 2
-    cov_vehicle = to_vehicle @ cov_camera @ to_vehicle.T
     # the correction as a turn of the mount in the vehicle's axes: R_vc' = Q R_vc with Q = R_vc C R_vc^T
     _, pitch, yaw = np.degrees(Rotation.from_matrix(to_vehicle @ c @ to_vehicle.T).as_rotvec())
-    std = tuple(float(np.degrees(np.sqrt(max(cov_vehicle[i, i], 0.0)))) for i in (1, 2))
+    # each one's standard error: the pairs' robust spread left about that axis (MAD) over the root of the pairs
+    # that count apart (each keyframe is in up to two pairs of each gap: half of them)
+    left = np.cross(seen @ c.T, placed) @ to_vehicle.T  # (N, 3) each pair's remaining turn in the vehicle's axes
+    spread = 1.4826 * np.median(np.abs(left - np.median(left, axis=0)), axis=0)
+    std = tuple(float(np.degrees(spread[i]) / np.sqrt(len(motions) / len(PAIR_GAPS))) for i in (1, 2))
     before, after = _angles_deg(seen, placed), _angles_deg(seen @ c.T, placed)
     return CameraOrientation(camera, float(pitch), float(yaw), std, len(motions), refused,
                              float(np.median(before)), float(np.median(after)), c)
