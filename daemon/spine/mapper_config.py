@@ -116,7 +116,8 @@ class CameraCheckConfig(StrictModel):
     min_inliers: int = Field(20, ge=8)  # matches a pair's essential matrix needs to be used
     min_step_m: float = Field(0.5, gt=0)  # the camera's travel a pair needs (the direction of a shorter one is noise)
     warn_deg: float = Field(1.0, gt=0)  # a camera is off when its yaw or pitch correction is above this (degrees)
-    # and above three standard errors: the check reads up to ~0.6 deg on mounts that are right (bench/RESULTS.md)
+    # and above three standard errors, read from at least as many keyframe pairs as were refused: on mounts that are
+    # right the check reads up to ~0.4 deg where the road has texture (bench/RESULTS.md, bench/camera_check.py)
 
 
 class FastFitConfig(StrictModel):

@@ -214,9 +214,10 @@ def check_orientations(keyframes: list[Keyframe], cameras: dict[str, CameraModel
 
 def significant(check: CameraOrientation | None, setting: CameraCheckConfig) -> bool:
     """Whether a camera's check says its orientation is off: its yaw or pitch above `warn_deg` and above three
-    standard errors (what a warning names and what `apply` corrects; a smaller reading is the check's own noise)."""
-    if check is None:
-        return False
+    standard errors, read from at least as many pairs as were refused (what a warning names and what `apply`
+    corrects; a smaller reading is the check's own noise)."""
+    if check is None or check.pairs_used < check.pairs_refused:  # most views gave no essential matrix: too little
+        return False  # texture or too much traffic to trust its reading (the random worlds' plain asphalt)
     angles = (check.pitch_deg, check.yaw_deg)
     return any(abs(angle) > max(setting.warn_deg, 3 * std) for angle, std in zip(angles, check.std_deg, strict=True))
 

@@ -280,7 +280,7 @@ def pose_noise_figures(noise: PoseNoise, result: ReconstructionResult, drive: Dr
 
 def camera_check_warnings(figures: dict) -> list[str]:
     """The warnings of metrics' camera_check (mapper.camera_check): a camera with too few keyframe pairs, one whose
-    yaw or pitch is off by more than its warn_deg and three standard errors."""
+    yaw or pitch is off (camera_orientation.significant)."""
     lines = []
     for name, check in figures["cameras"].items():
         if check is None:
