@@ -94,35 +94,37 @@ def world(seed: int, seconds: float, turn_deg: float, folder: Path, maps: bool) 
 
 def errors(worlds: list[dict], warn_deg: float) -> dict:
     """Per camera kind (forward: front_wide; sides: the others), the readings' absolute errors (deg) on true and on
-    turned mounts, the false alarms (a true mount found off), the turns found and missed (above warn_deg)."""
+    turned mounts, all of them and those with a verdict (read from at least as many pairs as were refused:
+    camera_orientation.significant), the false alarms (a true mount found off), the turns found and missed (above
+    warn_deg), the readings without a verdict and the cameras with no reading."""
     out = {}
     for kind, wanted in (("forward", lambda n: n == "front_wide"), ("sides", lambda n: n != "front_wide")):
-        true_err, turned_err, alarms, found, missed, unread = [], [], 0, 0, 0, 0
+        err = {"true": [], "turned": [], "true_verdict": [], "turned_verdict": []}
+        alarms = found = missed = no_verdict = unread = 0
         for w in worlds:
-            for name, r in w["true"].items():
-                if not wanted(name):
-                    continue
-                if r is None:
-                    unread += 1
-                    continue
-                true_err += [abs(r["pitch_deg"]), abs(r["yaw_deg"])]
-                alarms += r["off"]
-            for name, r in w["turned"].items():
-                if not wanted(name):
-                    continue
-                if r is None:
-                    unread += 1
-                    continue
-                pitch, yaw = w["turns_pitch_yaw_deg"][name]
-                turned_err += [abs(r["pitch_deg"] + pitch), abs(r["yaw_deg"] + yaw)]
-                if max(abs(pitch), abs(yaw)) > warn_deg:
-                    found += r["off"]
-                    missed += not r["off"]
-        out[kind] = {"true_median_deg": statistics.median(true_err) if true_err else None,
-                     "true_worst_deg": max(true_err, default=None),
-                     "turned_median_deg": statistics.median(turned_err) if turned_err else None,
-                     "turned_worst_deg": max(turned_err, default=None),
-                     "false_alarms": alarms, "turns_found": found, "turns_missed": missed, "unread": unread}
+            for run in ("true", "turned"):
+                for name, r in w[run].items():
+                    if not wanted(name):
+                        continue
+                    if r is None:
+                        unread += 1
+                        continue
+                    pitch, yaw = w["turns_pitch_yaw_deg"][name] if run == "turned" else (0.0, 0.0)
+                    e = [abs(r["pitch_deg"] + pitch), abs(r["yaw_deg"] + yaw)]
+                    err[run] += e
+                    verdict = r["pairs_used"] >= r["pairs_refused"]
+                    no_verdict += not verdict
+                    if verdict:
+                        err[f"{run}_verdict"] += e
+                    if run == "true":
+                        alarms += r["off"]
+                    elif max(abs(pitch), abs(yaw)) > warn_deg:
+                        found += r["off"]
+                        missed += not r["off"]
+        out[kind] = {**{f"{k}_median_deg": statistics.median(v) if v else None for k, v in err.items()},
+                     **{f"{k}_worst_deg": max(v, default=None) for k, v in err.items()},
+                     "false_alarms": alarms, "turns_found": found, "turns_missed": missed,
+                     "readings_without_verdict": no_verdict, "unread": unread}
     return out
 
 
