@@ -46,7 +46,6 @@ class PairMotion:
 
     image_direction: np.ndarray  # (3,)
     pose_direction: np.ndarray  # (3,)
-    inliers: int
 
 
 @dataclass(frozen=True)
@@ -60,7 +59,7 @@ class CameraOrientation:
     yaw_deg: float
     std_deg: tuple[float, float]  # pitch, yaw
     pairs_used: int
-    pairs_refused: int  # too few matches, too short a step, or no essential matrix
+    pairs_refused: int  # a step shorter than min_step_m, too few matches, or no essential matrix
     median_angle_before_deg: float  # the pairs' direction disagreement, median, before and after the correction
     median_angle_after_deg: float
     camera_rotation: np.ndarray  # (3, 3) C: a keyframe's T_world_camera[:3, :3] @ C is its corrected orientation
@@ -81,7 +80,7 @@ def _undistorted_pixels(points: np.ndarray, camera: CameraModel) -> np.ndarray:
 
 
 def image_direction(features_a, features_b, camera: CameraModel, matcher, min_inliers: int,
-                    pose_direction: np.ndarray) -> tuple[np.ndarray, int] | None:
+                    pose_direction: np.ndarray) -> np.ndarray | None:
     """The second camera's centre direction in the first's axes from the two images' SIFT features (keypoints,
     descriptors) through an essential matrix (MAGSAC++), or None when fewer than `min_inliers` matches fit one. Of
     its two signs, the one within 90 degrees of `pose_direction`."""
@@ -109,7 +108,7 @@ def image_direction(features_a, features_b, camera: CameraModel, matcher, min_in
     if count < min_inliers:
         return None
     centre = -r.T @ t.ravel()
-    return (centre if centre @ pose_direction >= 0 else -centre), int(count)
+    return centre if centre @ pose_direction >= 0 else -centre
 
 
 def static_mask(keyframe: Keyframe) -> np.ndarray | None:
@@ -157,7 +156,7 @@ def pair_motions(keyframes: list[Keyframe], camera: CameraModel, *, max_pairs: i
         if seen is None:
             refused += 1
             continue
-        motions.append(PairMotion(seen[0], direction, seen[1]))
+        motions.append(PairMotion(seen, direction))
     return motions, refused
 
 
@@ -170,8 +169,8 @@ def fit_orientation(camera: str, motions: list[PairMotion], refused: int,
                     camera_to_vehicle: np.ndarray | None) -> CameraOrientation | None:
     """The camera-axes rotation C, about the two axes across the mean direction of travel, that turns the images'
     directions into the poses' (soft-L1 least squares; None with fewer than MIN_PAIRS pairs), reported about the
-    vehicle's axes through the camera's extrinsic rotation `camera_to_vehicle` (3x3; None: unknown, the angles are
-    then about the camera's own x right (pitch) and y down (yaw) axes)."""
+    vehicle's axes through the camera's extrinsic rotation `camera_to_vehicle` (3x3; None: unknown, the "pitch"
+    and "yaw" are then the turn about the camera's own y (down) and z (forward) axes)."""
     if len(motions) < MIN_PAIRS:
         return None
     to_vehicle = np.eye(3) if camera_to_vehicle is None else camera_to_vehicle
