@@ -51,7 +51,14 @@ class Daemon:
     def stop(self, sig=signal.SIGTERM, timeout=60):
         if self.proc and self.proc.poll() is None:
             os.killpg(self.proc.pid, sig)
-            self.proc.wait(timeout)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:  # say which of its processes still run, then leave none behind
+                alive = subprocess.run(["ps", "-o", "pid,ppid,stat,etime,args", "-g", str(self.proc.pid)],
+                                       capture_output=True, text=True).stdout
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                raise AssertionError(f"the daemon did not stop within {timeout} s of {sig!r}; still running:\n"
+                                     f"{alive}") from None
 
 
 @pytest.fixture

@@ -35,6 +35,7 @@ CRASH_LOOP_RESTARTS = 3  # this many restarts of one process ...
 CRASH_LOOP_WINDOW_S = 60.0  # ... within this window: it is crash-looping (named in STATUS= and /status)
 STARTUP_GRACE_S = 20.0
 FRESH_HEALTH_S = 3.0  # a process whose newest health is older than this is not (yet) up
+SLOW_STOP_S = 2.0  # a process taking longer than this to stop after SIGTERM is named in the log
 log = logging.getLogger(__name__)
 
 
@@ -183,9 +184,12 @@ class Supervisor:
         for child in order:
             if child.popen is not None and child.popen.poll() is None:
                 child.popen.send_signal(signal.SIGTERM)
-                deadline = time.monotonic() + child.spec.stop_timeout_s
+                asked = time.monotonic()
+                deadline = asked + child.spec.stop_timeout_s
                 while child.popen.poll() is None and time.monotonic() < deadline:
                     time.sleep(0.05)
+                if time.monotonic() - asked > SLOW_STOP_S:  # the journal says what held the daemon's stop
+                    log.warning("%s took %.1f s to stop after SIGTERM", child.spec.name, time.monotonic() - asked)
                 if child.popen.poll() is None:
                     child.popen.kill()
                     child.popen.wait()
