@@ -188,8 +188,9 @@ class Supervisor:
                 deadline = asked + child.spec.stop_timeout_s
                 while child.popen.poll() is None and time.monotonic() < deadline:
                     time.sleep(0.05)
-                if time.monotonic() - asked > SLOW_STOP_S:  # the journal says what held the daemon's stop
-                    log.warning("%s took %.1f s to stop after SIGTERM", child.spec.name, time.monotonic() - asked)
+                took = time.monotonic() - asked
+                if took > SLOW_STOP_S:  # the journal says what held the daemon's stop
+                    log.warning("%s took %.1f s to stop after SIGTERM", child.spec.name, took)
                 if child.popen.poll() is None:
                     child.popen.kill()
                     child.popen.wait()

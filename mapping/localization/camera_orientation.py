@@ -18,7 +18,7 @@ noisier per pair but not biased by the poses.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -233,13 +233,13 @@ def corrected_keyframes(keyframes: list[Keyframe], checks: dict[str, CameraOrien
                         setting: CameraCheckConfig) -> list[Keyframe]:
     """The keyframes with the orientation of each camera whose check is significant corrected (T_world_camera's
     rotation times C); the other cameras' as they were."""
+    turns = {name: check.camera_rotation for name, check in checks.items() if significant(check, setting)}
     out = []
     for k in keyframes:
-        check = checks.get(k.camera)
-        if not significant(check, setting):
+        if k.camera not in turns:
             out.append(k)
             continue
         pose = k.T_world_camera.copy()
-        pose[:3, :3] = pose[:3, :3] @ check.camera_rotation
-        out.append(Keyframe(k.camera, k.timestamp, pose, k.image, k.semantics))
+        pose[:3, :3] = pose[:3, :3] @ turns[k.camera]
+        out.append(replace(k, T_world_camera=pose))
     return out
