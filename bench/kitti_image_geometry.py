@@ -14,6 +14,7 @@ from kitti_error import DATA
 
 from importers.kitti_files import calibration_matrix, read_calibration
 from importers.kitti_odometry import KITTI_ODOMETRY_CALIBRATION, read_poses
+from mapping.localization.camera_orientation import ratio_matches
 
 FOLDER = DATA / "kitti_odometry_01"
 
@@ -23,13 +24,6 @@ def recorded_poses_and_k() -> tuple[np.ndarray, np.ndarray]:
     calib = FOLDER / "calib.txt"
     p0 = calibration_matrix(read_calibration(calib, unnamed=KITTI_ODOMETRY_CALIBRATION), "P0", (3, 4), calib)
     return read_poses(FOLDER / "poses.txt"), p0[:, :3]
-
-
-def ratio_matches(feat_a, feat_b, matcher) -> tuple[np.ndarray, np.ndarray]:
-    """The two frames' SIFT matches that pass Lowe's ratio test (0.75): their pixels in each, (M, 2) each."""
-    (k1, d1), (k2, d2) = feat_a, feat_b
-    pairs = [m for m, n in matcher.knnMatch(d1, d2, k=2) if m.distance < 0.75 * n.distance]
-    return np.float64([k1[m.queryIdx].pt for m in pairs]), np.float64([k2[m.trainIdx].pt for m in pairs])
 
 
 def inlier_matches(feat_a, feat_b, k: np.ndarray, matcher) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -79,6 +79,16 @@ def _undistorted_pixels(points: np.ndarray, camera: CameraModel) -> np.ndarray:
                                P=camera.K).reshape(-1, 2)
 
 
+def ratio_matches(features_a, features_b, matcher) -> tuple[np.ndarray, np.ndarray]:
+    """The two images' SIFT matches (features: keypoints, descriptors) that pass Lowe's ratio test: their pixels in
+    each, (M, 2) each."""
+    (k1, d1), (k2, d2) = features_a, features_b
+    pairs = [m for m, n in (p for p in matcher.knnMatch(d1, d2, k=2) if len(p) == 2)
+             if m.distance < RATIO_TEST * n.distance]
+    return (np.float64([k1[m.queryIdx].pt for m in pairs]).reshape(-1, 2),
+            np.float64([k2[m.trainIdx].pt for m in pairs]).reshape(-1, 2))
+
+
 def image_direction(features_a, features_b, camera: CameraModel, matcher, min_inliers: int,
                     pose_direction: np.ndarray) -> np.ndarray | None:
     """The second camera's centre direction in the first's axes from the two images' SIFT features (keypoints,
@@ -87,12 +97,10 @@ def image_direction(features_a, features_b, camera: CameraModel, matcher, min_in
     (k1, d1), (k2, d2) = features_a, features_b
     if d1 is None or d2 is None or len(k1) < min_inliers or len(k2) < min_inliers:
         return None
-    pairs = [m for m, n in (p for p in matcher.knnMatch(d1, d2, k=2) if len(p) == 2)
-             if m.distance < RATIO_TEST * n.distance]
-    if len(pairs) < min_inliers:
+    p1, p2 = ratio_matches(features_a, features_b, matcher)
+    if len(p1) < min_inliers:
         return None
-    p1 = _undistorted_pixels(np.float64([k1[m.queryIdx].pt for m in pairs]), camera)
-    p2 = _undistorted_pixels(np.float64([k2[m.trainIdx].pt for m in pairs]), camera)
+    p1, p2 = _undistorted_pixels(p1, camera), _undistorted_pixels(p2, camera)
     # SIFT gives one spot several keypoints (one per orientation): each match once
     _, first = np.unique(np.round(np.c_[p1, p2], 1), axis=0, return_index=True)
     p1, p2 = p1[np.sort(first)], p2[np.sort(first)]
