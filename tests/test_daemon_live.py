@@ -53,9 +53,12 @@ class Daemon:
             os.killpg(self.proc.pid, sig)
             try:
                 self.proc.wait(timeout)
-            except subprocess.TimeoutExpired:  # say which of its processes still run, then leave none behind
-                alive = subprocess.run(["ps", "-o", "pid,ppid,stat,etime,args", "-g", str(self.proc.pid)],
+            except subprocess.TimeoutExpired:  # say which of its processes still run and where they are, then
+                # leave none behind (SIGUSR1: each writes its threads' stacks to the captured stderr)
+                alive = subprocess.run(["ps", "-o", "pid,ppid,stat,etime,wchan:20,args", "-g", str(self.proc.pid)],
                                        capture_output=True, text=True).stdout
+                os.killpg(self.proc.pid, signal.SIGUSR1)
+                time.sleep(2.0)
                 os.killpg(self.proc.pid, signal.SIGKILL)
                 raise AssertionError(f"the daemon did not stop within {timeout} s of {sig!r}; still running:\n"
                                      f"{alive}") from None

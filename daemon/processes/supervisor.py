@@ -3,8 +3,9 @@
 Each process runs as `python -m module` (through `child_launch`, which ties its life to the supervisor's). A process
 that exits is restarted with exponential backoff (each restart recorded); one whose health topic stops updating for
 its `heartbeat_s` is considered hung, killed and restarted. SIGTERM/SIGINT stop everything within each process's
-`stop_timeout_s` (SIGTERM first, SIGKILL after), so open log files are closed properly. The supervisor's own state
-is published as JSON in the `detail` of its health topic. A dead or crash-looping sensor degrades the daemon, it
+`stop_timeout_s` (SIGTERM first, SIGKILL after, with SIGUSR1 between: its stacks in the log say what held it),
+so open log files are closed properly. The supervisor's own state is published as JSON in the `detail` of its
+health topic. A dead or crash-looping sensor degrades the daemon, it
 never stops it: systemd gets READY=1 once the recorder runs (not waiting for every driver; or once it failed on its
 configuration, which no restart mends), a STATUS= line naming what is missing or crash-looping whenever that
 changes, and WATCHDOG=1 for as long as this loop runs. A child dies with the supervisor (PR_SET_PDEATHSIG, asked for
@@ -36,6 +37,7 @@ CRASH_LOOP_WINDOW_S = 60.0  # ... within this window: it is crash-looping (named
 STARTUP_GRACE_S = 20.0
 FRESH_HEALTH_S = 3.0  # a process whose newest health is older than this is not (yet) up
 SLOW_STOP_S = 2.0  # a process taking longer than this to stop after SIGTERM is named in the log
+STACK_DUMP_S = 0.5  # one that does not stop at all is given this long to write its stacks (SIGUSR1) before SIGKILL
 log = logging.getLogger(__name__)
 
 
@@ -192,6 +194,8 @@ class Supervisor:
                 if took > SLOW_STOP_S:  # the journal says what held the daemon's stop
                     log.warning("%s took %.1f s to stop after SIGTERM", child.spec.name, took)
                 if child.popen.poll() is None:
+                    child.popen.send_signal(signal.SIGUSR1)  # its threads' stacks into its log: what held it
+                    time.sleep(STACK_DUMP_S)
                     child.popen.kill()
                     child.popen.wait()
                     child.last_reason = "killed after stop timeout"

@@ -1,11 +1,15 @@
 """The one logging set-up of every process's main(): under systemd (journald reads stderr) each line starts with its
 syslog priority `<N>` and carries no timestamp of its own (the journal stamps it); elsewhere lines start with a
-timestamp. The level comes from `--log-level` or the ROADLOG_LOG_LEVEL the daemon passes to its processes."""
+timestamp. The level comes from `--log-level` or the ROADLOG_LOG_LEVEL the daemon passes to its processes.
+`kill -USR1 PID` makes a process write every thread's Python stack to its stderr (the journal): what a process
+that does not stop, or does not answer, is doing."""
 
 from __future__ import annotations
 
+import faulthandler
 import logging
 import os
+import signal
 import sys
 from collections.abc import Mapping
 
@@ -64,6 +68,7 @@ def setup_logging(process: str, level: str | None = None) -> None:
         root.removeHandler(old)
     root.addHandler(handler)
     root.setLevel(chosen)
+    faulthandler.register(signal.SIGUSR1, file=sys.stderr, all_threads=True)
 
 
 def _logged_crash(kind, value, traceback) -> None:

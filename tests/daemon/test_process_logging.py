@@ -128,3 +128,27 @@ def test_every_process_the_daemon_runs_sets_up_its_logging_the_one_way(tmp_path)
         source = inspect.getsource(importlib.import_module(name))
         assert "basicConfig" not in source, name
         assert "setup_logging(" in source or "camera_process_main(" in source or "viewing_main(" in source, name
+
+
+def test_sigusr1_writes_every_threads_stack_to_stderr_and_the_process_goes_on():
+    """What a process that does not stop is doing: `kill -USR1` dumps its Python stacks (the busy thread's too)
+    into its log, and it keeps running."""
+    code = ("import threading, time\n"
+            "from daemon.spine.process_logging import setup_logging\n"
+            "setup_logging('gnss')\n"
+            "def spin_in_a_named_function():\n"
+            "    while True: time.sleep(0.01)\n"
+            "threading.Thread(target=spin_in_a_named_function, daemon=True).start()\n"
+            "print('ready', flush=True)\n"
+            "time.sleep(2.0)\n"
+            "print('still here', flush=True)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=_env(journal=False), text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert proc.stdout.readline() == "ready\n"
+        proc.send_signal(signal.SIGUSR1)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0 and out == "still here\n", (out, err)
+    assert "in spin_in_a_named_function" in err and "Current thread" in err and "line 8 in <module>" in err, err

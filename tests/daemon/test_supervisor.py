@@ -107,7 +107,7 @@ def test_hung_process_is_killed_and_restarted(config):
         thread.join(30)
 
 
-def test_sigterm_stops_everything_cleanly_within_bounds(config, tmp_path, caplog):
+def test_sigterm_stops_everything_cleanly_within_bounds(config, tmp_path, caplog, capfd):
     cfg, path = config
     marker = tmp_path / "stopped.txt"
     table = [_spec("lidar", path, marker=marker), _spec("recorder", path, marker=marker),
@@ -126,6 +126,7 @@ def test_sigterm_stops_everything_cleanly_within_bounds(config, tmp_path, caplog
     assert [r.getMessage() for r in caplog.records if r.levelname == "ERROR"] == [
         "gnss did not stop within its stop timeout (1 s after SIGTERM): killed"]
     assert all(c.popen.poll() is not None for c in sup.children.values())
+    assert "fake_process.py\", line" in capfd.readouterr().err  # the stuck one's stack, written before the kill
 
 
 def test_replay_mode_ends_when_the_player_is_done(config):

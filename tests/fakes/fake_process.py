@@ -8,6 +8,7 @@ import time
 from daemon.bus.pubsub import open_publisher
 from daemon.spine.config import load_config
 from daemon.spine.health import HealthCounters
+from daemon.spine.process_logging import setup_logging
 from daemon.spine.topics import health_topic
 
 
@@ -20,6 +21,7 @@ def main() -> int:
     parser.add_argument("--after", type=float, default=1.0)
     parser.add_argument("--marker", default="")
     args = parser.parse_args()
+    setup_logging(args.name)  # as every real process: SIGUSR1 dumps its stacks
     config = load_config(args.config)
     stopping = []
     signal.signal(signal.SIGTERM, lambda *_: stopping.append(1))
