@@ -274,6 +274,11 @@ class LogWriter:
         self._file.close()
 
     def flush(self) -> None:
+        """Finish the chunk in progress and hand everything to the OS (the caller fsyncs): what was added so far
+        is then in the file, not only in the chunk being built (up to `chunk_size`: minutes of a slow topic)."""
+        if self._chunk_end is not None:  # a chunk with messages is being built
+            self._writer.flush()
+            self._chunk_written()
         self._file.flush()
 
     def __enter__(self) -> LogWriter:

@@ -2,9 +2,10 @@
 
 A segment is written as `roadlog_<UTC start>_<index>.mcap.open` and renamed to `.mcap` once closed; it
 is rotated once its messages span `recorder.segment_seconds` of log time (segment_clock.py: the messages' own time,
-so a replay is cut at the same messages at any rate or load), or at `recorder.segment_bytes`; its complete chunks
-are fsynced once a second. At start-up every `.open` segment that a crash or power cut left behind is recovered into
-a readable `.mcap` holding each of its intact chunks (segment_files.recover_unclosed); one with bytes that
+so a replay is cut at the same messages at any rate or load), or at `recorder.segment_bytes`; once a second its
+chunk in progress is finished and the file fsynced (a slow topic's messages do not wait in memory for a full
+chunk). At start-up every `.open` segment that a crash or power cut left behind is recovered into a readable
+`.mcap` holding each of its intact chunks (segment_files.recover_unclosed); one with bytes that
 could not be read is also kept whole as `.mcap.damaged` (quarantined), counted and reported in the health
 detail. A recorder the supervisor restarted then resumes each topic after the last message that its daemon
 run's segments hold (`daemon_run` in their metadata, the highest seq per topic in their closing metadata),
@@ -215,7 +216,8 @@ class Recorder:
         return final
 
     def sync_if_due(self) -> None:
-        """Push the open segment's complete chunks to the disk, so a power cut loses at most a second."""
+        """Finish the open segment's chunk in progress and push it to the disk, so a power cut loses at most a
+        second of what was written (and what the reorder buffer still held)."""
         if self.writer is None or time.monotonic() - self._last_sync < SYNC_PERIOD_S:
             return
         self._last_sync = time.monotonic()

@@ -240,6 +240,41 @@ def test_killed_recorder_leaves_an_open_segment_the_next_start_recovers(car, tmp
     assert back == sent[LIDAR_PACKETS][: len(back)]
 
 
+def test_a_slow_topic_reaches_the_disk_within_a_sync_period_not_when_its_chunk_is_full(car, tmp_path):
+    """A car logging only slow topics (IMU and CAN here: ~30 kB, far from a 4 MiB chunk) loses at most a sync period
+    to a kill -9 or a power cut: the chunk in progress is finished and fsynced once a second."""
+    config_path = car()
+    config = load_config(config_path)
+    out = tmp_path / "logs"
+    rec = RecorderProcess(config_path, out)
+    pubs = {t: pubsub.open_publisher(config, t) for t in (IMU, CAN_FRAMES)}
+    rng = random.Random(11)
+    sent: dict[str, list] = {t: [] for t in pubs}
+    for k in range(200):
+        for topic, msg in ((IMU, ImuSample(sensor_time_ns=1_000_000_000 + k, accel_mps2=(rng.random(), 0.0, 9.81),
+                                           gyro_rps=(0.0, 0.0, 0.0))),
+                           (CAN_FRAMES, CanFrame(sensor_time_ns=1_000_000_000 + k, arbitration_id=0x200,
+                                                 channel="can0", data=rng.randbytes(8)))):
+            pubs[topic].publish(msg)
+            sent[topic].append(msg)
+    rec.wait_written({t: len(m) for t, m in sent.items()})
+    time.sleep(2.5)  # more than a sync period (1 s) after they were written
+    assert rec.stop(signal.SIGKILL) == -signal.SIGKILL
+    unclosed = list(out.glob("*.mcap" + OPEN_SUFFIX))
+    assert len(unclosed) == 1
+
+    rec = RecorderProcess(config_path, out)
+    recovered = Path(rec.detail["recovered"][0]["to"])
+    assert rec.stop() == 0
+    back: dict[str, list] = {}
+    for r in read_log([recovered], topics=list(sent)):
+        back.setdefault(r.topic, []).append(r.message)
+    for topic in sent:
+        assert back.get(topic, []) == sent[topic], topic
+    for p in pubs.values():
+        p.close()
+
+
 def test_a_torn_unclosed_segment_is_quarantined_its_intact_chunks_recovered_and_recording_goes_on(car, tmp_path):
     """A power cut's torn write (a zeroed 4 KiB block) in the unclosed segment: the next start keeps the segment
     as it is as `.mcap.damaged`, recovers every chunk but the torn one, reports it and records on (it used to
