@@ -68,7 +68,18 @@ def setup_logging(process: str, level: str | None = None) -> None:
         root.removeHandler(old)
     root.addHandler(handler)
     root.setLevel(chosen)
-    faulthandler.register(signal.SIGUSR1, file=sys.stderr, all_threads=True)
+    _stacks_on_sigusr1()
+
+
+def _stacks_on_sigusr1() -> None:
+    """SIGUSR1 writes every thread's stack to stderr; to the process's own fd 2 where sys.stderr is not a file (a
+    test's capture)."""
+    for stream in (sys.stderr, sys.__stderr__):
+        try:
+            faulthandler.register(signal.SIGUSR1, file=stream, all_threads=True)
+            return
+        except (AttributeError, ValueError, OSError):  # no fileno (io.UnsupportedOperation is both), or None
+            continue
 
 
 def _logged_crash(kind, value, traceback) -> None:
