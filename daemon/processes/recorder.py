@@ -19,8 +19,9 @@ cannot write per topic, and resumes once space returns. Messages written, lost t
 for lack of disk go per topic into each segment's closing metadata and, as JSON, into the `detail` of the
 recorder's health. Once a second it publishes a TimeAnchor (host monotonic + UTC), which it logs like any
 topic. What it reads goes through a reorder buffer (reorder_buffer.py): held until no ring can still give an older
-message, at most `recorder.reorder_window_s`, then written oldest first, so each segment's chunks are in log-time
-order; a message older than one already written is written at once and counted as late (`late_per_topic`). The
+message, at most `recorder.reorder_window_s` (live; a replay's played topics have exact bounds and no window),
+then written oldest first, so each segment's chunks are in log-time order; a message older than one already
+written is written at once and counted as late (`late_per_topic`). The
 derived topics published seconds after the time they are stamped at (viewing clouds, fused poses: a Topic's
 `stamp_lag_s`) go through a reorder buffer of their own, written in batches of LAGGING_BATCH_S in chunks of their own,
 so they never hold the sensors' messages back: a power cut loses at most REORDER_SLACK_NS plus a sync period of
@@ -135,7 +136,10 @@ class Recorder:
         self._closed_bytes = 0  # bytes written to the segments this recorder closed or abandoned
         self.tally = TopicTally()
         self._at_last_close = TopicTally()
-        self.reorder = ReorderBuffer(int(self.rc.reorder_window_s * 1e9), REORDER_MAX_BYTES)
+        # a replay's played topics are held until their rings' bounds pass them, with no window: the player
+        # publishes them in log-time order, so those bounds are exact, and at --rate max, where a window's 0.3 s
+        # of log time pass in milliseconds, one ring read ahead released what another ring behind it still held
+        self.reorder = ReorderBuffer(int(self.rc.reorder_window_s * 1e9) if live else None, REORDER_MAX_BYTES)
         self.read_positions: dict[str, int] = {}  # per topic, the host time of the last message read
         # per topic, how far before the time a ring is read its next message may be stamped (a viewing cloud, a
         # fused pose: Topic.stamp_lag_s)

@@ -3,8 +3,8 @@
 The recorder reads each topic's ring in bursts, and a ring it fell behind on hands it messages seconds older than
 what another ring just gave. The buffer holds what it reads and releases it oldest first once nothing older can
 still come: older than every ring's reading position (`safe_ns`, from the rings the recorder read to their end and
-those it is still behind on), or more than `window_ns` older than the newest message it holds, or when it holds
-more than `max_bytes`. A message older than one already released (a ring more than the window behind) is late: it is
+those it is still behind on), or more than `window_ns` older than the newest message it holds (None: no such
+window, for messages whose rings' bounds are exact), or when it holds more than `max_bytes`. A message older than one already released (a ring more than the window behind) is late: it is
 not held (the caller writes it at once, never drops it) and counted per topic.
 """
 
@@ -23,7 +23,7 @@ def held_bytes(message: object) -> int:
 class ReorderBuffer:
     """Messages by host time (their host_mono_ns), released in that order."""
 
-    def __init__(self, window_ns: int, max_bytes: int):
+    def __init__(self, window_ns: int | None, max_bytes: int):
         self.window_ns = window_ns
         self.max_bytes = max_bytes
         self._heap: list[tuple[int, int, str, object]] = []
@@ -53,10 +53,10 @@ class ReorderBuffer:
         message, or over the byte budget."""
         if not self._heap:
             return
-        limit = self.newest_ns - self.window_ns
-        if safe_ns is not None:
-            limit = max(limit, safe_ns)
-        while self._heap and (self._heap[0][0] <= limit or self.bytes_held > self.max_bytes):
+        bounds = [b for b in (None if self.window_ns is None else self.newest_ns - self.window_ns, safe_ns)
+                  if b is not None]
+        limit = max(bounds) if bounds else None
+        while self._heap and ((limit is not None and self._heap[0][0] <= limit) or self.bytes_held > self.max_bytes):
             yield self._pop()
 
     def drain(self) -> Iterator[tuple[str, object]]:

@@ -56,6 +56,32 @@ def test_the_buffer_never_holds_more_than_its_bytes():
     assert [m.host_mono_ns for _, m in released] == [0, 1, 2] and buf.bytes_held == 2 * (1000 + 64)
 
 
+def test_a_replay_holds_a_played_ring_read_ahead_until_the_ring_behind_it_is_read(tmp_path):
+    """`replay --rate max` publishes 0.3 s of log time in milliseconds, so in one round of reads one played ring can
+    be read a window ahead of another that is still to give older messages. The played rings' bounds are exact (the
+    player publishes in log-time order): nothing is released past them, and the ring behind is not late. Live, the
+    window still releases what waits on a ring the recorder fell behind on (counted late when that ring comes)."""
+    from daemon.processes.recorder import Recorder
+    from daemon.spine.messages import CanFrame
+    from daemon.spine.topics import CAN_FRAMES
+
+    def can(t_s: float) -> CanFrame:
+        return CanFrame(host_mono_ns=int(t_s * S), arbitration_id=0x200, data=bytes(8))
+
+    config = load_config(write_config(tmp_path, reorder_window_s=0.3))
+    for live in (False, True):
+        rec = Recorder(config, tmp_path / f"logs_{live}", live=live)
+        for t in (0.10, 0.20):  # the CAN ring, read to its end
+            rec.accept(CAN_FRAMES, can(t))
+        for t in (0.15, 0.45, 0.75, 1.05):  # the IMU ring, read after the player went on
+            rec.accept(IMU, at(t)[1])
+        rec.release(safe_ns=int(0.20 * S))  # the CAN ring's bound: its last message read
+        rec.accept(CAN_FRAMES, can(0.50))  # the CAN ring's next read
+        assert rec.late() == ({CAN_FRAMES: 1} if live else {}), live
+        rec.release_everything()
+        rec.close_segment()
+
+
 def chunks_in_file_order(path: Path) -> list[tuple[Chunk, list[int]]]:
     """Each chunk record as the file holds it, with its messages' log times in the order they are stored (the mcap
     library's stream reader, not ours)."""
