@@ -4,8 +4,9 @@ The recorder reads each topic's ring in bursts, and a ring it fell behind on han
 what another ring just gave. The buffer holds what it reads and releases it oldest first once nothing older can
 still come: older than every ring's reading position (`safe_ns`, from the rings the recorder read to their end and
 those it is still behind on), or more than `window_ns` older than the newest message it holds (None: no such
-window, for messages whose rings' bounds are exact), or when it holds more than `max_bytes`. A message older than one already released (a ring more than the window behind) is late: it is
-not held (the caller writes it at once, never drops it) and counted per topic.
+window, for messages whose rings' bounds are exact), or when it holds more than `max_bytes`. A message older than
+one already released (a ring more than the window behind) is late: it is not held (the caller writes it at once,
+never drops it) and counted per topic.
 """
 
 from __future__ import annotations
