@@ -18,6 +18,7 @@ from daemon.processes.supervisor import Supervisor
 from daemon.spine.config import ConfigError, data_dir, load_config, reports_config_errors
 from daemon.spine.process_logging import LEVELS, LOG_LEVEL_ENV, setup_logging
 from daemon.spine.process_table import playback_rate, process_table
+from daemon.spine.stop_signals import on_signals
 from daemon.spine.topics import topic_table
 
 REPLAY_OUTPUT_DIR = "roadlog-output"  # a replay's logs and map without --output-dir: in the current directory
@@ -37,7 +38,7 @@ def create_rings(config) -> None:
 
 
 def _serve(supervisor: Supervisor, config, data_folder: Path) -> int:
-    def stop(signum, _frame):
+    def stop(signum: int) -> None:  # in the signal relay's thread (daemon.spine.stop_signals)
         log.info("signal %s, shutting down", signal.Signals(signum).name)
         supervisor.stop_event.set()
 
@@ -48,8 +49,7 @@ def _serve(supervisor: Supervisor, config, data_folder: Path) -> int:
         print(exc, file=sys.stderr, flush=True)
         return EXIT_ALREADY_RUNNING
     supervisor.inherit_fds = locks.fds  # held until the last of its children is gone too
-    signal.signal(signal.SIGTERM, stop)
-    signal.signal(signal.SIGINT, stop)
+    on_signals(stop)
     create_rings(config)
     try:
         code = supervisor.run()

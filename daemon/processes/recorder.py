@@ -44,7 +44,6 @@ import heapq
 import json
 import logging
 import os
-import signal
 import sys
 import threading
 import time
@@ -72,6 +71,7 @@ from daemon.spine.health import HealthCounters
 from daemon.spine.messages import TimeAnchor
 from daemon.spine.process_logging import setup_logging
 from daemon.spine.process_table import RESTARTS_ENV, played_topics
+from daemon.spine.stop_signals import set_on_signals
 from daemon.spine.topics import TIME_ANCHOR, health_topic, topic_table
 
 PROCESS = "recorder"
@@ -485,8 +485,7 @@ def main(argv: list[str] | None = None) -> int:
     config = load_config(args.config)
     output_dir = check_output_dir(config, args.config, args.output_dir)
     stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
+    set_on_signals(stop)
     rec = run(config, output_dir, stop, args.config, time_anchors=not args.no_time_anchors, lossless=args.lossless)
     log.info("stopped: %d segments closed, %d messages written, %d lost; disk policy deleted %d segments "
              "(%.1f s of drive, %d bytes)", rec.segments_closed, sum(rec.tally.written.values()),

@@ -20,7 +20,6 @@ import argparse
 import heapq
 import json
 import logging
-import signal
 import sys
 import threading
 import time
@@ -35,6 +34,7 @@ from daemon.spine.health import HealthCounters
 from daemon.spine.messages import HOST_CLOCK_WITHIN_NS
 from daemon.spine.process_logging import setup_logging
 from daemon.spine.process_table import playback_rate, played_topics
+from daemon.spine.stop_signals import set_on_signals
 from daemon.spine.topics import TIME_ANCHOR, health_topic, topic_table
 
 PROCESS = "replay"
@@ -245,8 +245,7 @@ def main(argv: list[str] | None = None) -> int:
     if missing:
         raise ConfigError(f"no such log file: {', '.join(missing)}")
     stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
+    set_on_signals(stop)
     progress = replay(config, args.logs, rate=args.rate, start_s=args.start, end_s=args.end, stop=stop)
     log.info("replayed %d messages in %.1f s (%s)", sum(progress.published.values()), progress.wall_s,
              progress.detail())

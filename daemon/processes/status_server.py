@@ -33,6 +33,7 @@ from daemon.spine.data_layout import PREVIEWS, preview_dir
 from daemon.spine.messages import DriverHealth
 from daemon.spine.process_logging import setup_logging
 from daemon.spine.process_table import required_drivers
+from daemon.spine.stop_signals import on_signals
 from daemon.spine.topics import topic_table
 
 LISTEN_BACKLOG = 256  # connections the kernel queues before the server accepts them
@@ -485,7 +486,7 @@ def main(argv: list[str] | None = None) -> int:
         raise ConfigError(f"{args.config}: status endpoint {config.status.bind_address}:{port}: "
                           f"{getattr(exc, 'strerror', None) or exc}") from None
     board.start()
-    signal.signal(signal.SIGTERM, lambda *_: threading.Thread(target=server.shutdown).start())
+    on_signals(lambda _signum: server.shutdown(), (signal.SIGTERM,))  # blocks the relay until serve_forever ends
     log.info("status endpoint on http://%s:%s", *server.server_address[:2])
     try:
         server.serve_forever(poll_interval=0.2)

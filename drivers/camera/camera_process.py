@@ -9,7 +9,6 @@ devices' (drivers.camera.camera_driver) or the simulator's playback (sim.camera_
 from __future__ import annotations
 
 import argparse
-import signal
 import threading
 from collections.abc import Callable, Generator
 
@@ -17,6 +16,7 @@ from daemon.spine.config import CameraConfig, ConfigError, load_config, reports_
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import CameraFrame, SemanticMask
 from daemon.spine.process_logging import setup_logging
+from daemon.spine.stop_signals import set_on_signals
 from daemon.spine.topics import camera_process, camera_topic, health_topic, mask_topic
 
 Publish = Callable[[str, object], None]
@@ -93,8 +93,7 @@ def camera_process_main(argv: list[str] | None, open_source: OpenSource, *, stay
                   (camera_topic(config.name), mask_topic(config.name), health_topic(process))}
     health = HealthCounters(process, expected_rate_hz=config.rate_hz)
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    set_on_signals(stop)
     frames = open_source(config, stop, health, args)
     run_camera_driver(config, frames, lambda t, m: publishers[t].publish(m), stop, health)
     if stay_up_at_end:

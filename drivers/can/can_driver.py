@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import signal
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -26,6 +25,7 @@ from daemon.spine.config import CanConfig, CarConfig, ConfigError, load_config, 
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import CanFrame
 from daemon.spine.process_logging import setup_logging
+from daemon.spine.stop_signals import set_on_signals
 from daemon.spine.topics import CAN_FRAMES, WHEEL_SPEEDS, health_topic
 from drivers.can.can_bus import open_can_bus
 from drivers.can.wheel_speed_codec import (
@@ -204,8 +204,7 @@ def main(argv: list[str] | None = None) -> int:
     publishers = {topic: open_publisher(car, topic) for topic in (CAN_FRAMES, WHEEL_SPEEDS, health_topic(PROCESS))}
     health = HealthCounters(PROCESS, expected_rate_hz=1000.0 / cycle_ms if cycle_ms else 0.0)
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    set_on_signals(stop)
     stats = run_can_driver(config, dbc_path, lambda topic, m: publishers[topic].publish(m), stop, health)
     print(f"can driver stopped: {stats.summary()}", flush=True)
     return 0

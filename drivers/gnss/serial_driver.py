@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
 import threading
 import time
@@ -22,6 +21,7 @@ from daemon.spine import topics
 from daemon.spine.config import ConfigError, GnssConfig, load_config, reports_config_errors
 from daemon.spine.health import HealthCounters
 from daemon.spine.process_logging import setup_logging
+from daemon.spine.stop_signals import set_on_signals
 from drivers.gnss.gnss_messages import GnssDecoder
 from drivers.gnss.stream_framer import StreamFramer
 
@@ -177,8 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     names = (*topics.GNSS_TOPIC_BY_TYPE.values(), topics.health_topic(PROCESS))
     publishers = {name: open_publisher(config, name) for name in names}
     stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    set_on_signals(stop)
     health = HealthCounters(process=PROCESS, expected_rate_hz=gnss.rate_hz)
     port = args.port or gnss.port
     try:

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
-import signal
 import socket
 import threading
 import time
@@ -29,6 +28,7 @@ from daemon.spine.config import CarConfig, ConfigError, LidarConfig, load_config
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import LidarPacket
 from daemon.spine.process_logging import setup_logging
+from daemon.spine.stop_signals import set_on_signals
 from daemon.spine.topics import LIDAR_IMU, LIDAR_PACKETS, health_topic
 from drivers.lidar.ouster_decoder import count_missing_packets, decode_packets, newest_packet, packet_sequence
 from drivers.lidar.ouster_imu import decode_imu_packet, imu_profile_supported
@@ -290,8 +290,7 @@ def main(argv: list[str] | None = None) -> int:
     publishers = {topic: open_publisher(car, topic) for topic in (LIDAR_PACKETS, LIDAR_IMU, health_topic(PROCESS))}
     health = HealthCounters(PROCESS, expected_rate_hz=packets_per_second(metadata))
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    set_on_signals(stop)
     try:
         stats = run_lidar_driver(config, metadata, lambda topic, m: publishers[topic].publish(m), stop, health)
     except OSError as exc:

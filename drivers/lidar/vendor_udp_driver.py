@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
-import signal
 import threading
 import time
 from collections.abc import Callable
@@ -27,6 +26,7 @@ from daemon.spine.config import CarConfig, ConfigError, LidarConfig, load_config
 from daemon.spine.health import HealthCounters
 from daemon.spine.messages import ImuSample, LidarPacket
 from daemon.spine.process_logging import setup_logging
+from daemon.spine.stop_signals import set_on_signals
 from daemon.spine.topics import LIDAR_IMU, LIDAR_PACKETS, health_topic
 from drivers.lidar.lidar_models import VENDOR_LIDARS, configured_decoder
 from drivers.lidar.packet_decoding import PacketDecoder
@@ -217,8 +217,7 @@ def main(argv: list[str] | None = None) -> int:
     publishers = {topic: open_publisher(car, topic) for topic in (LIDAR_PACKETS, LIDAR_IMU, health_topic(PROCESS))}
     health = HealthCounters(PROCESS)
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    set_on_signals(stop)
     try:
         stats = run_vendor_lidar_driver(config, decoder, lambda topic, m: publishers[topic].publish(m), stop, health)
     except OSError as exc:

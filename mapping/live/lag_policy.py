@@ -24,7 +24,7 @@ STOP = "stop"
 @dataclass
 class StopRequest:
     """A stop asked for (SIGTERM, SIGINT) and when: the stop timeout runs from the signal, not from the end of the
-    window the worker was fitting when it came. Call it as the signal handler."""
+    window the worker was fitting when it came. Call it on the signal (daemon.spine.stop_signals.on_signals)."""
 
     event: threading.Event = field(default_factory=threading.Event)
     at: float | None = None  # time.monotonic() of the first request

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
 import threading
 
@@ -23,6 +22,7 @@ from daemon.spine.health import HealthCounters
 from daemon.spine.mapper_config import DEVICES
 from daemon.spine.process_logging import setup_logging
 from daemon.spine.process_table import MAP_STOP_TIMEOUT_S
+from daemon.spine.stop_signals import on_signals
 from daemon.spine.topics import health_topic
 from mapping.live.lag_policy import StopRequest
 
@@ -62,8 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     setup_logging(PROCESS)
     stop = StopRequest()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, stop)
+    on_signals(stop)
     config = load_config(args.config)
     started = threading.Event()
     starting = publish_starting(config, started)

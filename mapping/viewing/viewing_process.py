@@ -8,7 +8,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import signal
 import threading
 import time
 from collections.abc import Callable
@@ -17,6 +16,7 @@ from daemon.bus import pubsub
 from daemon.spine.config import CarConfig, ConfigError, load_config
 from daemon.spine.health import HealthCounters
 from daemon.spine.process_logging import setup_logging
+from daemon.spine.stop_signals import set_on_signals
 from daemon.spine.topics import health_topic, topic_table
 
 HEALTH_PERIOD_S = 1.0
@@ -102,7 +102,6 @@ def viewing_main(argv: list[str] | None, process: str, prog: str, description: s
     if not has_work(config):
         raise ConfigError(f"{args.config}: {nothing_to_do}")
     stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
+    set_on_signals(stop)
     log.info("%s stopped: %s", process, run(config, args.config, stop))
     return 0
