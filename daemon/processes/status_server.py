@@ -14,7 +14,6 @@ import argparse
 import io
 import json
 import logging
-import signal
 import socket
 import sys
 import threading
@@ -486,12 +485,9 @@ def main(argv: list[str] | None = None) -> int:
         raise ConfigError(f"{args.config}: status endpoint {config.status.bind_address}:{port}: "
                           f"{getattr(exc, 'strerror', None) or exc}") from None
     board.start()
-    on_signals(lambda _signum: server.shutdown(), (signal.SIGTERM,))  # blocks the relay until serve_forever ends
+    on_signals(lambda _signum: server.shutdown())  # SIGTERM, SIGINT: the relay waits until serve_forever ends
     log.info("status endpoint on http://%s:%s", *server.server_address[:2])
-    try:
-        server.serve_forever(poll_interval=0.2)
-    except KeyboardInterrupt:
-        pass
+    server.serve_forever(poll_interval=0.2)
     board.stop()
     server.server_close()
     return 0
