@@ -1,40 +1,38 @@
 """The recorder process: every logged topic from the bus into time-named, self-contained MCAP segments.
 
-A segment is written as `roadlog_<UTC start>_<index>.mcap.open` and renamed to `.mcap` once closed; it
-is rotated once its messages span `recorder.segment_seconds` of log time (segment_clock.py: the messages' own time,
-so a replay is cut at the same messages at any rate or load), or at `recorder.segment_bytes`; once a second its
-chunk in progress is finished and the file fsynced (a slow topic's messages do not wait in memory for a full
-chunk). At start-up every `.open` segment that a crash or power cut left behind is recovered into a readable
-`.mcap` holding each of its intact chunks (segment_files.recover_unclosed); one with bytes that
-could not be read is also kept whole as `.mcap.damaged` (quarantined), counted and reported in the health
-detail. A recorder the supervisor restarted then resumes each topic after the last message that its daemon
-run's segments hold (`daemon_run` in their metadata, the highest seq per topic in their closing metadata),
-so what was published while it was down, or torn off with the crash's unfinished chunk, is recorded once,
-as long as the ring still holds it (older messages count as lost).
-The disk policy (daemon/processes/disk_policy.py) deletes the oldest closed (or quarantined) segments to
-keep the configured free space, one at a time and only while that frees space (not when another program takes
-it), never the newest `recorder.keep_newest_s` of drive; what it deleted (segments, seconds of drive, bytes) is in
-the health detail and the log. When that is not enough the recorder closes its segment, counts what it
-cannot write per topic, and resumes once space returns. Messages written, lost to bus overtaking and dropped
-for lack of disk go per topic into each segment's closing metadata and, as JSON, into the `detail` of the
-recorder's health. Once a second it publishes a TimeAnchor (host monotonic + UTC), which it logs like any
-topic. What it reads goes through a reorder buffer (reorder_buffer.py): held until no ring can still give an older
-message, at most `recorder.reorder_window_s` (live; a replay's played topics have exact bounds and no window),
-then written oldest first, so each segment's chunks are in log-time order; a message older than one already
-written is written at once and counted as late (`late_per_topic`). The
+A segment is written as `roadlog_<UTC now>_<index>.mcap.open` and renamed once closed to `.mcap`, named by the UTC of
+its first message where the time anchors give it (a replay's segments carry the drive's date). It is rotated once its
+messages span `recorder.segment_seconds` of log time (segment_clock.py: the messages' own time, so a replay is cut at
+the same messages at any rate or load), or at `recorder.segment_bytes`; once a second its chunk in progress is finished
+and the file fsynced (a slow topic's messages do not wait in memory for a full chunk). At start-up every `.open` segment
+that a crash or power cut left behind is recovered into a readable `.mcap` holding each of its intact chunks
+(segment_files.recover_unclosed); one with bytes that could not be read is also kept whole as `.mcap.damaged`
+(quarantined), counted and reported in the health detail. A recorder the supervisor restarted then resumes each topic
+after the last message that its daemon run's segments hold (`daemon_run` in their metadata, the highest seq per topic in
+their closing metadata), so what was published while it was down, or torn off with the crash's unfinished chunk, is
+recorded once, as long as the ring still holds it (older messages count as lost).
+The disk policy (daemon/processes/disk_policy.py) deletes the oldest closed (or quarantined) segments to keep the
+configured free space, one at a time and only while that frees space (not when another program takes it), never the
+newest `recorder.keep_newest_s` of drive; what it deleted (segments, seconds of drive, bytes) is in the health detail
+and the log. When that is not enough the recorder closes its segment, counts what it cannot write per topic, and resumes
+once space returns. Messages written, lost to bus overtaking and dropped for lack of disk go per topic into each
+segment's closing metadata and, as JSON, into the `detail` of the recorder's health. Once a second it publishes a
+TimeAnchor (host monotonic + UTC), which it logs like any topic. What it reads goes through a reorder buffer
+(reorder_buffer.py): held until no ring can still give an older message, at most `recorder.reorder_window_s` (live; a
+replay's played topics have exact bounds and no window), then written oldest first, so each segment's chunks are in
+log-time order; a message older than one already written is written at once and counted as late (`late_per_topic`). The
 derived topics published seconds after the time they are stamped at (viewing clouds, fused poses: a Topic's
 `stamp_lag_s`) go through a reorder buffer of their own, written in batches of LAGGING_BATCH_S in chunks of their own,
-so they never hold the sensors' messages back: a power cut loses at most REORDER_SLACK_NS plus a sync period of
-what the sensors sent, and the last few seconds of the derived topics (which `reconstruct` derives again). In a
-replay the played topics run on the log's clock, behind this host's at a rate below 1, ahead of it above: a played
-ring read to its end bounds what it can still give by the newest played message read (the player publishes in
-log-time order), and the topics not played (the processes' health, on this host's clock) are ordered on their own.
+so they never hold the sensors' messages back: a power cut loses at most REORDER_SLACK_NS plus a sync period of what the
+sensors sent, and the last few seconds of the derived topics (which `reconstruct` derives again). In a replay the played
+topics run on the log's clock, behind this host's at a rate below 1, ahead of it above: a played ring read to its end
+bounds what it can still give by the newest played message read (the player publishes in log-time order), and the topics
+not played (the processes' health, on this host's clock) are ordered on their own.
 
-The recorder is a normal (non-lossless) bus reader: one thread polls every subscriber in turn, so it
-can never slow a driver down; if it falls behind a ring, it loses (and counts) the oldest messages.
-Only when the daemon replays a log as fast as its consumers allow (`--lossless`, given by the process
-table for `replay --rate max`) does it register as a lossless reader: the player then waits for it, as
-for the mapper, and the re-recorded log is complete.
+The recorder is a normal (non-lossless) bus reader: one thread polls every subscriber in turn, so it can never slow a
+driver down; if it falls behind a ring, it loses (and counts) the oldest messages. Only when the daemon replays a log as
+fast as its consumers allow (`--lossless`, given by the process table for `replay --rate max`) does it register as a
+lossless reader: the player then waits for it, as for the mapper, and the re-recorded log is complete.
 """
 
 from __future__ import annotations
@@ -57,7 +55,9 @@ from daemon.processes.reorder_buffer import ReorderBuffer
 from daemon.processes.segment_clock import SegmentClock
 from daemon.processes.segment_files import (
     OPEN_SUFFIX,
+    anchored_utc_ns,
     check_output_dir,
+    closed_name,
     daemon_run,
     drive_seconds,
     last_recorded_seqs,
@@ -127,6 +127,8 @@ class Recorder:
         self.clock = SegmentClock(self.rc.segment_seconds, time.monotonic_ns if live else None)
         self.clock_topics = played_topics(config)
         self.played_newest_ns: int | None = None  # the newest host time read of the clock topics
+        self.anchor: tuple[int, int] | None = None  # the last time anchor written: (host_mono_ns, utc_ns)
+        self.first_log_ns: int | None = None  # the open segment's first host time on the log's clock (played_topics)
         self._sync_fd: int | None = None
         self._last_sync = 0.0
         self.segments_closed = 0
@@ -136,13 +138,11 @@ class Recorder:
         self._closed_bytes = 0  # bytes written to the segments this recorder closed or abandoned
         self.tally = TopicTally()
         self._at_last_close = TopicTally()
-        # a replay's played topics are held until their rings' bounds pass them, with no window: the player
-        # publishes them in log-time order, so those bounds are exact, and at --rate max, where a window's 0.3 s
-        # of log time pass in milliseconds, one ring read ahead released what another ring behind it still held
+        # a replay's played topics wait until their rings' bounds (exact: the player publishes in log-time order)
+        # pass them, with no window: at --rate max one ring read ahead released what another one behind still held
         self.reorder = ReorderBuffer(int(self.rc.reorder_window_s * 1e9) if live else None, REORDER_MAX_BYTES)
         self.read_positions: dict[str, int] = {}  # per topic, the host time of the last message read
-        # per topic, how far before the time a ring is read its next message may be stamped (a viewing cloud, a
-        # fused pose: Topic.stamp_lag_s)
+        # per topic, how long before a ring is read its next message may be stamped (Topic.stamp_lag_s)
         self.stamp_slack_ns = {name: max(REORDER_SLACK_NS, int(t.stamp_lag_s * 1e9))
                                for name, t in topic_table(config).items()}
         # the topics stamped longer before they are published than a driver's message: ordered on their own; in a
@@ -172,8 +172,9 @@ class Recorder:
             elif report["to"] is None:
                 self.health.count_error(f"cannot recover {Path(report['from']).name}: {report['error']}")
 
-    def _open_segment(self) -> None:
+    def _open_segment(self, topic: str, host_mono_ns: int) -> None:
         name = segment_name(time.time_ns(), self.next_index)
+        self.first_log_ns = host_mono_ns if self.live or topic in self.clock_topics else self.played_newest_ns
         self.next_index += 1
         self.open_path = self.output_dir / (name + OPEN_SUFFIX)
         try:
@@ -209,7 +210,7 @@ class Recorder:
                                          "lost_bus_per_topic": json.dumps(lost_bus),
                                          "dropped_disk_full_per_topic": json.dumps(dropped),
                                          "late_per_topic": json.dumps(late), **clock})
-            final = path.with_name(path.name[: -len(OPEN_SUFFIX)])
+            final = path.with_name(closed_name(path.name, anchored_utc_ns(self.anchor, self.first_log_ns)))
             os.replace(path, final)
         except OSError as exc:  # the `.open` file stays; recover_unclosed turns it into a readable file
             self.health.count_error(f"closing {path.name}: {exc}")
@@ -315,12 +316,14 @@ class Recorder:
                 self.writer is not None:
             self.close_segment()
             self.check_disk(force=True)
+        if topic == TIME_ANCHOR and message.utc_ns > 0:
+            self.anchor = (int(message.host_mono_ns), int(message.utc_ns))
         if self.disk_full:
             self.tally.dropped_disk_full[topic] = self.tally.dropped_disk_full.get(topic, 0) + 1
             return
         try:
             if self.writer is None:
-                self._open_segment()
+                self._open_segment(topic, int(message.host_mono_ns))
             self.writer.write(topic, message)
         except OSError as exc:  # ENOSPC and the like: stop and let the disk check decide when to go on
             self.health.count_error(f"writing {topic}: {exc}")

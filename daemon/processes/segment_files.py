@@ -2,8 +2,9 @@
 the recovery of the unclosed ones a crash or power cut left behind, and where a restarted recorder resumes: the
 highest seq per topic that its daemon run's segments hold.
 
-    roadlog_<UTC start>_<index>.mcap            a closed segment
-    roadlog_<UTC start>_<index>.mcap.open       the segment being written (or left by a crash)
+    roadlog_<UTC start>_<index>.mcap            a closed segment: the UTC of its first message where the time
+                                                anchors give it (closed_name), else as it was opened
+    roadlog_<UTC start>_<index>.mcap.open       the segment being written (or left by a crash), this host's UTC
     roadlog_<UTC start>_<index>.mcap.recovering an unclosed segment being recovered into its `.mcap`
     roadlog_<UTC start>_<index>.mcap.damaged    an unclosed segment that could not be read in full, kept as it was
 """
@@ -36,6 +37,19 @@ def segment_name(utc_ns: int, index: int) -> str:
     """`roadlog_20261123T101500Z_0003.mcap`: names sort by start time, then by index."""
     stamp = datetime.fromtimestamp(utc_ns / 1e9, UTC).strftime("%Y%m%dT%H%M%SZ")
     return f"{SEGMENT_PREFIX}{stamp}_{index:04d}{SEGMENT_SUFFIX}"
+
+
+def anchored_utc_ns(anchor: tuple[int, int] | None, host_mono_ns: int | None) -> int | None:
+    """The UTC of a host time on the log's clock through a time anchor (host_mono_ns, utc_ns); None without both."""
+    return None if anchor is None or host_mono_ns is None else anchor[1] + host_mono_ns - anchor[0]
+
+
+def closed_name(open_name: str, first_utc_ns: int | None) -> str:
+    """The name a segment opened as `open_name` is closed under: named by the UTC of its first message where known,
+    else as it was opened (by this host's clock then); its index kept."""
+    name = open_name[: -len(OPEN_SUFFIX)]
+    index = _segment_index(name)
+    return name if first_utc_ns is None or index is None else segment_name(first_utc_ns, index)
 
 
 def _segment_index(name: str) -> int | None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import time
+from datetime import UTC, datetime
 from pathlib import Path
 
 from daemon.bus import pubsub
@@ -13,8 +14,8 @@ from daemon.log_format.reader import read_log, read_metadata
 from daemon.log_format.writer import LogWriter
 from daemon.processes.segment_clock import SegmentClock
 from daemon.spine.config import load_config
-from daemon.spine.messages import CanFrame, ImuSample
-from daemon.spine.topics import CAN_FRAMES, IMU
+from daemon.spine.messages import CanFrame, ImuSample, TimeAnchor
+from daemon.spine.topics import CAN_FRAMES, IMU, TIME_ANCHOR
 from tests.daemon.test_recorder import RecorderProcess, car  # noqa: F401 - the fixture
 from tests.daemon_fixtures import private_config
 from tests.roadlog_cli import can_only_log, roadlog
@@ -103,6 +104,8 @@ def test_a_live_recorder_with_nothing_to_record_still_closes_its_segments_on_tim
     assert rec.stop() == 0, rec.stderr
     closed = sorted(out.glob("*.mcap"))
     assert len(closed) >= 3 and all("roadlog.counts" in read_metadata(p) for p in closed)
+    stamps = [datetime.strptime(p.name.split("_")[1], "%Y%m%dT%H%M%SZ").replace(tzinfo=UTC) for p in closed]
+    assert all(abs(time.time() - s.timestamp()) < 120 for s in stamps)  # live: named by this host's UTC
 
 
 def _replayed(log: Path, config_path: Path, out: Path, rate: str, topics: list[str]
@@ -167,3 +170,29 @@ def test_a_slow_replay_of_several_topics_keeps_each_message_in_its_slot(tmp_path
                        + [(IMU, i * 10_000_000 + 5_000_000) for i in range(k * 50, min(120, (k + 1) * 50))])
                 for k in range(3)]
     assert cut == {"0.5": expected, "max": expected}
+
+
+def test_a_replayed_drive_is_re_recorded_into_segments_named_by_its_own_date(tmp_path):
+    """A drive recorded on 2011-09-26 from 13:02:25.2 UTC (its time anchors), replayed today: each re-recorded segment
+    is named by the UTC of its first message through those anchors, not by this host's clock."""
+    config, config_path = private_config(tmp_path, mapper={"enabled": False}, status={"port": 0},
+                                         recorder={"segment_seconds": S, "min_free_gib": 0.0, "min_free_pct": 0.0})
+    utc0 = int(datetime(2011, 9, 26, 13, 2, 25, 200_000, tzinfo=UTC).timestamp() * 1e9)
+    log = tmp_path / "drive.mcap"
+    with LogWriter(log, config) as writer:
+        for i in range(220):  # 2.2 s of CAN frames 10 ms apart, an anchor each second
+            t = 10**9 + i * 10_000_000
+            if i % 100 == 0:
+                writer.write(TIME_ANCHOR, TimeAnchor(seq=i // 100, sensor_time_ns=t, host_mono_ns=t,
+                                                     utc_ns=utc0 + i * 10_000_000))
+            writer.write(CAN_FRAMES, CanFrame(sensor_time_ns=i * 10_000_000, arbitration_id=0x100, channel="can0",
+                                              data=bytes(8), host_mono_ns=t))
+    try:
+        _replayed(log, config_path, tmp_path / "replayed", "max", [CAN_FRAMES])
+    finally:
+        pubsub.unlink_all(config)
+    names = sorted(p.name for p in (tmp_path / "replayed").rglob("*.mcap"))
+    # slots of 0.5 s from the first message: 25.2, 25.7, 26.2, 26.7 and 27.2 s past 13:02
+    stamps = [name.split("_")[1] for name in names]
+    assert stamps == ["20110926T130225Z", "20110926T130225Z", "20110926T130226Z", "20110926T130226Z",
+                      "20110926T130227Z"], names
