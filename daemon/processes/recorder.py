@@ -128,7 +128,7 @@ class Recorder:
         self.clock_topics = played_topics(config)
         self.played_newest_ns: int | None = None  # the newest host time read of the clock topics
         self.anchor: tuple[int, int] | None = None  # the last time anchor written: (host_mono_ns, utc_ns)
-        self.first_log_ns: int | None = None  # the open segment's first host time on the log's clock (played_topics)
+        self.first_log_ns: int | None = None  # the open segment's first message's time on the log's clock
         self._sync_fd: int | None = None
         self._last_sync = 0.0
         self.segments_closed = 0
@@ -172,9 +172,8 @@ class Recorder:
             elif report["to"] is None:
                 self.health.count_error(f"cannot recover {Path(report['from']).name}: {report['error']}")
 
-    def _open_segment(self, topic: str, host_mono_ns: int) -> None:
+    def _open_segment(self) -> None:
         name = segment_name(time.time_ns(), self.next_index)
-        self.first_log_ns = host_mono_ns if self.live or topic in self.clock_topics else self.played_newest_ns
         self.next_index += 1
         self.open_path = self.output_dir / (name + OPEN_SUFFIX)
         try:
@@ -191,10 +190,10 @@ class Recorder:
 
     def close_segment(self) -> Path | None:
         """Close the open segment (counts in its metadata), rename it to `.mcap`; its final path."""
-        writer, path = self.writer, self.open_path
+        writer, path, first_log_ns = self.writer, self.open_path, self.first_log_ns
         if writer is None or path is None:
             return None
-        self.writer, self.open_path = None, None
+        self.writer, self.open_path, self.first_log_ns = None, None, None
         self._close_sync_fd()
         self._closed_bytes += writer.bytes_written_estimate
         lost_bus = _delta(self.tally.lost_bus, self._at_last_close.lost_bus)
@@ -210,7 +209,7 @@ class Recorder:
                                          "lost_bus_per_topic": json.dumps(lost_bus),
                                          "dropped_disk_full_per_topic": json.dumps(dropped),
                                          "late_per_topic": json.dumps(late), **clock})
-            final = path.with_name(closed_name(path.name, anchored_utc_ns(self.anchor, self.first_log_ns)))
+            final = path.with_name(closed_name(path.name, anchored_utc_ns(self.anchor, first_log_ns)))
             os.replace(path, final)
         except OSError as exc:  # the `.open` file stays; recover_unclosed turns it into a readable file
             self.health.count_error(f"closing {path.name}: {exc}")
@@ -310,8 +309,7 @@ class Recorder:
         return dict(sorted(late.items()))
 
     def write(self, topic: str, message: object) -> None:
-        """Write one message to the open segment (opening one if needed: after the last closed by time, by size or
-        for a full disk), or count it as dropped."""
+        """Write one message to the open segment (opening one if none is), or count it as dropped."""
         if topic in self.clock_topics and self.clock.begins_segment(topic, int(message.host_mono_ns)) and \
                 self.writer is not None:
             self.close_segment()
@@ -323,8 +321,10 @@ class Recorder:
             return
         try:
             if self.writer is None:
-                self._open_segment(topic, int(message.host_mono_ns))
+                self._open_segment()
             self.writer.write(topic, message)
+            if self.first_log_ns is None and (self.live or topic in self.clock_topics):  # not played: host clock
+                self.first_log_ns = int(message.host_mono_ns)
         except OSError as exc:  # ENOSPC and the like: stop and let the disk check decide when to go on
             self.health.count_error(f"writing {topic}: {exc}")
             log.error("write failed on %s: %s", self.open_path or self.output_dir, exc)
@@ -342,7 +342,7 @@ class Recorder:
     def _abandon_segment(self) -> None:
         """Drop a segment that could not be written; its `.open` file is recovered when space returns."""
         self._closed_bytes += self.writer.bytes_written_estimate
-        self.writer, self.open_path = None, None
+        self.writer, self.open_path, self.first_log_ns = None, None, None
         self._close_sync_fd()
 
     def set_lost(self, topic: str, lost: int) -> None:
