@@ -216,7 +216,7 @@ class Recorder:
             log.error("cannot close segment %s: %s", path, exc)
             return None
         self.segments_closed += 1
-        log.info("closed segment %s (%d messages)", final.name, sum(writer.counts.values()))
+        log.info("closed segment %s as %s (%d messages)", path.name, final.name, sum(writer.counts.values()))
         return final
 
     def sync_if_due(self) -> None:

@@ -5,6 +5,7 @@ neither cuts a segment per message nor keeps one open (daemon/processes/segment_
 from __future__ import annotations
 
 import json
+import re
 import time
 from datetime import UTC, datetime
 from pathlib import Path
@@ -109,16 +110,16 @@ def test_a_live_recorder_with_nothing_to_record_still_closes_its_segments_on_tim
 
 
 def _replayed(log: Path, config_path: Path, out: Path, rate: str, topics: list[str]
-              ) -> tuple[list[list[tuple[str, int]]], list[dict[str, int]]]:
+              ) -> tuple[list[list[tuple[str, int]]], list[dict[str, int]], str]:
     """`roadlog replay` of the log into `out`: per re-recorded segment holding any of `topics`, their (topic,
-    sensor time) in log order; and every segment's late count per topic."""
+    sensor time) in log order; every segment's late count per topic; the daemon's stderr."""
     run = roadlog("replay", str(log), "--config", str(config_path), "--rate", rate, "--output-dir", str(out),
                   timeout=180)
     assert run.returncode == 0, run.stderr[-3000:]
     segments = sorted(out.rglob("*.mcap"))
     cut = [[(r.topic, r.message.sensor_time_ns) for r in read_log([s], topics=topics)] for s in segments]
     late = [json.loads(read_metadata(s)["roadlog.counts"]["late_per_topic"]) for s in segments]
-    return [c for c in cut if c], late
+    return [c for c in cut if c], late, run.stderr
 
 
 def test_a_replay_is_cut_at_the_same_messages_at_rate_1_4_and_max(tmp_path):
@@ -161,7 +162,7 @@ def test_a_slow_replay_of_several_topics_keeps_each_message_in_its_slot(tmp_path
     cut = {}
     try:
         for rate in ("0.5", "max"):
-            segments, late = _replayed(log, config_path, tmp_path / f"rate_{rate}", rate, [CAN_FRAMES, IMU])
+            segments, late, _ = _replayed(log, config_path, tmp_path / f"rate_{rate}", rate, [CAN_FRAMES, IMU])
             cut[rate] = [sorted(segment) for segment in segments]
             assert all(not any(d.values()) for d in late), (rate, late)
     finally:
@@ -188,7 +189,7 @@ def test_a_replayed_drive_is_re_recorded_into_segments_named_by_its_own_date(tmp
             writer.write(CAN_FRAMES, CanFrame(sensor_time_ns=i * 10_000_000, arbitration_id=0x100, channel="can0",
                                               data=bytes(8), host_mono_ns=t))
     try:
-        _replayed(log, config_path, tmp_path / "replayed", "max", [CAN_FRAMES])
+        _, _, stderr = _replayed(log, config_path, tmp_path / "replayed", "max", [CAN_FRAMES])
     finally:
         pubsub.unlink_all(config)
     names = sorted(p.name for p in (tmp_path / "replayed").rglob("*.mcap"))
@@ -196,3 +197,6 @@ def test_a_replayed_drive_is_re_recorded_into_segments_named_by_its_own_date(tmp
     stamps = [name.split("_")[1] for name in names]
     assert stamps == ["20110926T130225Z", "20110926T130225Z", "20110926T130226Z", "20110926T130226Z",
                       "20110926T130227Z"], names
+    # the recorder's log links each segment as opened (this host's clock) to its closed name
+    opened = re.search(rf"closed segment (roadlog_\d{{8}}T\d{{6}}Z_0000\.mcap\.open) as {names[0]}", stderr)
+    assert opened and "20110926" not in opened.group(1), stderr[-3000:]
