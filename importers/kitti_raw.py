@@ -32,6 +32,7 @@ from daemon.spine.local_frame import LocalFrame
 from daemon.spine.messages import GnssFix, GnssVelocity, ImuSample, PointCloud, TimeAnchor, VehiclePose
 from daemon.spine.point_cloud_codec import pack_points
 from daemon.spine.topics import GNSS_FIX, GNSS_VELOCITY, IMU, LIDAR_POINTS, POSE, TIME_ANCHOR
+from drivers.gnss.receiver_epochs import covariance_diagonal
 from importers.imported_log import ImportSummary, imported_log
 from importers.kitti_files import (
     DatasetError,
@@ -121,15 +122,15 @@ def oxts_messages(times: np.ndarray, records: np.ndarray
     f = _FIELD
     fixes, velocities, samples = [], [], []
     for i, (t, r) in enumerate(zip(times.tolist(), records, strict=True)):
-        sigma2 = max(float(r[f["pos_accuracy"]]), 0.01) ** 2
+        sigma = max(float(r[f["pos_accuracy"]]), 0.01)
         fixes.append(GnssFix(seq=i, sensor_time_ns=t, host_mono_ns=t, latitude_deg=float(r[f["lat"]]),
                              longitude_deg=float(r[f["lon"]]), altitude_m=float(r[f["alt"]]),
-                             position_covariance=(sigma2, 0.0, 0.0, 0.0, sigma2, 0.0, 0.0, 0.0, sigma2),
+                             position_covariance=covariance_diagonal(sigma, sigma, sigma),
                              covariance_type=2))
-        v2 = max(float(r[f["vel_accuracy"]]), 0.01) ** 2
+        v_sigma = max(float(r[f["vel_accuracy"]]), 0.01)
         velocities.append(GnssVelocity(seq=i, sensor_time_ns=t, host_mono_ns=t,
                                        velocity_enu_mps=tuple(float(r[f[k]]) for k in ("ve", "vn", "vu")),
-                                       velocity_covariance=(v2, 0.0, 0.0, 0.0, v2, 0.0, 0.0, 0.0, v2),
+                                       velocity_covariance=covariance_diagonal(v_sigma, v_sigma, v_sigma),
                                        covariance_type=2))
         samples.append(ImuSample(seq=i, sensor_time_ns=t, host_mono_ns=t,
                                  accel_mps2=tuple(float(r[f[k]]) for k in ("ax", "ay", "az")),
