@@ -28,7 +28,7 @@ import scipy.sparse as sp
 from scipy.ndimage import gaussian_filter, map_coordinates
 
 from daemon.spine.mapper_config import PoseRefinementConfig
-from mapping.fits.lidar_registration import GAUGE_WEIGHT, re_placed
+from mapping.fits.lidar_registration import GAUGE_WEIGHT, grouped_normal_matrix, knot_groups, re_placed, thin_out
 from mapping.fits.pose_refinement import PoseCorrections, knot_positions, reference_points
 from mapping.localization.trajectory import HorizontalTrack
 
@@ -49,9 +49,7 @@ def register_horizontal(points: np.ndarray, seconds: np.ndarray, contrast: np.nd
         contrast = np.full(len(points), np.nan)
     good = np.isfinite(points).all(1) & np.isfinite(seconds)
     skipped = int((~good).sum())
-    if good.sum() > settings.lidar_max_points:
-        good[np.flatnonzero(good)[np.random.default_rng(0).permutation(int(good.sum()))[settings.lidar_max_points:]]] \
-            = False
+    thin_out(good, settings.lidar_max_points)
     pts, t, c = points[good], seconds[good], np.asarray(contrast, np.float64)[good]
     has_c = np.isfinite(c)
     s = trajectory.horizontal_distance_at(t)
@@ -62,8 +60,7 @@ def register_horizontal(points: np.ndarray, seconds: np.ndarray, contrast: np.nd
     horizontal, everything = np.array([0, 1, 5]), np.arange(6)
     cols_h = np.concatenate([6 * k0[:, None] + horizontal, 6 * (k0 + 1)[:, None] + horizontal], 1)  # (N, 6)
     cols_all = np.concatenate([6 * k0[:, None] + everything, 6 * (k0 + 1)[:, None] + everything], 1)  # (N, 12)
-    pairs = {6: (cols_h[:, :, None] * m + cols_h[:, None, :]).ravel(),
-             12: (cols_all[:, :, None] * m + cols_all[:, None, :]).ravel()}
+    groups = knot_groups(k0)
     angle = np.deg2rad(settings.prior_deg)
     scale = np.tile([settings.prior_m] * 3 + [angle] * 3, len(knot_s))
     step = np.tile([settings.smooth_m] * 3 + [np.deg2rad(settings.smooth_deg)] * 3, len(knot_s) - 1)
@@ -100,7 +97,7 @@ def register_horizontal(points: np.ndarray, seconds: np.ndarray, contrast: np.nd
                 vals = np.concatenate([local * (1 - frac)[:, None], local * frac[:, None]], 1)
                 z = np.where(use, value, 0.0) / sigma
                 weight = use * weights[name]
-                n, g, res = _cell_eliminated(cell, weight, vals, cols, z, m, pairs[cols.shape[1]])
+                n, g, res = _cell_eliminated(cell, weight, vals, cols, z, m, groups)
                 normal += n
                 rhs += g
                 spread[name] = sigma * float(np.sqrt(np.average(res ** 2, weights=np.maximum(weight, 1e-12))))
@@ -116,14 +113,14 @@ def register_horizontal(points: np.ndarray, seconds: np.ndarray, contrast: np.nd
 
 
 def _cell_eliminated(cell: np.ndarray, weight: np.ndarray, vals: np.ndarray, cols: np.ndarray, z: np.ndarray,
-                     m: int, pair: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     m: int, groups: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The normal matrix (m, m) and right-hand side (m,) of a step d of the knots that minimises the weighted squares
     of z + vals . d[cols] less its cell's mean (each cell's value a free unknown, eliminated in closed form); and
     each point's residual at d = 0."""
     cells = int(cell.max()) + 1
     cell_w = np.maximum(np.bincount(cell, weight, cells), 1e-12)
     wv = weight[:, None] * vals
-    AtWA = np.bincount(pair, (wv[:, :, None] * vals[:, None, :]).ravel(), m * m).reshape(m, m)
+    AtWA = grouped_normal_matrix(groups, wv, vals, cols, m)
     B = sp.csr_matrix((wv.ravel(), (np.repeat(cell, cols.shape[1]), cols.ravel())), shape=(cells, m))
     BtB = (B.T @ sp.diags(1.0 / cell_w) @ B).toarray()
     wz_cell = np.bincount(cell, weight * z, cells)

@@ -37,9 +37,7 @@ def register_ground(points: np.ndarray, seconds: np.ndarray, trajectory: Horizon
     knot_s = knot_positions(trajectory, settings.knot_spacing_m)
     good = np.isfinite(points).all(1) & np.isfinite(seconds)
     skipped = int((~good).sum())  # not finite: counted in the figures, left out
-    if good.sum() > settings.lidar_max_points:  # an even subsample: the fit needs overlap, not every point
-        good[np.flatnonzero(good)[np.random.default_rng(0).permutation(int(good.sum()))[settings.lidar_max_points:]]] \
-            = False
+    thin_out(good, settings.lidar_max_points)
     pts, t = points[good], seconds[good]
     s = trajectory.horizontal_distance_at(t)
     r = pts - reference_points(trajectory, t)
@@ -60,7 +58,7 @@ def register_ground(points: np.ndarray, seconds: np.ndarray, trajectory: Horizon
     D = sp.diags([-np.ones(m - 3), np.ones(m - 3)], [0, 3], shape=(m - 3, m))
     fixed = np.diag(1.0 / scale ** 2) + (D.T @ sp.diags(1.0 / step ** 2) @ D).toarray() \
         + _gauge_penalty(trajectory, knot_s, scale)  # prior, smoothness, gauge
-    pair = (cols[:, :, None] * m + cols[:, None, :]).ravel()  # (N * 36,) entries of the normal matrix
+    groups = knot_groups(k0)
     z = pts[:, 2]
     theta = np.zeros(m)
     weight = np.ones(len(s))
@@ -69,7 +67,7 @@ def register_ground(points: np.ndarray, seconds: np.ndarray, trajectory: Horizon
     for _ in range(settings.lidar_rounds):
         cell_w = np.maximum(np.bincount(cell, weight, cells), 1e-12)
         wv = weight[:, None] * vals
-        AtWA = np.bincount(pair, (wv[:, :, None] * vals[:, None, :]).ravel(), m * m).reshape(m, m)
+        AtWA = grouped_normal_matrix(groups, wv, vals, cols, m)
         B = sp.csr_matrix((wv.ravel(), (np.repeat(cell, 6), cols.ravel())), shape=(cells, m))  # per cell: the
         # weighted sum of its points' derivatives
         BtB = (B.T @ sp.diags(1.0 / cell_w) @ B).toarray()
@@ -88,6 +86,31 @@ def register_ground(points: np.ndarray, seconds: np.ndarray, trajectory: Horizon
     timings["lidar_registration_wall_s"] = time.perf_counter() - started
     return corrections, {"points": len(s), "points_skipped": skipped, "cells": cells,
                          "residual_rms_cm": [100.0 * v for v in spread], **corrections.figures()}
+
+
+def thin_out(good: np.ndarray, max_points: int) -> None:
+    """Keep at most `max_points` of the `good` points, an even random subsample (in place; seeded)."""
+    if good.sum() > max_points:
+        good[np.flatnonzero(good)[np.random.default_rng(0).permutation(int(good.sum()))[max_points:]]] = False
+
+
+def knot_groups(k0: np.ndarray) -> list[np.ndarray]:
+    """The points' indices grouped by their first knot `k0` (each group's points have the same columns)."""
+    order = np.argsort(k0, kind="stable")
+    return np.split(order, np.flatnonzero(np.diff(k0[order])) + 1)
+
+
+def grouped_normal_matrix(groups: list[np.ndarray], wv: np.ndarray, vals: np.ndarray, cols: np.ndarray,
+                          m: int) -> np.ndarray:
+    """The sum over the points of wv_p^T vals_p (the rows (N, q) of weighted and plain derivatives by the knots at
+    columns `cols` (N, q)) as an (m, m) matrix: one q x q product per knot group, so the memory stays that of the
+    points (an (N, q, q) outer product would hold 36-144 floats a point)."""
+    out = np.zeros((m, m))
+    for idx in groups:
+        if len(idx):
+            c = cols[idx[0]]
+            out[np.ix_(c, c)] += wv[idx].T @ vals[idx]
+    return out
 
 
 def _gauge_penalty(trajectory: HorizontalTrack, knot_s: np.ndarray, scale: np.ndarray) -> np.ndarray:

@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from daemon.spine.mapper_config import PoseRefinementConfig
-from mapping.fits.lidar_registration import re_placed, register_ground
+from mapping.fits.lidar_registration import grouped_normal_matrix, knot_groups, re_placed, register_ground, thin_out
 from mapping.localization.trajectory import HorizontalTrack
 
 SETTINGS = PoseRefinementConfig(enabled=True)
@@ -88,3 +88,33 @@ def test_points_that_are_not_finite_are_counted_and_left_out():
     assert figures["points_skipped"] == int((~clean).sum()) > 0
     assert figures["points"] == int(clean.sum())
     assert np.isfinite(corrections.position_m).all() and np.isfinite(corrections.rotation_rad).all()
+
+
+@pytest.mark.parametrize("stride, columns", [(3, [0, 1, 2]), (6, [0, 1, 5]), (6, [0, 1, 2, 3, 4, 5])])
+def test_the_normal_matrix_by_knot_groups_is_the_sum_of_every_point_s_outer_product(stride, columns):
+    """The registrations' normal matrix, accumulated per group of points between the same two knots, equals the
+    plain sum of each point's (weighted derivatives) x (derivatives) placed at its columns."""
+    rng = np.random.default_rng(5)
+    n, knots = 4000, 12
+    k0 = rng.integers(0, knots - 1, n)
+    cols = np.concatenate([stride * k0[:, None] + columns, stride * (k0 + 1)[:, None] + columns], 1)
+    vals = rng.standard_normal(cols.shape)
+    wv = rng.random(n)[:, None] * vals
+    m = stride * knots
+    expected = np.zeros((m, m))
+    for c, w, v in zip(cols, wv, vals, strict=True):
+        expected[np.ix_(c, c)] += np.outer(w, v)
+    got = grouped_normal_matrix(knot_groups(k0), wv, vals, cols, m)
+    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-9)
+
+
+def test_thinning_keeps_an_even_subsample_of_the_good_points():
+    good = np.ones(10_000, bool)
+    good[::10] = False  # 9,000 good
+    thin_out(good, 3_000)
+    assert good.sum() == 3_000 and not good[::10].any()
+    halves = good.reshape(2, -1).sum(1)
+    assert abs(halves[0] - halves[1]) < 200  # spread over all of them, not the first 3,000
+    kept = good.copy()
+    thin_out(good, 5_000)
+    assert (good == kept).all()  # at or below the cap: nothing dropped
