@@ -5,8 +5,11 @@ scores: coverage, mIoU and elevation MAE, as placed and registered). Also the me
 drive's own cells only (`*_on_best_cells`): what the merge does to what that drive mapped, without the cells only
 the other drive reached.
 
-    .venv/bin/python bench/fleet_pairs.py [--seeds 11,3,7] [--visits 0,1,2] [--seconds 6] [--drives DIR]
-                                          [--out DIR] [--baseline FILE]
+    .venv/bin/python bench/fleet_pairs.py [--quick] [--seeds 11,3,7] [--visits 0,1,2] [--seconds 6]
+                                          [--drives DIR] [--out DIR] [--baseline FILE]
+
+--quick: one world (seed 11), one pair (visits 0,1), 4 s drives: a check that the bench and a merge run, not a
+figure (one pair has no median). --drives and --out default to temporary folders.
 
 The jobs use bench/fleet.py's quick mapper and are kept in --out (a rerun with the same drives fits nothing).
 --baseline: another version of mapping/fleet/drive_merge.py (e.g. `git show REV:mapping/fleet/drive_merge.py >
@@ -22,6 +25,7 @@ import importlib.util
 import itertools
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -92,16 +96,21 @@ def summary(rows: list[dict], key: str) -> dict:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="one world, one pair of 4 s drives")
     parser.add_argument("--seeds", default="11,3,7")
     parser.add_argument("--visits", default="0,1,2")
     parser.add_argument("--seconds", type=float, default=6.0)
-    parser.add_argument("--drives", type=Path, required=True, help="folder keeping the simulated drives")
-    parser.add_argument("--out", type=Path, required=True, help="folder keeping the fleet jobs")
+    parser.add_argument("--drives", type=Path, help="folder keeping the simulated drives (default: temporary)")
+    parser.add_argument("--out", type=Path, help="folder keeping the fleet jobs (default: temporary)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--baseline", type=Path, action="append", default=[],
                         help="another drive_merge.py, scored beside this one (named by its file's stem; repeatable)")
     args = parser.parse_args()
-    args.drives, args.out = args.drives.resolve(), args.out.resolve()
+    if args.quick:
+        args.seeds, args.visits, args.seconds = "11", "0,1", 4.0
+    scratch = Path(tempfile.mkdtemp(prefix="bench-fleet-pairs-"))
+    args.drives = (args.drives or scratch / "drives").resolve()
+    args.out = (args.out or scratch / "jobs").resolve()
     started = time.perf_counter()
     visits = [int(v) for v in args.visits.split(",")]
     merges = {"this": drive_merge} | {path.stem: load_merge(path) for path in args.baseline}
