@@ -49,7 +49,7 @@ def register_horizontal(points: np.ndarray, seconds: np.ndarray, contrast: np.nd
         contrast = np.full(len(points), np.nan)
     good = np.isfinite(points).all(1) & np.isfinite(seconds)
     skipped = int((~good).sum())
-    thin_out(good, settings.lidar_max_points)
+    thinned = thin_out(good, settings.lidar_max_points)
     pts, t, c = points[good], seconds[good], np.asarray(contrast, np.float64)[good]
     has_c = np.isfinite(c)
     s = trajectory.horizontal_distance_at(t)
@@ -108,7 +108,7 @@ def register_horizontal(points: np.ndarray, seconds: np.ndarray, contrast: np.nd
                            "height_rms_cm": 100.0 * spread["height"]})
     corrections = _as_corrections(knot_s, theta)
     timings["lidar_horizontal_registration_wall_s"] = time.perf_counter() - started
-    return corrections, {"points": len(s), "points_skipped": skipped,
+    return corrections, {"points": len(s), "points_skipped": skipped, "points_thinned": thinned,
                          "points_with_contrast": int(has_c.sum()), "rounds": rounds, **corrections.figures()}
 
 

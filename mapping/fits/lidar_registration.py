@@ -37,7 +37,7 @@ def register_ground(points: np.ndarray, seconds: np.ndarray, trajectory: Horizon
     knot_s = knot_positions(trajectory, settings.knot_spacing_m)
     good = np.isfinite(points).all(1) & np.isfinite(seconds)
     skipped = int((~good).sum())  # not finite: counted in the figures, left out
-    thin_out(good, settings.lidar_max_points)
+    thinned = thin_out(good, settings.lidar_max_points)
     pts, t = points[good], seconds[good]
     s = trajectory.horizontal_distance_at(t)
     r = pts - reference_points(trajectory, t)
@@ -84,14 +84,17 @@ def register_ground(points: np.ndarray, seconds: np.ndarray, trajectory: Horizon
     position[:, 2], rotation[:, :2] = knots[:, 0], knots[:, 1:]
     corrections = PoseCorrections(knot_s, position, rotation)
     timings["lidar_registration_wall_s"] = time.perf_counter() - started
-    return corrections, {"points": len(s), "points_skipped": skipped, "cells": cells,
+    return corrections, {"points": len(s), "points_skipped": skipped, "points_thinned": thinned, "cells": cells,
                          "residual_rms_cm": [100.0 * v for v in spread], **corrections.figures()}
 
 
-def thin_out(good: np.ndarray, max_points: int) -> None:
-    """Keep at most `max_points` of the `good` points, an even random subsample (in place; seeded)."""
-    if good.sum() > max_points:
-        good[np.flatnonzero(good)[np.random.default_rng(0).permutation(int(good.sum()))[max_points:]]] = False
+def thin_out(good: np.ndarray, max_points: int) -> int:
+    """Keep at most `max_points` of the `good` points, an even random subsample (in place; seeded); how many were
+    dropped."""
+    n = int(good.sum())
+    if n > max_points:
+        good[np.flatnonzero(good)[np.random.default_rng(0).permutation(n)[max_points:]]] = False
+    return max(0, n - max_points)
 
 
 def knot_groups(k0: np.ndarray) -> list[np.ndarray]:

@@ -86,8 +86,10 @@ def test_points_that_are_not_finite_are_counted_and_left_out():
     clean = np.isfinite(points).all(1) & np.isfinite(times)
     corrections, figures = register_ground(points, times, track, SETTINGS, {})
     assert figures["points_skipped"] == int((~clean).sum()) > 0
-    assert figures["points"] == int(clean.sum())
+    assert figures["points"] == int(clean.sum()) and figures["points_thinned"] == 0
     assert np.isfinite(corrections.position_m).all() and np.isfinite(corrections.rotation_rad).all()
+    _, figures = register_ground(points, times, track, SETTINGS.model_copy(update={"lidar_max_points": 1000}), {})
+    assert figures["points"] == 1000 and figures["points_thinned"] == int(clean.sum()) - 1000
 
 
 @pytest.mark.parametrize("stride, columns", [(3, [0, 1, 2]), (6, [0, 1, 5]), (6, [0, 1, 2, 3, 4, 5])])
@@ -111,10 +113,10 @@ def test_the_normal_matrix_by_knot_groups_is_the_sum_of_every_point_s_outer_prod
 def test_thinning_keeps_an_even_subsample_of_the_good_points():
     good = np.ones(10_000, bool)
     good[::10] = False  # 9,000 good
-    thin_out(good, 3_000)
+    assert thin_out(good, 3_000) == 6_000
     assert good.sum() == 3_000 and not good[::10].any()
     halves = good.reshape(2, -1).sum(1)
     assert abs(halves[0] - halves[1]) < 200  # spread over all of them, not the first 3,000
     kept = good.copy()
-    thin_out(good, 5_000)
+    assert thin_out(good, 5_000) == 0
     assert (good == kept).all()  # at or below the cap: nothing dropped
