@@ -198,7 +198,9 @@ class PoseRefinementConfig(StrictModel):
     lidar_point_sigma_m: float = Field(0.02, gt=0)  # a ground point's height error (m), against the prior
     lidar_huber_m: float = Field(0.03, gt=0)  # points further than this from their cell's height count less
     lidar_rounds: int = Field(4, ge=1)  # reweighted least-squares rounds
-    lidar_max_points: int = Field(400_000, ge=1)  # an even subsample of the ground points when there are more
+    lidar_max_points: int = Field(3_000_000, ge=1)  # an even subsample of the ground points when there are more
+    # (~0.9 GB and ~1 min a million in the registrations; a 128-beam Lidar gives ~7,000 a metre of track, so
+    # drives up to ~400 m keep every point: the horizontal registration's 0.1 m stage needs them, bench/RESULTS.md)
     lidar_horizontal: bool = False  # with Lidar ground points: every axis from them, x, y and yaw too (mapping.fits
     # .lidar_horizontal_registration: the intensity contrast, paint, and the kerbs' slopes, fitted with the heights);
     # no photometric fit. Offline the drive is then read again with the corrected trajectory (`roadlog reconstruct
