@@ -28,7 +28,7 @@ import scipy.sparse as sp
 from scipy.ndimage import gaussian_filter, map_coordinates
 
 from daemon.spine.mapper_config import PoseRefinementConfig
-from mapping.fits.lidar_registration import GAUGE_WEIGHT, grouped_normal_matrix, knot_groups, re_placed, thin_out
+from mapping.fits.lidar_registration import GAUGE_WEIGHT, cell_eliminated, knot_groups, re_placed, thin_out
 from mapping.fits.pose_refinement import PoseCorrections, knot_positions, reference_points
 from mapping.localization.trajectory import HorizontalTrack
 
@@ -97,7 +97,7 @@ def register_horizontal(points: np.ndarray, seconds: np.ndarray, contrast: np.nd
                 vals = np.concatenate([local * (1 - frac)[:, None], local * frac[:, None]], 1)
                 z = np.where(use, value, 0.0) / sigma
                 weight = use * weights[name]
-                n, g, res = _cell_eliminated(cell, weight, vals, cols, z, m, groups)
+                n, g, res = cell_eliminated(cell, weight, vals, cols, z, m, groups)
                 normal += n
                 rhs += g
                 spread[name] = sigma * float(np.sqrt(np.average(res ** 2, weights=np.maximum(weight, 1e-12))))
@@ -110,23 +110,6 @@ def register_horizontal(points: np.ndarray, seconds: np.ndarray, contrast: np.nd
     timings["lidar_horizontal_registration_wall_s"] = time.perf_counter() - started
     return corrections, {"points": len(s), "points_skipped": skipped, "points_thinned": thinned,
                          "points_with_contrast": int(has_c.sum()), "rounds": rounds, **corrections.figures()}
-
-
-def _cell_eliminated(cell: np.ndarray, weight: np.ndarray, vals: np.ndarray, cols: np.ndarray, z: np.ndarray,
-                     m: int, groups: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The normal matrix (m, m) and right-hand side (m,) of a step d of the knots that minimises the weighted squares
-    of z + vals . d[cols] less its cell's mean (each cell's value a free unknown, eliminated in closed form); and
-    each point's residual at d = 0."""
-    cells = int(cell.max()) + 1
-    cell_w = np.maximum(np.bincount(cell, weight, cells), 1e-12)
-    wv = weight[:, None] * vals
-    AtWA = grouped_normal_matrix(groups, wv, vals, cols, m)
-    B = sp.csr_matrix((wv.ravel(), (np.repeat(cell, cols.shape[1]), cols.ravel())), shape=(cells, m))
-    BtB = (B.T @ sp.diags(1.0 / cell_w) @ B).toarray()
-    wz_cell = np.bincount(cell, weight * z, cells)
-    rhs = -(np.bincount(cols.ravel(), (wv * z[:, None]).ravel(), m) - B.T @ (wz_cell / cell_w))
-    residual = z - (wz_cell / cell_w)[cell]
-    return AtWA - BtB, rhs, residual
 
 
 def _as_corrections(knot_s: np.ndarray, theta: np.ndarray) -> PoseCorrections:

@@ -65,15 +65,9 @@ def register_ground(points: np.ndarray, seconds: np.ndarray, trajectory: Horizon
     sigma2 = settings.lidar_point_sigma_m ** 2
     spread = []
     for _ in range(settings.lidar_rounds):
+        normal, rhs, _ = cell_eliminated(cell, weight, vals, cols, z, m, groups)
+        theta = np.linalg.solve(normal / sigma2 + fixed, rhs / sigma2)
         cell_w = np.maximum(np.bincount(cell, weight, cells), 1e-12)
-        wv = weight[:, None] * vals
-        AtWA = grouped_normal_matrix(groups, wv, vals, cols, m)
-        B = sp.csr_matrix((wv.ravel(), (np.repeat(cell, 6), cols.ravel())), shape=(cells, m))  # per cell: the
-        # weighted sum of its points' derivatives
-        BtB = (B.T @ sp.diags(1.0 / cell_w) @ B).toarray()
-        wz_cell = np.bincount(cell, weight * z, cells)
-        rhs = -(np.bincount(cols.ravel(), (wv * z[:, None]).ravel(), m) - B.T @ (wz_cell / cell_w)) / sigma2
-        theta = np.linalg.solve((AtWA - BtB) / sigma2 + fixed, rhs)
         moved = z + (vals * theta[cols]).sum(1)
         residual = moved - (np.bincount(cell, weight * moved, cells) / cell_w)[cell]
         spread.append(float(np.sqrt(np.average(residual ** 2, weights=weight))))
@@ -86,6 +80,23 @@ def register_ground(points: np.ndarray, seconds: np.ndarray, trajectory: Horizon
     timings["lidar_registration_wall_s"] = time.perf_counter() - started
     return corrections, {"points": len(s), "points_skipped": skipped, "points_thinned": thinned, "cells": cells,
                          "residual_rms_cm": [100.0 * v for v in spread], **corrections.figures()}
+
+
+def cell_eliminated(cell: np.ndarray, weight: np.ndarray, vals: np.ndarray, cols: np.ndarray, z: np.ndarray,
+                     m: int, groups: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The normal matrix (m, m) and right-hand side (m,) of a step d of the knots that minimises the weighted squares
+    of z + vals . d[cols] less its cell's mean (each cell's value a free unknown, eliminated in closed form); and
+    each point's residual at d = 0."""
+    cells = int(cell.max()) + 1
+    cell_w = np.maximum(np.bincount(cell, weight, cells), 1e-12)
+    wv = weight[:, None] * vals
+    AtWA = grouped_normal_matrix(groups, wv, vals, cols, m)
+    B = sp.csr_matrix((wv.ravel(), (np.repeat(cell, cols.shape[1]), cols.ravel())), shape=(cells, m))
+    BtB = (B.T @ sp.diags(1.0 / cell_w) @ B).toarray()
+    wz_cell = np.bincount(cell, weight * z, cells)
+    rhs = -(np.bincount(cols.ravel(), (wv * z[:, None]).ravel(), m) - B.T @ (wz_cell / cell_w))
+    residual = z - (wz_cell / cell_w)[cell]
+    return AtWA - BtB, rhs, residual
 
 
 def thin_out(good: np.ndarray, max_points: int) -> int:
