@@ -108,9 +108,10 @@ def main() -> int:
     args = parser.parse_args()
     if args.quick:
         args.seeds, args.visits, args.seconds = "11", "0,1", 4.0
-    scratch = Path(tempfile.mkdtemp(prefix="bench-fleet-pairs-"))
-    args.drives = (args.drives or scratch / "drives").resolve()
-    args.out = (args.out or scratch / "jobs").resolve()
+    if args.drives is None or args.out is None:
+        scratch = Path(tempfile.mkdtemp(prefix="bench-fleet-pairs-"))
+        args.drives, args.out = args.drives or scratch / "drives", args.out or scratch / "jobs"
+    args.drives, args.out = args.drives.resolve(), args.out.resolve()
     started = time.perf_counter()
     visits = [int(v) for v in args.visits.split(",")]
     merges = {"this": drive_merge} | {path.stem: load_merge(path) for path in args.baseline}
