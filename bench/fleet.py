@@ -28,6 +28,7 @@ object.
 from __future__ import annotations
 
 import argparse
+import atexit
 import json
 import os
 import shutil
@@ -200,7 +201,10 @@ def main() -> int:
     visits = [int(v) for v in args.visits.split(",")]
     if len(visits) != 2 or len(set(visits)) != 2 or min(visits) < 0:
         parser.error(f"--visits {args.visits}: two different visits >= 0, e.g. 0,1")
-    work = args.out or Path(tempfile.mkdtemp(prefix="bench-fleet-"))
+    work = args.out
+    if work is None:  # a scratch folder, gone when the bench exits
+        work = Path(tempfile.mkdtemp(prefix="bench-fleet-"))
+        atexit.register(shutil.rmtree, work, ignore_errors=True)
     work.mkdir(parents=True, exist_ok=True)
     drives = args.drives or work / "drives"
     drives.mkdir(parents=True, exist_ok=True)

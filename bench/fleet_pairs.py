@@ -21,9 +21,11 @@ many pairs met the target (coverage above, mIoU at least, MAE at most the better
 from __future__ import annotations
 
 import argparse
+import atexit
 import importlib.util
 import itertools
 import json
+import shutil
 import sys
 import tempfile
 import time
@@ -109,7 +111,8 @@ def main() -> int:
     if args.quick:
         args.seeds, args.visits, args.seconds = "11", "0,1", 4.0
     if args.drives is None or args.out is None:
-        scratch = Path(tempfile.mkdtemp(prefix="bench-fleet-pairs-"))
+        scratch = Path(tempfile.mkdtemp(prefix="bench-fleet-pairs-"))  # gone when the bench exits
+        atexit.register(shutil.rmtree, scratch, ignore_errors=True)
         args.drives, args.out = args.drives or scratch / "drives", args.out or scratch / "jobs"
     args.drives, args.out = args.drives.resolve(), args.out.resolve()
     started = time.perf_counter()

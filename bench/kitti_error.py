@@ -67,8 +67,9 @@ def mapped_once(log: Path, config, config_path: Path):
 
     fast_fit.fit_colour = keeping
     try:
-        result, drive = run_reconstruction([str(log)], Path(tempfile.mkdtemp()), config, config_path,
-                                           use_lidar=False, progress=False)
+        with tempfile.TemporaryDirectory() as out:
+            result, drive = run_reconstruction([str(log)], Path(out), config, config_path, use_lidar=False,
+                                               progress=False)
     finally:
         fast_fit.fit_colour = fit_colour
     return result, drive, stash["obs"]

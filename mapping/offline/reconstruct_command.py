@@ -19,7 +19,9 @@ intensity contrast, no photometric fit: `lidar_horizontal`). `--pose-noise-m` /
 from __future__ import annotations
 
 import argparse
+import atexit
 import json
+import shutil
 import sys
 import tempfile
 import time
@@ -142,7 +144,8 @@ def config_from_logs(paths: list[str]) -> tuple[CarConfig, Path]:
         say(f"warning: {paths[0]}: the recorded config's mapper keys {', '.join(dropped)} are unknown to this "
             f"version (renamed or removed): ignored, today's defaults apply")
     config = parse_config(recorded, f"{paths[0]} (recorded config)")
-    folder = Path(tempfile.mkdtemp(prefix="roadlog-reconstruct-"))
+    folder = Path(tempfile.mkdtemp(prefix="roadlog-reconstruct-"))  # lives as long as this process
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
     packets = config.sensors.lidar is not None and not config.sensors.lidar.point_clouds  # decoded with metadata
     if packets and "lidar_metadata" not in meta:
         raise ConfigError(f"{paths[0]}: the recorded config has a Lidar but the log holds no Lidar metadata "

@@ -2,6 +2,7 @@
 own metadata, the truth beside it; the files and metrics it writes."""
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -22,11 +23,15 @@ from tests.daemon_fixtures import REPO
 
 def test_reconstruct_a_recorded_drive_against_its_truth(city_drive, tmp_path):
     out = tmp_path / "map"
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
     run = subprocess.run([sys.executable, "-m", "daemon.commands.cli", "reconstruct", str(city_drive),
                           "--out", str(out),
                           "--gt", str(city_drive.with_name("city.gt.npz"))],
-                         cwd=REPO, capture_output=True, text=True, timeout=600)
+                         cwd=REPO, capture_output=True, text=True, timeout=600,
+                         env={**os.environ, "TMPDIR": str(scratch)})
     assert run.returncode == 0, run.stderr[-3000:]
+    assert not list(scratch.glob("roadlog-*"))  # the recorded config's scratch folder is gone with the process
     # every phase is reported as it ends, with the time since the start and its own: never silent for long (on a line
     # of its own: a progress bar redraws itself after a carriage return)
     shown = run.stderr.replace("\r", "\n")
