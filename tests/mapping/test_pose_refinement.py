@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.spine.config import ConfigError, load_config, parse_config
+from daemon.spine.config import ConfigError, config_to_yaml, load_config, parse_config
 from daemon.spine.mapper_config import InputsConfig, MapperConfig, MeshConfig, WindowsConfig
 from mapping.fits.reconstruction import lidar_refinement_unavailable, reconstruct
 from mapping.localization.pose_noise import PoseNoise, perturbed, residual_error
 from mapping.localization.trajectory import Trajectory
-from mapping.offline.reconstruct_command import with_pose_refinement
+from mapping.offline.reconstruct_command import config_from_logs, with_pose_refinement
 from tests.mapping.synthetic_road_scene import make_scene
 
 REPO = Path(__file__).resolve().parents[2]
@@ -211,8 +211,15 @@ def test_the_horizontal_registration_without_the_height_one_is_a_config_error():
 
 def test_lidar_refinement_on_a_drive_without_lidar_warns_and_reports_the_photometric_fit(city_drive, tmp_path):
     """`--pose-refinement lidar` with no Lidar ground (here `--no-lidar`): the photometric refinement runs instead,
-    said on stderr and in metrics `pose_refinement` (not silently)."""
-    done = _reconstruct(city_drive, "--out", tmp_path / "map", "--no-lidar", "--pose-refinement", "lidar")
+    said on stderr and in metrics `pose_refinement` (not silently). (A short photometric fit: one round of a few
+    steps, what is checked is which fit ran.)"""
+    config, config_path = config_from_logs([str(city_drive)])
+    refine = config.mapper.pose_refinement.model_copy(update={"steps": 3, "blur_px": (2.0,)})
+    short = config_path.with_name("short_refinement.yaml")  # beside the recorded Lidar metadata it names
+    short.write_text(config_to_yaml(config.model_copy(update={"mapper": config.mapper.model_copy(
+        update={"pose_refinement": refine})})))
+    done = _reconstruct(city_drive, "--out", tmp_path / "map", "--config", short, "--no-lidar",
+                        "--pose-refinement", "lidar")
     assert done.returncode == 0, done.stderr[-2000:]
     warnings = [line for line in done.stderr.splitlines() if "--pose-refinement lidar" in line]
     assert warnings == ["roadlog reconstruct: warning: --pose-refinement lidar (mapper.pose_refinement."
