@@ -7,7 +7,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from daemon.spine.mapper_config import PoseRefinementConfig
-from mapping.fits.lidar_registration import grouped_normal_matrix, knot_groups, re_placed, register_ground, thin_out
+from mapping.fits.lidar_registration import (
+    cell_eliminated,
+    cell_products,
+    grouped_normal_matrix,
+    knot_groups,
+    re_placed,
+    register_ground,
+    thin_out,
+)
 from mapping.localization.trajectory import HorizontalTrack
 
 SETTINGS = PoseRefinementConfig(enabled=True)
@@ -108,6 +116,60 @@ def test_the_normal_matrix_by_knot_groups_is_the_sum_of_every_point_s_outer_prod
         expected[np.ix_(c, c)] += np.outer(w, v)
     got = grouped_normal_matrix(knot_groups(k0), wv, vals, cols, m)
     np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-9)
+
+
+def test_the_cell_eliminated_system_is_the_least_squares_of_the_points_about_their_cells_means():
+    """With each cell's value a free unknown, the step d minimising sum_p w_p (z_p + vals_p . d[cols_p] - c_cell)^2
+    over d and c satisfies (normal) d = rhs; checked against the same least squares written out with the cells'
+    values as unknowns beside d and solved densely."""
+    rng = np.random.default_rng(8)
+    n, knots, stride, columns = 3000, 6, 6, [0, 1, 2, 3, 4, 5]
+    k0 = rng.integers(0, knots - 1, n)
+    cols = np.concatenate([stride * k0[:, None] + columns, stride * (k0 + 1)[:, None] + columns], 1)
+    vals, z = rng.standard_normal(cols.shape), rng.standard_normal(n)
+    weight = rng.random(n) * (rng.random(n) > 0.1)  # some points without weight
+    cell = rng.integers(0, 200, n)
+    m = stride * knots
+    normal, rhs, residual = cell_eliminated(cell, weight, vals, cols, z, m, knot_groups(k0))
+    design = np.zeros((n, m + 200))  # unknowns: d, then each cell's value
+    np.add.at(design, (np.arange(n)[:, None], cols), vals)
+    design[np.arange(n), m + cell] = -1.0
+    full = design.T @ (weight[:, None] * design)
+    full_rhs = -design.T @ (weight * z)
+    seen = np.flatnonzero(np.bincount(cell, weight, 200) > 0)  # a cell without weight has no value to solve for
+    keep = np.concatenate([np.arange(m), m + seen])
+    full, full_rhs = full[np.ix_(keep, keep)], full_rhs[keep]
+    eliminated = full[:m, :m] - full[:m, m:] @ np.linalg.solve(full[m:, m:], full[m:, :m])
+    np.testing.assert_allclose(normal, eliminated, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(rhs, full_rhs[:m] - full[:m, m:] @ np.linalg.solve(full[m:, m:], full_rhs[m:]),
+                               rtol=1e-9, atol=1e-9)
+    means = np.bincount(cell, weight * z, 200) / np.maximum(np.bincount(cell, weight, 200), 1e-12)
+    np.testing.assert_allclose(residual, z - means[cell])
+
+
+@pytest.mark.parametrize("chunk, max_span", [(2048, 512), (7, 13), (1, 1)])
+def test_the_cells_products_by_dense_bands_and_by_the_sparse_product_are_the_sum_of_each_cells(chunk, max_span):
+    """sum_c s_c b_c b_c^T, by chunks of cells in dense bands of columns, and for cells spanning more than
+    max_span columns by the sparse product (a road seen twice far apart), equals each cell's outer product summed."""
+    rng = np.random.default_rng(3)
+    cells, m = 60, 48
+    row_cell = np.sort(rng.integers(0, cells, 400))
+    row_cell[:cells] = np.arange(cells)  # every cell has rows
+    row_cell.sort()
+    k0 = rng.integers(0, 7, len(row_cell))
+    k0[row_cell % 5 == 0] += rng.integers(0, 2, (row_cell % 5 == 0).sum()) * 7  # some cells seen far apart
+    row_cols = np.concatenate([3 * k0[:, None] + np.arange(3), 3 * (k0 + 1)[:, None] + np.arange(3)], 1)
+    key = row_cell * m + row_cols[:, 0]
+    order = np.argsort(key, kind="stable")
+    row_cell, row_cols = row_cell[order], row_cols[order]
+    row_vals, scale = rng.standard_normal(row_cols.shape), rng.random(cells)
+    expected = np.zeros((m, m))
+    for c in range(cells):
+        b = np.zeros(m)
+        np.add.at(b, row_cols[row_cell == c], row_vals[row_cell == c])
+        expected += scale[c] * np.outer(b, b)
+    got = cell_products(row_cell, row_cols, row_vals, scale, m, chunk=chunk, max_span=max_span)
+    np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-10)
 
 
 def test_thinning_keeps_an_even_subsample_of_the_good_points():
