@@ -101,10 +101,10 @@ def cell_eliminated(cell: np.ndarray, weight: np.ndarray, vals: np.ndarray, cols
     summed = np.stack([np.bincount(inverse, wv[:, j], len(pair)) for j in range(cols.shape[1])], 1)
     pair_cell, pair_cols = pair // m, cols[one]
     BtB = cell_products(pair_cell, pair_cols, summed, 1.0 / cell_w, m)
-    wz_cell = np.bincount(cell, weight * z, cells)
-    Bt_mean = np.bincount(pair_cols.ravel(), (summed * (wz_cell / cell_w)[pair_cell][:, None]).ravel(), m)
-    rhs = -(np.bincount(cols.ravel(), (wv * z[:, None]).ravel(), m) - Bt_mean)
-    residual = z - (wz_cell / cell_w)[cell]
+    residual = z - (np.bincount(cell, weight * z, cells) / cell_w)[cell]
+    # A^T W z - B^T (the cells' means), summed as A^T W (z less its cell's mean): the same, without the cancellation
+    # of two large sums (which left relative errors of 1e-10 that the gauge-held solve amplified)
+    rhs = -np.bincount(cols.ravel(), (wv * residual[:, None]).ravel(), m)
     return AtWA - BtB, rhs, residual
 
 
