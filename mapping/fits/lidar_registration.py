@@ -111,18 +111,16 @@ def cell_eliminated(cell: np.ndarray, weight: np.ndarray, vals: np.ndarray, cols
 def cell_products(row_cell: np.ndarray, row_cols: np.ndarray, row_vals: np.ndarray, cell_scale: np.ndarray, m: int,
                   chunk: int = 2048, max_span: int = 512) -> np.ndarray:
     """sum over cells c of cell_scale[c] b_c b_c^T (m, m), where b_c (m,) sums the rows (values `row_vals` (R, q) at
-    columns `row_cols` (R, q)) of cell c, the rows sorted by cell (`row_cell`, as np.unique gives them). A cell's
-    columns lie between its first and last knots: the cells, in order of their first column, are taken up to `chunk`
-    at a time as dense (cells, band) blocks multiplied by BLAS (a scipy sparse product took ten times longer); cells
-    whose columns span more than `max_span` (a road seen again much later) go through the sparse product."""
-    cells = len(cell_scale)
-    first = np.searchsorted(row_cell, np.arange(cells))
-    last = np.searchsorted(row_cell, np.arange(cells), side="right") - 1
-    seen = last >= first
-    lo = np.where(seen, row_cols.min(1)[np.minimum(first, len(row_cell) - 1)], 0)
-    hi = np.where(seen, row_cols.max(1)[np.maximum(last, 0)] + 1, 0)
-    wide = seen & (hi - lo > max_span)
-    order = np.flatnonzero(seen & ~wide)
+    columns `row_cols` (R, q)) of cell c; the rows sorted by cell and within a cell by first column (as np.unique
+    gives them), every cell with rows. A cell's columns lie between its first and last knots: the cells, in order of
+    their first column, are taken up to `chunk` at a time as dense (cells, band) blocks multiplied by BLAS (a scipy
+    sparse product took ten times longer); cells whose columns span more than `max_span` (a road seen again much
+    later) go through the sparse product."""
+    cells = len(cell_scale)  # each has rows
+    lo = row_cols.min(1)[np.searchsorted(row_cell, np.arange(cells))]
+    hi = row_cols.max(1)[np.searchsorted(row_cell, np.arange(cells), side="right") - 1] + 1
+    wide = hi - lo > max_span
+    order = np.flatnonzero(~wide)
     order = order[np.argsort(lo[order], kind="stable")]
     rank = np.full(cells, len(order))
     rank[order] = np.arange(len(order))
