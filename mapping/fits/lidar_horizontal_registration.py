@@ -28,7 +28,14 @@ import scipy.sparse as sp
 from scipy.ndimage import gaussian_filter, map_coordinates
 
 from daemon.spine.mapper_config import PoseRefinementConfig
-from mapping.fits.lidar_registration import GAUGE_WEIGHT, cell_eliminated, knot_groups, re_placed, thin_out
+from mapping.fits.lidar_registration import (
+    GAUGE_WEIGHT,
+    CellPairs,
+    cell_eliminated,
+    knot_groups,
+    re_placed,
+    thin_out,
+)
 from mapping.fits.pose_refinement import PoseCorrections, knot_positions, reference_points
 from mapping.localization.trajectory import HorizontalTrack
 
@@ -79,6 +86,7 @@ def register_horizontal(points: np.ndarray, seconds: np.ndarray, contrast: np.nd
             cell_xy = np.floor(moved[:, :2] / cell_m).astype(np.int64)
             _, cell = np.unique(cell_xy[:, 0] * 2_000_003 + cell_xy[:, 1], return_inverse=True)
             cell = cell.ravel()
+            pairs = CellPairs.of(cell, cols_all[:, 0], m)  # the same for both fields (cols_h[:, 0] is cols_all[:, 0])
             for name, value, sigma, usable in (
                     ("contrast", c, settings.lidar_contrast_sigma, has_c),
                     ("height", moved[:, 2], settings.lidar_point_sigma_m, np.ones(len(c), bool))):
@@ -97,7 +105,7 @@ def register_horizontal(points: np.ndarray, seconds: np.ndarray, contrast: np.nd
                 vals = np.concatenate([local * (1 - frac)[:, None], local * frac[:, None]], 1)
                 z = np.where(use, value, 0.0) / sigma
                 weight = use * weights[name]
-                n, g, res = cell_eliminated(cell, weight, vals, cols, z, m, groups)
+                n, g, res = cell_eliminated(cell, weight, vals, cols, z, m, groups, pairs)
                 normal += n
                 rhs += g
                 spread[name] = sigma * float(np.sqrt(np.average(res ** 2, weights=np.maximum(weight, 1e-12))))

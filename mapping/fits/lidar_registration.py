@@ -17,6 +17,7 @@ constrains nothing. x, y and yaw are left to the photometric fit, which then hol
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -58,14 +59,14 @@ def register_ground(points: np.ndarray, seconds: np.ndarray, trajectory: Horizon
     D = sp.diags([-np.ones(m - 3), np.ones(m - 3)], [0, 3], shape=(m - 3, m))
     fixed = np.diag(1.0 / scale ** 2) + (D.T @ sp.diags(1.0 / step ** 2) @ D).toarray() \
         + _gauge_penalty(trajectory, knot_s, scale)  # prior, smoothness, gauge
-    groups = knot_groups(k0)
+    groups, pairs = knot_groups(k0), CellPairs.of(cell, cols[:, 0], m)
     z = pts[:, 2]
     theta = np.zeros(m)
     weight = np.ones(len(s))
     sigma2 = settings.lidar_point_sigma_m ** 2
     spread = []
     for _ in range(settings.lidar_rounds):
-        normal, rhs, _ = cell_eliminated(cell, weight, vals, cols, z, m, groups)
+        normal, rhs, _ = cell_eliminated(cell, weight, vals, cols, z, m, groups, pairs)
         theta = np.linalg.solve(normal / sigma2 + fixed, rhs / sigma2)
         cell_w = np.maximum(np.bincount(cell, weight, cells), 1e-12)
         moved = z + (vals * theta[cols]).sum(1)
@@ -82,25 +83,38 @@ def register_ground(points: np.ndarray, seconds: np.ndarray, trajectory: Horizon
                          "residual_rms_cm": [100.0 * v for v in spread], **corrections.figures()}
 
 
+@dataclass(frozen=True)
+class CellPairs:
+    """The points grouped by (cell, knot pair): the points of one cell between the same two knots share their
+    columns, so the cells' sums are taken over these groups, not over every point."""
+
+    of_point: np.ndarray  # (N,) each point's group
+    cell: np.ndarray  # (G,) each group's cell, in order (np.unique's), then by first column
+    point: np.ndarray  # (G,) a point of each group (its columns are the group's)
+
+    @staticmethod
+    def of(cell: np.ndarray, first_col: np.ndarray, m: int) -> CellPairs:
+        pair, inverse = np.unique(cell.astype(np.int64) * m + first_col, return_inverse=True)
+        inverse = inverse.ravel()
+        point = np.empty(len(pair), np.int64)
+        point[inverse] = np.arange(len(cell))
+        return CellPairs(inverse, pair // m, point)
+
+
 def cell_eliminated(cell: np.ndarray, weight: np.ndarray, vals: np.ndarray, cols: np.ndarray, z: np.ndarray,
-                     m: int, groups: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     m: int, groups: list[np.ndarray],
+                     pairs: CellPairs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The normal matrix (m, m) and right-hand side (m,) of a step d of the knots that minimises the weighted squares
     of z + vals . d[cols] less its cell's mean (each cell's value a free unknown, eliminated in closed form); and
     each point's residual at d = 0. Points with the same first column have the same columns (those of their knot
-    pair, as in `groups`)."""
+    pair, as in `groups`); `pairs` is CellPairs.of(cell, cols[:, 0], m)."""
     cells = int(cell.max()) + 1
     cell_w = np.maximum(np.bincount(cell, weight, cells), 1e-12)
     wv = weight[:, None] * vals
     AtWA = grouped_normal_matrix(groups, wv, vals, cols, m)
-    # B (cells, m): each cell's sum of its points' weighted derivatives. The points of one cell between the same two
-    # knots share their columns, so they are summed first: one row of q entries per (cell, knot pair), not per point
-    pair, inverse = np.unique(cell.astype(np.int64) * m + cols[:, 0], return_inverse=True)
-    inverse = inverse.ravel()
-    one = np.empty(len(pair), np.int64)
-    one[inverse] = np.arange(len(cell))  # a point of each (cell, knot pair): its columns
-    summed = np.stack([np.bincount(inverse, wv[:, j], len(pair)) for j in range(cols.shape[1])], 1)
-    pair_cell, pair_cols = pair // m, cols[one]
-    BtB = cell_products(pair_cell, pair_cols, summed, 1.0 / cell_w, m)
+    # B (cells, m): each cell's sum of its points' weighted derivatives, one row of q entries per (cell, knot pair)
+    summed = np.stack([np.bincount(pairs.of_point, wv[:, j], len(pairs.cell)) for j in range(cols.shape[1])], 1)
+    BtB = cell_products(pairs.cell, cols[pairs.point], summed, 1.0 / cell_w, m)
     residual = z - (np.bincount(cell, weight * z, cells) / cell_w)[cell]
     # A^T W z - B^T (the cells' means), summed as A^T W (z less its cell's mean): the same, without the cancellation
     # of two large sums (which left relative errors of 1e-10 that the gauge-held solve amplified)

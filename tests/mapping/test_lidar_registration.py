@@ -8,6 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from daemon.spine.mapper_config import PoseRefinementConfig
 from mapping.fits.lidar_registration import (
+    CellPairs,
     cell_eliminated,
     cell_products,
     grouped_normal_matrix,
@@ -130,7 +131,8 @@ def test_the_cell_eliminated_system_is_the_least_squares_of_the_points_about_the
     weight = rng.random(n) * (rng.random(n) > 0.1)  # some points without weight
     cell = rng.integers(0, 200, n)
     m = stride * knots
-    normal, rhs, residual = cell_eliminated(cell, weight, vals, cols, z, m, knot_groups(k0))
+    normal, rhs, residual = cell_eliminated(cell, weight, vals, cols, z, m, knot_groups(k0),
+                                            CellPairs.of(cell, cols[:, 0], m))
     design = np.zeros((n, m + 200))  # unknowns: d, then each cell's value
     np.add.at(design, (np.arange(n)[:, None], cols), vals)
     design[np.arange(n), m + cell] = -1.0
