@@ -5,7 +5,7 @@ A segment is deleted only while deleting frees space toward the target: one segm
 each time the space of the last ones stayed free for JUDGE_AFTER_S (so the free-space target must hold that long
 of writing). When the bytes of a deletion do not come back as free space, or are gone again by then (another
 program writing to the disk takes them), deleting stops for a hold-off that doubles with each such deletion in a
-row (FIRST_HOLD_OFF_S up to MAX_HOLD_OFF_S): such a program costs about the free-space target and then a segment
+row (`recorder.deletion_hold_off_s`: the first, then twice as long, up to the last): such a program costs about the free-space target and then a segment
 per hold-off, not every recording, and a program that filled the disk once costs a short pause. The newest
 segments that together hold `recorder.keep_newest_s` seconds of drive are never deleted (the floor): below it the
 recorder stops writing instead.
@@ -33,8 +33,6 @@ SIMULATED_DISK_ENV = "ROADLOG_SIMULATED_DISK_BYTES"
 GIB = 1024**3
 JUDGE_AFTER_S = 0.5  # whether a deletion's space stayed free is judged this long after it (no deletion meanwhile)
 MAX_BATCH = 64  # one segment at first, twice as many each time their space stayed free, up to this
-FIRST_HOLD_OFF_S = 2.0  # after a deletion whose space another program took, no deletion for this long,
-MAX_HOLD_OFF_S = 300.0  # twice as long after each further one in a row, up to this
 FREED_FRACTION = 0.5  # a deletion frees space when at least this part of its bytes comes back free
 STATE_FILE = "disk-policy-state.json"  # in the data folder: the hold-off, across recorder restarts
 log = logging.getLogger(__name__)
@@ -96,9 +94,10 @@ def freed(free_before: int, free_after: int, own_bytes_written: int, deleted_byt
     return free_after - free_before + own_bytes_written >= FREED_FRACTION * deleted_bytes
 
 
-def hold_off_s(undone_in_a_row: int) -> float:
-    """How long to wait before deleting again after `undone_in_a_row` deletions whose space was taken."""
-    return min(MAX_HOLD_OFF_S, FIRST_HOLD_OFF_S * 2 ** max(0, undone_in_a_row - 1))
+def hold_off_s(undone_in_a_row: int, first_s: float, max_s: float) -> float:
+    """How long to wait before deleting again after `undone_in_a_row` deletions whose space was taken: `first_s`
+    after the first, twice as long after each further one, up to `max_s`."""
+    return min(max_s, first_s * 2 ** max(0, undone_in_a_row - 1))
 
 
 class SegmentDeleter:
@@ -107,8 +106,9 @@ class SegmentDeleter:
 
     def __init__(self, keep_newest_s: float, listing: Callable[[], list[Segment]],
                  drive_seconds: Callable[[Path], float], count_error: Callable[[str], None],
-                 state_path: Path | None = None):
+                 state_path: Path | None = None, hold_off: tuple[float, float] = (2.0, 300.0)):
         self.keep_newest_s = keep_newest_s
+        self.hold_off = hold_off  # (first, longest) seconds: recorder.deletion_hold_off_s
         self._state_path = state_path  # where the hold-off is kept across restarts (None: not kept)
         self._listing = listing  # the closed and quarantined segments, oldest first
         self._read_seconds = drive_seconds
@@ -137,7 +137,7 @@ class SegmentDeleter:
             self._count_error(why)
             log.error("%s", why)
             return
-        left = min(max(0.0, until - time.time()), MAX_HOLD_OFF_S)  # a clock set back cannot make it longer
+        left = min(max(0.0, until - time.time()), self.hold_off[1])  # a clock set back cannot make it longer
         self._undone_in_a_row = max(0, in_a_row)
         self._hold_off_until = time.monotonic() + left
         if left > 0:
@@ -169,7 +169,7 @@ class SegmentDeleter:
         self.undone += 1
         self._undone_in_a_row += 1
         self._batch = 1
-        hold_off = hold_off_s(self._undone_in_a_row)
+        hold_off = hold_off_s(self._undone_in_a_row, *self.hold_off)
         self._hold_off_until = time.monotonic() + hold_off
         self._last_round = None
         self._save_hold_off()

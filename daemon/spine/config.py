@@ -14,7 +14,7 @@ import functools
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Literal, ParamSpec
+from typing import Annotated, Literal, ParamSpec
 
 import numpy as np
 import yaml
@@ -237,6 +237,9 @@ class BusConfig(StrictModel):
     ring_bytes: dict[str, int] = {}  # per-topic overrides of the topic table's ring size
 
 
+Seconds = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+
+
 class RecorderConfig(StrictModel):
     output_dir: str = "logs"
     # a segment closes once its messages span this much log time (their own time, not the wall clock: a replay at any
@@ -247,6 +250,9 @@ class RecorderConfig(StrictModel):
     min_free_pct: float = Field(5.0, ge=0, le=100)
     # the newest segments holding at least this many seconds of drive are never deleted to make room
     keep_newest_s: float = Field(300.0, ge=0, allow_inf_nan=False)
+    # after a deletion whose space another program took, no deletion for the first of these; twice as long after each
+    # further one in a row, up to the second (daemon/processes/disk_policy.py)
+    deletion_hold_off_s: tuple[Seconds, Seconds] = (2.0, 300.0)
     compression: Literal["zstd", "lz4", "none"] = "lz4"
     # longest a message is held to be written in log-time order (a ring the recorder is behind on); 0: as read
     reorder_window_s: float = Field(5.0, ge=0, le=60)
@@ -256,6 +262,14 @@ class RecorderConfig(StrictModel):
     # the vehicle pose fused live from GNSS, IMU and wheel speeds this often (`vehicle/pose` as foxglove.PoseInFrame
     # and `tf` as foxglove.FrameTransform, map -> vehicle); 0: none
     pose_hz: float = Field(10.0, ge=0, le=50, allow_inf_nan=False)
+
+    @field_validator("deletion_hold_off_s")
+    @classmethod
+    def _first_hold_off_is_the_shortest(cls, value: tuple[float, float]) -> tuple[float, float]:
+        if value[0] > value[1]:
+            raise ValueError(f"deletion_hold_off_s: the first hold-off ({value[0]} s) is longer than the longest "
+                             f"({value[1]} s)")
+        return value
 
 
 class StatusConfig(StrictModel):

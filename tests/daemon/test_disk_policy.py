@@ -174,7 +174,8 @@ def fill_simulated(folder: Path, disk_bytes: int, stop: threading.Event) -> None
 
 def test_the_deletion_pause_outlives_a_recorder_restart(recorders, tmp_path):
     disk = 16 * MB
-    config_path = write_config(tmp_path, segment_bytes=500_000, min_free_pct=10.0, keep_newest_s=0.5)
+    config_path = write_config(tmp_path, segment_bytes=500_000, min_free_pct=10.0, keep_newest_s=0.5,
+                               deletion_hold_off_s=[1.0, 300.0])
     config = load_config(config_path)
     logs = tmp_path / "logs"
     env = {SIMULATED_DISK_ENV: str(disk)}
@@ -187,9 +188,9 @@ def test_the_deletion_pause_outlives_a_recorder_restart(recorders, tmp_path):
     filler = threading.Thread(target=fill_simulated, args=(logs, disk, stop))
     filler.start()
     try:
-        # every deletion's space is taken: held off 2, 4, then 8 s
-        detail = rec.wait_for(lambda d: d["disk_policy"]["deletions_undone"] >= 3, timeout_s=40)
-        assert detail["disk_policy"]["held_off_s"] > 4.0, detail["disk_policy"]
+        # every deletion's space is taken: held off 1, 2, then 4 s (the config's first hold-off, doubling)
+        detail = rec.wait_for(lambda d: d["disk_policy"]["deletions_undone"] >= 3, timeout_s=30)
+        assert detail["disk_policy"]["held_off_s"] > 2.0, detail["disk_policy"]
         deleted_before = detail["disk_policy"]["deleted_segments"]
         assert rec.stop() == 0, rec.stderr
         state = json.loads((logs / STATE_FILE).read_text())
@@ -200,9 +201,9 @@ def test_the_deletion_pause_outlives_a_recorder_restart(recorders, tmp_path):
         assert first["held_off_s"] > 0 and first["deleted_segments"] == 0, first
         resumed = rec.wait_for(lambda d: d["disk_policy"]["deleted_segments"] > 0, timeout_s=30)
         segments_left = len(list(logs.glob("*.mcap")))
-        # ... deletes nothing until it ends, and the next undone deletion holds off longer still (16 s: the 4th)
+        # ... deletes nothing until it ends, and the next undone deletion holds off longer still (8 s: the 4th)
         detail = rec.wait_for(lambda d: d["disk_policy"]["deletions_undone"] >= 1, timeout_s=15)
-        assert detail["disk_policy"]["held_off_s"] > 8.0, detail["disk_policy"]
+        assert detail["disk_policy"]["held_off_s"] > 4.0, detail["disk_policy"]
         assert resumed["disk_policy"]["deleted_segments"] <= 2 and segments_left >= 1
     finally:
         stop.set()
