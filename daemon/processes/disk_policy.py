@@ -5,8 +5,9 @@ A segment is deleted only while deleting frees space toward the target: one segm
 each time the space of the last ones stayed free for JUDGE_AFTER_S (so the free-space target must hold that long
 of writing). When the bytes of a deletion do not come back as free space, or are gone again by then (another
 program writing to the disk takes them), deleting stops for a hold-off that doubles with each such deletion in a
-row (`recorder.deletion_hold_off_s`: the first, then twice as long, up to the last): such a program costs about the free-space target and then a segment
-per hold-off, not every recording, and a program that filled the disk once costs a short pause. The newest
+row (`recorder.deletion_hold_off_s`: the first, then twice as long, up to the last): such a program costs about the
+free-space target and then a segment per hold-off, not every recording, and a program that filled the disk once
+costs a short pause. The newest
 segments that together hold `recorder.keep_newest_s` seconds of drive are never deleted (the floor): below it the
 recorder stops writing instead.
 
