@@ -39,7 +39,6 @@ from mapping.live.keyframe_spool import KeyframeSpool
 from mapping.live.window_schedule import window_span, windows_ended, windows_for_drive
 from mapping.live.worker_journal import JOURNAL_NAME, read_journal
 from mapping.live.worker_loop import MappingWorker
-from sim.drive_log import simulate_drive
 from tests.daemon_fixtures import REPO, private_config
 from tests.mapping.fed_worker import SMALL_WINDOWS, worker_fed
 
@@ -110,14 +109,6 @@ def test_window_schedule_overlaps_by_half_and_covers_the_drive():
 
 
 # ---- the real worker process on a replayed drive ---------------------------------------------------------
-@pytest.fixture(scope="module")
-def city_drive(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("drive")
-    config, _ = private_config(folder)
-    simulate_drive("city", 5.0, folder / "city.mcap", config, seed=3)
-    return folder / "city.mcap"
-
-
 def _start_worker(config_path: Path, log: Path, *args: str, path_first: Path | None = None) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(str(p) for p in (path_first, REPO) if p))
     return subprocess.Popen([sys.executable, "-m", "mapping.live.mapping_worker", "--config", str(config_path), *args],
