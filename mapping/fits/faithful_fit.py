@@ -18,6 +18,7 @@ from daemon.spine.semantic_classes import NUM_MAP_CLASSES
 from mapping.fits.lidar_occlusion import OcclusionTest
 from mapping.localization.trajectory import HorizontalTrack
 from mapping.method import losses
+from mapping.method.adam import Adam
 from mapping.method.compute_device import optimisation_loop, resolve_device
 from mapping.method.mesh_location import Located
 from mapping.method.mesh_renderer import pixel_rays, rasterise_tensors, ray_triangle_weights, world_rays_tensors
@@ -127,10 +128,10 @@ class FaithfulOptimisation:
         lr = config.faithful_fit.learning_rates
         self.optimisers = []
         if road_map.elevation is not None:
-            self.optimisers.append(torch.optim.Adam(road_map.elevation.parameters(), lr=lr.elevation_mlp))
+            self.optimisers.append(Adam([(road_map.elevation.parameters(), lr.elevation_mlp)]))
         decoder_params = list(road_map.decoder.parameters())
         if decoder_params:
-            self.optimisers.append(torch.optim.Adam(decoder_params, lr=lr.colour_mlps))
+            self.optimisers.append(Adam([(decoder_params, lr.colour_mlps)]))
         self.colour_opt = RowSparseAdam(road_map.colour_params, lr=lr.colour_codes)
         self.semantic_opt = None
         if road_map.semantic_logits is not None:
@@ -281,7 +282,7 @@ class FaithfulOptimisation:
             terms["smoothness"] = w_cfg.smoothness * losses.smoothness(z, self._edges(ids))
         total = sum(terms.values())
         for opt in self.optimisers:
-            opt.zero_grad(set_to_none=True)
+            opt.zero_grad()
         if isinstance(total, torch.Tensor) and total.requires_grad:
             total.backward()
         for opt in self.optimisers:

@@ -23,6 +23,7 @@ from torch import nn
 from tqdm import tqdm
 
 from mapping.fits.vertex_observations import VertexObservations
+from mapping.method.adam import Adam, CosineDecay
 from mapping.method.compute_device import optimisation_loop
 from mapping.method.descent import Descent
 from mapping.method.mesh_location import Located
@@ -108,8 +109,8 @@ def fit_lattice(road_map: RoadMap, nodes: np.ndarray, target: np.ndarray, z0: np
     target_t, z0_t = torch.from_numpy(target).to(device), torch.from_numpy(z0).to(device)
     weight_t = torch.from_numpy(weight.astype(np.float32)).to(device) if weight is not None else None
     elevation = road_map.elevation.to(device)
-    opt = torch.optim.Adam(elevation.parameters(), lr=lr)
-    descent = Descent([opt], [torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=FINAL_LR_FRACTION * lr)])
+    opt = Adam([(elevation.parameters(), lr)])
+    descent = Descent([opt], [CosineDecay(opt, steps, eta_min=FINAL_LR_FRACTION * lr)])
     with optimisation_loop("fast elevation"), step_bar(steps, "elevation", progress) as bar:
         for step in range(steps):
             bar.update()
@@ -156,9 +157,9 @@ def fit_colours(road_map: RoadMap, obs: VertexObservations, ids: np.ndarray, enc
     encoder = nn.Sequential(nn.Linear(features.shape[1], 64), nn.ReLU(), nn.Linear(64, dim)).to(device)
     road_map.decoder.to(device)
     decoder_params = list(road_map.decoder.parameters())
-    opts = [torch.optim.Adam(encoder.parameters(), lr=lr_encoder)]
+    opts = [Adam([(encoder.parameters(), lr_encoder)])]
     if decoder_params:
-        opts.append(torch.optim.Adam(decoder_params, lr=lr_decoder))
+        opts.append(Adam([(decoder_params, lr_decoder)]))
     size = min(batch, len(ids))
     picks = torch.from_numpy(np.stack([rng.choice(len(ids), size, replace=False) for _ in range(encoder_steps)]
                                       ).reshape(encoder_steps, size)).to(device)

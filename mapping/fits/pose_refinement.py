@@ -36,6 +36,7 @@ from daemon.spine.semantic_classes import NUM_MAP_CLASSES
 from mapping.fits.photometric_elevation import grey_image
 from mapping.fits.vertex_observations import bilinear, label_at, project_points
 from mapping.localization.trajectory import HorizontalTrack, Trajectory
+from mapping.method.adam import Adam, CosineDecay
 from mapping.method.compute_device import optimisation_loop
 from mapping.method.descent import Descent
 from mapping.method.mesh_renderer import project
@@ -217,9 +218,8 @@ def _fit_round(knots: torch.Tensor, knot_s: np.ndarray, views: list[Keyframe], s
     start_t, width_t = torch.from_numpy(starts), torch.from_numpy(widths)
     gain = torch.zeros(len(views), requires_grad=True)  # log gain, mean-free
     offset = torch.zeros(len(views), requires_grad=True)  # mean-free
-    opt = torch.optim.Adam([{"params": [knots], "lr": settings.lr},
-                            {"params": [gain, offset], "lr": settings.photometric_lr}])
-    decay = torch.optim.lr_scheduler.CosineAnnealingLR(opt, settings.steps, eta_min=0.1 * settings.lr)
+    opt = Adam([([knots], settings.lr), ([gain, offset], settings.photometric_lr)])
+    decay = CosineDecay(opt, settings.steps, eta_min=0.1 * settings.lr)
     descent = Descent([opt], [decay])
     sigma = torch.tensor([settings.prior_m / METRE_UNIT] * 3 + [settings.prior_deg] * 3, dtype=torch.float64)
     smooth = torch.tensor([settings.smooth_m / METRE_UNIT] * 3 + [settings.smooth_deg] * 3, dtype=torch.float64)

@@ -7,19 +7,20 @@ from collections.abc import Sequence
 
 import torch
 
+from mapping.method.adam import Adam, CosineDecay
+
 
 class Descent:
     """Optimisers and their learning-rate schedules, stepped once per loss; `losses()` after the loop."""
 
-    def __init__(self, optimisers: Sequence[torch.optim.Optimizer],
-                 decays: Sequence[torch.optim.lr_scheduler.LRScheduler] = ()):
+    def __init__(self, optimisers: Sequence[Adam], decays: Sequence[CosineDecay] = ()):
         self.optimisers, self.decays = list(optimisers), list(decays)
         self.first: torch.Tensor | None = None
         self.last: torch.Tensor | None = None
 
     def step(self, loss: torch.Tensor) -> None:
         for optimiser in self.optimisers:
-            optimiser.zero_grad(set_to_none=True)
+            optimiser.zero_grad()
         loss.backward()
         for optimiser in self.optimisers:
             optimiser.step()
