@@ -132,10 +132,9 @@ class Recorder:
         self._sync_fd: int | None = None
         self._last_sync = 0.0
         self.segments_closed = 0
-        self.deleter = disk_policy.SegmentDeleter(config.recorder.keep_newest_s, lambda: oldest_first(output_dir),
-                                                  drive_seconds, self.health.count_error,
-                                                  output_dir / disk_policy.STATE_FILE,
-                                                  config.recorder.deletion_hold_off_s)
+        self.deleter = disk_policy.SegmentDeleter(
+            config.recorder.keep_newest_s, lambda: oldest_first(output_dir), drive_seconds, self.health.count_error,
+            output_dir / disk_policy.STATE_FILE, config.recorder.deletion_hold_off_s)
         self._closed_bytes = 0  # bytes written to the segments this recorder closed or abandoned
         self.tally = TopicTally()
         self._at_last_close = TopicTally()
