@@ -7,9 +7,8 @@ of writing). When the bytes of a deletion do not come back as free space, or are
 program writing to the disk takes them), deleting stops for a hold-off that doubles with each such deletion in a
 row (`recorder.deletion_hold_off_s`: the first, then twice as long, up to the last): such a program costs about the
 free-space target and then a segment per hold-off, not every recording, and a program that filled the disk once
-costs a short pause. The newest
-segments that together hold `recorder.keep_newest_s` seconds of drive are never deleted (the floor): below it the
-recorder stops writing instead.
+costs a short pause. The newest segments that together hold `recorder.keep_newest_s` seconds of drive are never
+deleted (the floor): below it the recorder stops writing instead.
 
 `SegmentDeleter` keeps that rule's state across the recorder's disk checks and counts what it deleted; the hold-off
 (until when, on the wall clock, and how many undone deletions in a row) is also kept in STATE_FILE in the data
