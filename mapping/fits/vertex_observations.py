@@ -4,19 +4,20 @@ it (pinhole + distortion) and reads the image's colour (bilinear) and the mask's
 This is the fast path's rendering run backwards: instead of asking which triangle each pixel sees, each
 vertex asks which pixel sees it. Per vertex it accumulates a label histogram (the semantic
 cross-entropy summed over a vertex's observations is minimised by the log of its label frequencies),
-read over the vertex's footprint when the mesh's neighbours are given: the label at the vertex (weight 1)
-and half-way to each of its six neighbours (weight 1/2), its hat function sampled on the half-edge lattice,
-as the paper's per-pixel loss spreads a pixel's label over the three vertices of the triangle it sees
-(a boundary then falls between vertices where the labels change, not on the nearest vertex). A view's labels
-count less where its pixel covers more ground along the line of sight than `label_sharp_m` (a camera 1.5 m up
-with f = 1000 px covers 1.7 cm at 5 m, 15 cm at 15 m): far, grazing views smear a lane marking's edge over
-many vertices, near ones place it. Per camera it also accumulates the sum and count of the colours each
-vertex was seen with (the targets the colour codes and the camera decoders are fitted to). Pixels the
-mask marks as obstacles or unlabelled are not used, so cars never reach the map (a keyframe without a mask
-gives every vertex in view its colour and no label, less those the Lidar's occlusion test finds hidden:
-mapping.fits.lidar_occlusion). Every pixel near the
-vertex counts through the bilinear read; each vertex is seen from many keyframes at different sub-pixel
-positions, which averages out image noise.
+read over the vertex's footprint when the mesh's neighbours are given: its hat function sampled on a lattice
+that splits each edge in four (the vertex, three points along each edge, three inside each triangle, each
+label to the triangle's corners by its barycentric weights), as the paper's per-pixel loss spreads a pixel's
+label over the three vertices of the triangle it sees (a boundary then falls between vertices where the labels
+change, not on the nearest vertex; the half-edge lattice, 5 cm between reads, aliased a 12-16 cm stripe's
+share). A view's labels count less where its pixel covers more ground along the line of sight than
+`label_sharp_m` (a camera 1.5 m up with f = 1000 px covers 1.7 cm at 5 m, 15 cm at 15 m): far, grazing views
+smear a lane marking's edge over many vertices, near ones place it. Per camera it also accumulates the sum and
+count of the colours each vertex was seen with (the targets the colour codes and the camera decoders are
+fitted to). Pixels the mask marks as obstacles or unlabelled are not used, so cars never reach the map (a
+keyframe without a mask gives every vertex in view its colour and no label, less those the Lidar's occlusion
+test finds hidden: mapping.fits.lidar_occlusion). Every pixel near the vertex counts through the bilinear
+read; each vertex is seen from many keyframes at different sub-pixel positions, which averages out image
+noise.
 """
 
 from __future__ import annotations
@@ -135,23 +136,45 @@ def bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return top * (1 - fv) + bottom * fv
 
 
-HALF_EDGE_WEIGHT = 0.5  # the hat function half-way to a neighbour
+FOOTPRINT_SUBDIVISION = 4  # labels read on the lattice that splits each triangle's edges into this many parts
 EDGE_DIRECTIONS = (1, 4, 5)  # RoadMesh.neighbours columns that name every undirected edge once
+FACE_DIRECTIONS = ((1, 5), (5, 4))  # neighbour column pairs that, with the vertex, name every triangle once
+FACE_EDGES = (((1, 0), (5, 0), (4, 1)), ((5, 0), (4, 0), (1, 2)))  # per FACE_DIRECTIONS entry, its triangles' edges
+# as (EDGE_DIRECTIONS entry, the corner (0: the vertex, 1, 2: the columns' neighbours) the edge runs from)
 
 
 @dataclass
 class MeshFootprint:
     """What reading labels over the vertices' footprints needs: for each edge direction the neighbour of
-    every vertex (-1: none) and, for one thread, a scratch array giving each vertex's slot in the keyframe
-    being observed."""
+    every vertex (-1: none), the lattice's subdivision and, for one thread, a scratch array giving each
+    vertex's slot in the keyframe being observed."""
 
     edge_ends: list[np.ndarray]  # per EDGE_DIRECTIONS entry, (N,) int32 contiguous
     slot: np.ndarray  # (N,) int64 scratch
+    subdivision: int = FOOTPRINT_SUBDIVISION
 
     @staticmethod
-    def of(neighbours: np.ndarray) -> MeshFootprint:
+    def of(neighbours: np.ndarray, subdivision: int = FOOTPRINT_SUBDIVISION) -> MeshFootprint:
+        if subdivision < 1:
+            raise ValueError(f"footprint subdivision must be at least 1, got {subdivision}")
         return MeshFootprint([np.ascontiguousarray(neighbours[:, d]) for d in EDGE_DIRECTIONS],
-                             np.zeros(len(neighbours), np.int64))
+                             np.zeros(len(neighbours), np.int64), subdivision)
+
+    def edge_points(self) -> list[float]:
+        """Where along an edge (fraction from its first end) labels are read."""
+        n = self.subdivision
+        return [k / n for k in range(1, n)]
+
+    def face_points(self) -> list[tuple[float, float, float]]:
+        """Barycentric coordinates of the lattice points strictly inside a triangle."""
+        n = self.subdivision
+        return [(a / n, b / n, (n - a - b) / n) for a in range(1, n) for b in range(1, n - a)]
+
+    @property
+    def scale(self) -> float:
+        """A lattice point's weight per unit of hat value: every vertex's footprint then weighs 4 per view, as the
+        half-edge lattice's (subdivision 2) does, whatever the subdivision."""
+        return 4.0 / self.subdivision ** 2
 
 
 def label_at(keyframe: Keyframe, uv: np.ndarray) -> np.ndarray:
@@ -181,27 +204,75 @@ def label_weights(points_world: np.ndarray, camera: CameraModel, T_world_camera:
     return np.minimum(1.0, sharp_m / length).astype(np.float32)
 
 
-def _label_half_edges(obs: VertexObservations, seen: np.ndarray, uv: np.ndarray, weight: np.ndarray,
-                      keyframe: Keyframe, footprint: MeshFootprint) -> None:
-    """Labels half-way along every edge whose two ends the keyframe sees (`seen`, at pixels `uv`, label
-    weights `weight`), half to each end. Over 10 cm the projection is affine to well under a pixel, so the
-    half-way point projects half-way between the ends."""
+def _label_footprints(obs: VertexObservations, seen: np.ndarray, uv: np.ndarray, centre: np.ndarray,
+                      weight: np.ndarray, keyframe: Keyframe, footprint: MeshFootprint) -> np.ndarray:
+    """Labels at the footprint lattice's points along every edge whose two ends the keyframe sees and inside
+    every triangle whose three corners it sees (`seen`, at pixels `uv`, labels `centre` there, label weights
+    `weight`), each to the corners by their hat values (barycentric coordinates), the first corner's label
+    weight for all. Over 10 cm the projection is affine to well under a pixel, so a point projects where its
+    barycentric coordinates put it between the corners' pixels.
+
+    The points are read only where the labels change: an edge whose ends and middle read one label, and a
+    triangle whose corners and edges' middles do, count as that label throughout (a stripe narrower than half an
+    edge could hide in one; one as wide as a triangle's height cannot cross it without touching a corner). Their
+    weight is returned, per slot of `seen`, for the caller to add to the vertex's own label."""
     slot = footprint.slot
     slot[seen] = np.arange(len(seen))
-    counts = obs.label_counts.reshape(-1)
     classes = obs.label_counts.shape[1]
-    for ends in footprint.edge_ends:
+    uniform_weight = np.zeros(len(seen))
+    keys: list[np.ndarray] = []  # vertex * classes + label of every (lattice point read, corner)
+    values: list[np.ndarray] = []
+
+    def seen_slots(ends: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The slots whose neighbour `ends` the keyframe sees, and that neighbour's slots."""
         j = ends[seen]
         k = slot[j]  # j = -1 reads the last vertex's slot: rejected below as it is not -1
         k = np.where(k < len(seen), k, 0)
         both = np.flatnonzero(seen[k] == j)
-        k = k[both]
-        label = label_at(keyframe, 0.5 * (uv[both] + uv[k]))
-        good = label < NUM_MAP_CLASSES
-        label = label[good].astype(np.int64)
-        w = HALF_EDGE_WEIGHT * weight[both[good]]
-        counts[seen[both[good]] * classes + label] += w  # within one direction both ends are unique
-        counts[j[both[good]] * classes + label] += w
+        return both, k[both]
+
+    def read(corners: list[np.ndarray], uniform: np.ndarray, points: list[tuple[float, ...]]) -> None:
+        """The simplices (edges or triangles) with these corner slots: the uniform ones as their corners' label
+        throughout, the others read at each of `points` (barycentric coordinates)."""
+        if not points:
+            return
+        w = footprint.scale * weight[corners[0]]
+        uniform_w = w * uniform
+        for hat, c in zip(np.sum(points, 0), corners, strict=True):
+            uniform_weight[:] += np.bincount(c, hat * uniform_w, len(seen))
+        mixed = np.flatnonzero(~uniform)
+        corners, w = [c[mixed] for c in corners], w[mixed]
+        corner_uv, corner_key = [uv[c] for c in corners], [seen[c] * classes for c in corners]
+        for bary in points:
+            label = label_at(keyframe, sum(b * p for b, p in zip(bary, corner_uv, strict=True)))
+            good = np.flatnonzero(label < NUM_MAP_CLASSES)
+            for b, key in zip(bary, corner_key, strict=True):
+                keys.append(key[good] + label[good])
+                values.append(b * w[good])
+
+    other_end, middle = {}, {}  # per edge direction, (len(seen),) each slot's neighbour's slot (-1: not seen)
+    for direction, ends in zip(EDGE_DIRECTIONS, footprint.edge_ends, strict=True):  # and the label half-way there
+        first, second = seen_slots(ends)
+        half = label_at(keyframe, 0.5 * (uv[first] + uv[second]))
+        other_end[direction] = np.full(len(seen), -1, np.int64)
+        other_end[direction][first] = second
+        middle[direction] = np.full(len(seen), 255, np.uint8)
+        middle[direction][first] = half
+        read([first, second], (centre[first] == half) & (centre[second] == half),
+             [(1.0 - t, t) for t in footprint.edge_points()])
+    interior = footprint.face_points()
+    for (db, dc), edges in zip(FACE_DIRECTIONS, FACE_EDGES, strict=True) if interior else ():
+        a = np.flatnonzero((other_end[db] >= 0) & (other_end[dc] >= 0))
+        corners = [a, other_end[db][a], other_end[dc][a]]
+        c = corners[2]
+        label = centre[a]
+        uniform = (centre[corners[1]] == label) & (centre[c] == label)
+        for direction, base in edges:
+            uniform &= middle[direction][corners[base]] == label
+        read(corners, uniform, interior)
+    if keys:
+        np.add.at(obs.label_counts.reshape(-1), np.concatenate(keys), np.concatenate(values).astype(np.float32))
+    return uniform_weight
 
 
 def observe_keyframe(obs: VertexObservations, ids: np.ndarray, points_world: np.ndarray, keyframe: Keyframe,
@@ -231,9 +302,9 @@ def observe_keyframe(obs: VertexObservations, ids: np.ndarray, points_world: np.
                                    proximity_weight(distance, consensus_near_m))
         return 0
     weight = label_weights(points, camera, keyframe.T_world_camera, label_sharp_m)
-    if footprint is not None:
-        _label_half_edges(obs, ids, uv, weight, keyframe, footprint)
     label = label_at(keyframe, uv)
+    if footprint is not None:
+        weight = weight * footprint.scale + _label_footprints(obs, ids, uv, label, weight, keyframe, footprint)
     good = label < NUM_MAP_CLASSES
     ids, uv, label, weight = ids[good], uv[good], label[good].astype(np.int64), weight[good]
     if len(ids) == 0:

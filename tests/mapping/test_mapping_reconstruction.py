@@ -22,6 +22,8 @@ from mapping.fits.lidar_detail import fit_lidar_detail
 from mapping.fits.observation_fit import fit_elevation, semantic_logits_from_counts
 from mapping.fits.reconstruction import reconstruct
 from mapping.fits.vertex_observations import (
+    FACE_DIRECTIONS,
+    FACE_EDGES,
     MeshFootprint,
     VertexObservations,
     observe_keyframe,
@@ -195,35 +197,81 @@ def _looking_down(height_m: float) -> np.ndarray:
     return pose
 
 
-def test_labels_read_over_the_vertex_footprint_place_edges_between_vertices():
-    """A camera looking straight down (1 cm pixels) at 15 cm stripes on a 0.1 m mesh: the class interpolated
-    between vertices is right more often when each vertex reads its whole footprint than its centre only
-    (the centre alone puts every edge half-way between two vertices)."""
+def _stripes_miou(footprint_subdivision: int | None, width_m: float, angle_deg: float = 0.0) -> float:
+    """mIoU (lane marking and road) of the labels interpolated between the vertices of a 0.1 m mesh that a camera
+    looking straight down (1 cm pixels) reads on `width_m` stripes every 0.37 m, turned by `angle_deg`: at each
+    vertex only (None) or over the footprints' lattice of that subdivision."""
     mesh = build_road_mesh(HorizontalTrack(np.array([0.0, 10.0]), np.array([[-3.0, 0.0, 1.5], [3.0, 0.0, 1.5]])),
                            2.0, 0.1, 1.5)
     camera = CameraModel("down", np.array([[1000.0, 0, 200], [0, 1000.0, 200], [0, 0, 1]]), (0.0,) * 5, 401, 401)
     pose = _looking_down(10.0)
+    across = np.array([np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))])
 
-    def stripes(x: np.ndarray) -> np.ndarray:
-        return np.where(np.mod(x, 0.37) < 0.15, SemanticClass.LANE_MARKING, SemanticClass.ROAD).astype(np.uint8)
+    def stripes(xy: np.ndarray) -> np.ndarray:
+        return np.where(np.mod(xy @ across, 0.37) < width_m, SemanticClass.LANE_MARKING,
+                        SemanticClass.ROAD).astype(np.uint8)
 
-    u = np.arange(401)
-    semantics = np.repeat(stripes((u - 200) * 0.01)[None], 401, 0)
+    v, u = np.mgrid[0:401, 0:401]
+    semantics = stripes(np.stack([(u - 200) * 0.01, (200 - v) * 0.01], -1).reshape(-1, 2)).reshape(401, 401)
     kf = Keyframe("down", 0.0, pose, np.zeros((401, 401, 3), np.uint8), semantics)
     points = np.concatenate([mesh.xy, np.zeros((mesh.num_vertices, 1))], 1)
-    ids = np.arange(mesh.num_vertices)
-    rng = np.random.default_rng(0)
-    cells = rng.uniform(-1.5, 1.5, (20_000, 2))
+    cells = np.random.default_rng(0).uniform(-1.5, 1.5, (20_000, 2))
     tri, w, inside = locate(mesh, cells)
-    miou = {}
-    for footprint in (None, MeshFootprint.of(mesh.neighbours)):
+    footprint = None if footprint_subdivision is None else MeshFootprint.of(mesh.neighbours, footprint_subdivision)
+    obs = VertexObservations.empty(mesh.num_vertices, ["down"])
+    assert observe_keyframe(obs, np.arange(mesh.num_vertices), points, kf, camera, footprint) > 0
+    logits = semantic_logits_from_counts(obs.label_counts).numpy()
+    pred = (logits[tri[inside]] * w[inside][..., None]).sum(1).argmax(1)
+    return map_metrics.miou_pct(map_metrics.confusion(pred, stripes(cells[inside]), np.ones(len(pred), bool)))
+
+
+def test_labels_read_over_the_vertex_footprint_place_edges_between_vertices():
+    """15 cm stripes: the class interpolated between vertices is right more often when each vertex reads its
+    whole footprint than its centre only (the centre alone puts every edge half-way between two vertices)."""
+    centre, footprint = _stripes_miou(None, 0.15), _stripes_miou(2, 0.15)
+    assert footprint > centre + 3.0, (centre, footprint)
+
+
+@pytest.mark.parametrize("width_m, angle_deg", [(0.12, 0.0), (0.12, 20.0), (0.16, 70.0)])
+def test_a_finer_footprint_lattice_keeps_thin_stripes(width_m, angle_deg):
+    """The half-edge lattice (subdivision 2: 5 cm between reads) aliases a 12-16 cm stripe's share of each
+    footprint; reading at the quarter points and inside the triangles (the default, 4) follows it, whichever
+    way the stripes run across the mesh's rows."""
+    half_edges, quarters = _stripes_miou(2, width_m, angle_deg), _stripes_miou(4, width_m, angle_deg)
+    assert quarters > half_edges + 1.0, (half_edges, quarters)
+
+
+def test_footprint_triangles_are_the_mesh_faces_and_each_vertex_weighs_four_per_view():
+    """The triangles the footprint reads inside are the mesh's faces, each once, with the three sides its test for
+    a uniform triangle reads; and a view of one label gives every vertex whose whole footprint is in view a weight
+    of 4 whatever the lattice (so the label prior and the views' weights count as before)."""
+    mesh = build_road_mesh(HorizontalTrack(np.array([0.0, 10.0]), np.array([[-1.0, 0.0, 1.5], [1.0, 0.0, 1.5]])),
+                           0.6, 0.1, 1.5)
+    triangles = set()
+    for (b, c), edges in zip(FACE_DIRECTIONS, FACE_EDGES, strict=True):
+        a = np.flatnonzero((mesh.neighbours[:, b] >= 0) & (mesh.neighbours[:, c] >= 0))
+        corners = [a, mesh.neighbours[a, b], mesh.neighbours[a, c]]
+        triangles |= {tuple(sorted(t)) for t in zip(*(k.tolist() for k in corners), strict=True)}
+        sides = set()  # the edges the uniformity test reads are the triangle's three sides
+        for direction, base in edges:
+            end = mesh.neighbours[corners[base], direction]
+            other = [k for k in range(3) if k != base and np.array_equal(corners[k], end)]
+            assert len(other) == 1, (b, c, direction, base)
+            sides.add(frozenset((base, other[0])))
+        assert len(sides) == 3
+    assert triangles == {tuple(sorted(f)) for f in mesh.faces.tolist()}
+    camera = CameraModel("down", np.array([[1000.0, 0, 200], [0, 1000.0, 200], [0, 0, 1]]), (0.0,) * 5, 401, 401)
+    kf = Keyframe("down", 0.0, _looking_down(10.0), np.zeros((401, 401, 3), np.uint8),
+                  np.full((401, 401), SemanticClass.CURB, np.uint8))
+    points = np.concatenate([mesh.xy, np.zeros((mesh.num_vertices, 1))], 1)
+    inner = (mesh.neighbours >= 0).all(1)
+    assert inner.sum() > 100
+    for subdivision in (1, 2, 3, 4, 6):
         obs = VertexObservations.empty(mesh.num_vertices, ["down"])
-        assert observe_keyframe(obs, ids, points, kf, camera, footprint) > 0
-        logits = semantic_logits_from_counts(obs.label_counts).numpy()
-        pred = (logits[tri[inside]] * w[inside][..., None]).sum(1).argmax(1)
-        truth = stripes(cells[inside, 0])
-        miou[footprint is not None] = map_metrics.miou_pct(map_metrics.confusion(pred, truth, np.ones(len(pred), bool)))
-    assert miou[True] > miou[False] + 3.0, miou
+        observe_keyframe(obs, np.arange(mesh.num_vertices), points, kf, camera, MeshFootprint.of(mesh.neighbours,
+                                                                                                 subdivision))
+        np.testing.assert_allclose(obs.label_counts[inner, SemanticClass.CURB], 4.0, rtol=1e-6)
+        assert not np.delete(obs.label_counts, SemanticClass.CURB, 1).any()
 
 
 def test_pixel_ground_length_is_what_one_pixel_spans_along_the_line_of_sight():
