@@ -121,7 +121,7 @@ def observe(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraM
 
     def observe_part(keyframes: list[Keyframe]) -> VertexObservations:
         part = VertexObservations.empty(mesh.num_vertices, road_map.decoder.camera_names, maskless.consensus)
-        footprint = MeshFootprint.of(mesh.neighbours)
+        footprint = MeshFootprint.of(mesh.neighbours, fast.label_footprint_subdivision)
         for kf in keyframes:
             s = float(trajectory.horizontal_distance_at(kf.timestamp))
             a, b = np.searchsorted(windows.vertex_s, [s - fast.behind_m, s + fast.ahead_m])

@@ -5,19 +5,19 @@ This is the fast path's rendering run backwards: instead of asking which triangl
 vertex asks which pixel sees it. Per vertex it accumulates a label histogram (the semantic
 cross-entropy summed over a vertex's observations is minimised by the log of its label frequencies),
 read over the vertex's footprint when the mesh's neighbours are given: its hat function sampled on a lattice
-that splits each edge in four (the vertex, three points along each edge, three inside each triangle, each
-label to the triangle's corners by its barycentric weights), as the paper's per-pixel loss spreads a pixel's
-label over the three vertices of the triangle it sees (a boundary then falls between vertices where the labels
-change, not on the nearest vertex; the half-edge lattice, 5 cm between reads, aliased a 12-16 cm stripe's
-share). A view's labels count less where its pixel covers more ground along the line of sight than
-`label_sharp_m` (a camera 1.5 m up with f = 1000 px covers 1.7 cm at 5 m, 15 cm at 15 m): far, grazing views
-smear a lane marking's edge over many vertices, near ones place it. Per camera it also accumulates the sum and
-count of the colours each vertex was seen with (the targets the colour codes and the camera decoders are
-fitted to). Pixels the mask marks as obstacles or unlabelled are not used, so cars never reach the map (a
-keyframe without a mask gives every vertex in view its colour and no label, less those the Lidar's occlusion
-test finds hidden: mapping.fits.lidar_occlusion). Every pixel near the vertex counts through the bilinear
-read; each vertex is seen from many keyframes at different sub-pixel positions, which averages out image
-noise.
+that splits each edge in parts (`fast_fit.label_footprint_subdivision`, 4 by default: the vertex, three points
+along each edge, three inside each triangle, each label to the triangle's corners by its barycentric weights),
+as the paper's per-pixel loss spreads a pixel's label over the three vertices of the triangle it sees (a
+boundary then falls between vertices where the labels change, not on the nearest vertex; the half-edge
+lattice, 5 cm between reads, aliased a 12-16 cm stripe's share). A view's labels count less where its pixel
+covers more ground along the line of sight than `label_sharp_m` (a camera 1.5 m up with f = 1000 px covers 1.7
+cm at 5 m, 15 cm at 15 m): far, grazing views smear a lane marking's edge over many vertices, near ones place
+it. Per camera it also accumulates the sum and count of the colours each vertex was seen with (the targets the
+colour codes and the camera decoders are fitted to). Pixels the mask marks as obstacles or unlabelled are not
+used, so cars never reach the map (a keyframe without a mask gives every vertex in view its colour and no
+label, less those the Lidar's occlusion test finds hidden: mapping.fits.lidar_occlusion). Every pixel near the
+vertex counts through the bilinear read; each vertex is seen from many keyframes at different sub-pixel
+positions, which averages out image noise.
 """
 
 from __future__ import annotations
@@ -136,7 +136,6 @@ def bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return top * (1 - fv) + bottom * fv
 
 
-FOOTPRINT_SUBDIVISION = 4  # labels read on the lattice that splits each triangle's edges into this many parts
 EDGE_DIRECTIONS = (1, 4, 5)  # RoadMesh.neighbours columns that name every undirected edge once
 FACE_DIRECTIONS = ((1, 5), (5, 4))  # neighbour column pairs that, with the vertex, name every triangle once
 FACE_EDGES = (((1, 0), (5, 0), (4, 1)), ((5, 0), (4, 0), (1, 2)))  # per FACE_DIRECTIONS entry, its triangles' edges
@@ -151,10 +150,10 @@ class MeshFootprint:
 
     edge_ends: list[np.ndarray]  # per EDGE_DIRECTIONS entry, (N,) int32 contiguous
     slot: np.ndarray  # (N,) int64 scratch
-    subdivision: int = FOOTPRINT_SUBDIVISION
+    subdivision: int  # the lattice splits each triangle's edges into this many parts (2: half edges)
 
     @staticmethod
-    def of(neighbours: np.ndarray, subdivision: int = FOOTPRINT_SUBDIVISION) -> MeshFootprint:
+    def of(neighbours: np.ndarray, subdivision: int) -> MeshFootprint:
         if subdivision < 1:
             raise ValueError(f"footprint subdivision must be at least 1, got {subdivision}")
         return MeshFootprint([np.ascontiguousarray(neighbours[:, d]) for d in EDGE_DIRECTIONS],

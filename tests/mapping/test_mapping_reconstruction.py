@@ -274,6 +274,31 @@ def test_footprint_triangles_are_the_mesh_faces_and_each_vertex_weighs_four_per_
         assert not np.delete(obs.label_counts, SemanticClass.CURB, 1).any()
 
 
+def test_the_configured_footprint_lattice_is_the_one_the_fast_fit_reads(scene, monkeypatch):
+    """`mapper.fast_fit.label_footprint_subdivision` reaches the footprint every keyframe is read with, and the
+    lattices weigh the views alike (the total of the label counts within 2 %) while placing them differently."""
+    mesh = build_road_mesh(scene.trajectory, 3.0, 0.2, scene.reference_height_m)
+    made, real_of = [], MeshFootprint.of
+
+    def footprint_of(neighbours, subdivision):
+        made.append(subdivision)
+        return real_of(neighbours, subdivision)
+
+    monkeypatch.setattr(fast_fit.MeshFootprint, "of", staticmethod(footprint_of))
+    counts = {}
+    for subdivision in (2, 4):
+        made.clear()
+        road_map = new_road_map(mesh, variant_for(None), ["front", "left"], 32, 2, 16, 22, 8, 128, 160.0, 0.5,
+                                torch.Generator().manual_seed(0))
+        config = CONFIG.model_copy(update={"fast_fit": CONFIG.fast_fit.model_copy(
+            update={"label_footprint_subdivision": subdivision})})
+        counts[subdivision] = fast_fit.observe(road_map, scene.keyframes, scene.cameras, scene.trajectory, config,
+                                               False, {}).label_counts
+        assert made and set(made) == {subdivision}
+    assert abs(counts[4].sum() / counts[2].sum() - 1.0) < 0.02
+    assert not np.allclose(counts[4], counts[2])
+
+
 def test_pixel_ground_length_is_what_one_pixel_spans_along_the_line_of_sight():
     """Checked against the projection itself: two ground points a millimetre apart along the view, how many
     pixels apart they land, for a forward camera 1.5 m up and points 5 to 30 m ahead."""
