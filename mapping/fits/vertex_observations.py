@@ -159,10 +159,10 @@ class MeshFootprint:
         return MeshFootprint([np.ascontiguousarray(neighbours[:, d]) for d in EDGE_DIRECTIONS],
                              np.zeros(len(neighbours), np.int64), subdivision)
 
-    def edge_points(self) -> list[float]:
-        """Where along an edge (fraction from its first end) labels are read."""
+    def edge_points(self) -> list[tuple[float, float]]:
+        """Barycentric coordinates (to its first and second end) of the lattice points inside an edge."""
         n = self.subdivision
-        return [k / n for k in range(1, n)]
+        return [((n - k) / n, k / n) for k in range(1, n)]
 
     def face_points(self) -> list[tuple[float, float, float]]:
         """Barycentric coordinates of the lattice points strictly inside a triangle."""
@@ -249,23 +249,22 @@ def _label_footprints(obs: VertexObservations, seen: np.ndarray, uv: np.ndarray,
                 keys.append(key[good] + label[good])
                 values.append(b * w[good])
 
-    other_end, middle = {}, {}  # per edge direction, (len(seen),) each slot's neighbour's slot (-1: not seen)
-    for direction, ends in zip(EDGE_DIRECTIONS, footprint.edge_ends, strict=True):  # and the label half-way there
-        first, second = seen_slots(ends)
+    edge_points, interior = footprint.edge_points(), footprint.face_points()
+    other_end, middle = {}, {}  # for the triangles, per edge direction, (len(seen),) each slot's neighbour's slot
+    for direction, ends in zip(EDGE_DIRECTIONS, footprint.edge_ends, strict=True):  # (-1: not seen) and the label
+        first, second = seen_slots(ends)  # half-way there
         half = label_at(keyframe, 0.5 * (uv[first] + uv[second]))
-        other_end[direction] = np.full(len(seen), -1, np.int64)
-        other_end[direction][first] = second
-        middle[direction] = np.full(len(seen), 255, np.uint8)
-        middle[direction][first] = half
-        read([first, second], (centre[first] == half) & (centre[second] == half),
-             [(1.0 - t, t) for t in footprint.edge_points()])
-    interior = footprint.face_points()
+        if interior:
+            other_end[direction] = np.full(len(seen), -1, np.int64)
+            other_end[direction][first] = second
+            middle[direction] = np.full(len(seen), 255, np.uint8)
+            middle[direction][first] = half
+        read([first, second], (centre[first] == half) & (centre[second] == half), edge_points)
     for (db, dc), edges in zip(FACE_DIRECTIONS, FACE_EDGES, strict=True) if interior else ():
         a = np.flatnonzero((other_end[db] >= 0) & (other_end[dc] >= 0))
         corners = [a, other_end[db][a], other_end[dc][a]]
-        c = corners[2]
         label = centre[a]
-        uniform = (centre[corners[1]] == label) & (centre[c] == label)
+        uniform = (centre[corners[1]] == label) & (centre[corners[2]] == label)
         for direction, base in edges:
             uniform &= middle[direction][corners[base]] == label
         read(corners, uniform, interior)

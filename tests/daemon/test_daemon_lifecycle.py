@@ -187,6 +187,7 @@ def test_a_daemon_with_dead_sensors_is_ready_fed_and_logs_the_rest(daemons):
 
     try:
         wait_for(lambda: drain(0.5) or any(m.startswith("READY=1") for _, m in received), 60, "READY=1")
+        # waited for, not the last STATUS= taken: under load that may still be a start-up one
         wait_for(lambda: drain(0.5) or any(_names_every_dead_sensor(m) for _, m in received), 30,
                  "a STATUS= naming every dead sensor")
         written = wait_for(lambda: _recorder_written(daemon), 10, "the recorder's first messages")
@@ -197,8 +198,6 @@ def test_a_daemon_with_dead_sensors_is_ready_fed_and_logs_the_rest(daemons):
         sock.close()
     ready_at, ready = next((t, m) for t, m in received if m.startswith("READY=1"))
     assert ready.startswith("READY=1\nSTATUS=recording; degraded: ") and ready_at - t0 < 45
-    # waited for above: under load the last STATUS= received may still be a start-up one
-    assert any(_names_every_dead_sensor(m) for _, m in received), [m for _, m in received]
     dogs = [watched_from] + [t for t, m in received if m == "WATCHDOG=1" and t >= watched_from] + [time.monotonic()]
     assert max(b - a for a, b in zip(dogs, dogs[1:], strict=False)) < 2.0, dogs  # WatchdogSec=2 s: never starved
     assert daemon_written > written  # the recorder logs on
