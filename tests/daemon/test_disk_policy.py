@@ -165,9 +165,15 @@ def test_the_floor_is_validated_at_start(tmp_path, value):
 def fill_simulated(folder: Path, disk_bytes: int, stop: threading.Event) -> None:
     """Another program on a simulated disk (SIMULATED_DISK_ENV: the folder is the whole disk): takes every byte
     freed, until told to stop."""
+    def size(path: Path) -> int:
+        try:
+            return path.stat().st_size if path.is_file() else 0
+        except FileNotFoundError:  # the recorder renamed or deleted it since the listing (its state file's .tmp)
+            return 0
+
     with open(folder / "other-program.bin", "ab", buffering=0) as f:
         while not stop.wait(0.01):
-            used = sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
+            used = sum(size(p) for p in folder.iterdir())
             if used < disk_bytes:
                 f.write(bytes(disk_bytes - used))
 
