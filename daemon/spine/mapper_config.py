@@ -166,6 +166,9 @@ class FastFitConfig(StrictModel):
     label_footprint_subdivision: int = Field(4, ge=1, le=8)  # a view's labels are read over each vertex's
     # footprint on the lattice that splits the mesh's edges into this many parts (mapping.fits.vertex_observations);
     # 2, the half-edge read: the observe stage ~25 % cheaper, 12-16 cm markings aliased (lane IoU ~0.2 lower)
+    lane_line_gain: float = Field(2.0, ge=0)  # a lane marking's label frequency is raised by this much times its
+    # excess over the neighbours on both sides on the centres of lines the views blurred
+    # (mapping.fits.lane_line_centres); 0: the plain frequencies
     colour_encoder_steps: int = Field(200, ge=1)  # steps of the joint colour encoder / decoder fit
     colour_batch: int = Field(4096, ge=1)  # vertices sampled per colour step
     colour_decoder_lr: float = Field(0.005, gt=0)  # Adam learning rate of the per-camera colour decoders

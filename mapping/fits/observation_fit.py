@@ -7,7 +7,8 @@ rendered pixels, with the paper's losses taken per vertex.
   dense), in minibatches of nodes, with a cosine learning-rate decay (the fit is short: without it the
   result swung with the seed by more than the curbs' detail).
 - Semantics: the cross-entropy summed over a vertex's observed labels is minimised by the log of its
-  label frequencies, which is where the explicit logits are set (with a small prior).
+  label frequencies, which is where the explicit logits are set (with a small prior), the lane marking's
+  raised on the centres of lines the views blurred (mapping.fits.lane_line_centres).
 - Colour: the per-vertex codes and the per-camera decoders are fitted with the L1 colour loss to the
   mean colour each camera saw at each vertex. The codes come from a small encoder of those colours,
   trained jointly with the decoders on samples of vertices, then applied to every vertex. (Refining every
@@ -22,6 +23,8 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from daemon.spine.semantic_classes import SemanticClass
+from mapping.fits.lane_line_centres import raise_line_centres
 from mapping.fits.vertex_observations import VertexObservations
 from mapping.method.adam import Adam, CosineDecay
 from mapping.method.compute_device import optimisation_loop
@@ -35,9 +38,14 @@ _KEY = 1 << 21
 _CPU = torch.device("cpu")  # where the road map lives between the fits (the evaluation and the exports read it)
 
 
-def semantic_logits_from_counts(counts: np.ndarray) -> torch.Tensor:
-    """Log label frequencies (with a small prior) of (M, C) label counts."""
+def semantic_logits_from_counts(counts: np.ndarray, neighbours: np.ndarray | None = None,
+                                line_gain: float = 0.0) -> torch.Tensor:
+    """Log label frequencies (with a small prior) of (M, C) label counts. With the mesh's `neighbours` (M, 6) (the
+    counts then of every vertex, a row of zeros where nothing was read), the lane marking's frequency is raised on
+    line centres by `line_gain` (mapping.fits.lane_line_centres)."""
     p = (counts + LABEL_PRIOR) / (counts.sum(1, keepdims=True) + LABEL_PRIOR * counts.shape[1])
+    if neighbours is not None:
+        p = raise_line_centres(p, neighbours, counts.sum(1) > 0, SemanticClass.LANE_MARKING, line_gain)
     return torch.from_numpy(np.log(p).astype(np.float32))
 
 

@@ -63,6 +63,8 @@ def _write_bad(tmp_path, mutate) -> Path:
         (lambda d: d["mapper"]["fast_fit"].update(ahead_m=0), "mapper.fast_fit.ahead_m", "greater than 0"),
         (lambda d: d["mapper"]["fast_fit"].update(label_footprint_subdivision=0),
          "mapper.fast_fit.label_footprint_subdivision", "greater than or equal to 1"),
+        (lambda d: d["mapper"]["fast_fit"].update(lane_line_gain=-1.0), "mapper.fast_fit.lane_line_gain",
+         "greater than or equal to 0"),
         (lambda d: d["recorder"].update(segment_secnds=5), "recorder.segment_secnds", "unknown key"),
         (lambda d: d["recorder"].update(deletion_hold_off_s=[60, 10]), "recorder.deletion_hold_off_s", "longer than"),
         (lambda d: d["recorder"].update(deletion_hold_off_s=[0, 10]), "recorder.deletion_hold_off_s.0",

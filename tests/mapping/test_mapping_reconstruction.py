@@ -299,6 +299,27 @@ def test_the_configured_footprint_lattice_is_the_one_the_fast_fit_reads(scene, m
     assert not np.allclose(counts[4], counts[2])
 
 
+def test_the_configured_lane_line_gain_sets_the_semantic_logits(scene):
+    """`mapper.fast_fit.lane_line_gain` is the gain the fast fit's logits are raised on lane line centres with
+    (mapping.fits.lane_line_centres): the same label counts, the logits of those counts at that gain, and 0 leaves
+    the plain log frequencies."""
+    mesh = build_road_mesh(scene.trajectory, 3.0, 0.2, scene.reference_height_m)
+    logits, counts = {}, {}
+    for gain in (0.0, 2.0):
+        road_map = new_road_map(mesh, variant_for(None), ["front", "left"], 32, 2, 16, 22, 8, 128, 160.0, 0.5,
+                                torch.Generator().manual_seed(0))
+        config = CONFIG.model_copy(update={"fast_fit": CONFIG.fast_fit.model_copy(update={"lane_line_gain": gain})})
+        counts[gain] = fast_fit.observe(road_map, scene.keyframes, scene.cameras, scene.trajectory, config, False,
+                                        {}).label_counts
+        labelled = np.flatnonzero(road_map.labelled)
+        logits[gain] = road_map.semantic_logits.detach().numpy()[labelled]
+        expected = semantic_logits_from_counts(counts[gain], mesh.neighbours, gain).numpy()[labelled]
+        np.testing.assert_allclose(logits[gain], expected, rtol=1e-6)
+    np.testing.assert_array_equal(counts[0.0], counts[2.0])
+    np.testing.assert_allclose(logits[0.0], semantic_logits_from_counts(counts[0.0][labelled]).numpy(), rtol=1e-6)
+    assert not np.allclose(logits[0.0], logits[2.0])
+
+
 def test_pixel_ground_length_is_what_one_pixel_spans_along_the_line_of_sight():
     """Checked against the projection itself: two ground points a millimetre apart along the view, how many
     pixels apart they land, for a forward camera 1.5 m up and points 5 to 30 m ahead."""
