@@ -2,7 +2,7 @@
 
 A lane marking is a line 10-30 cm wide: one to three mesh sides. Every view smears it: the segmenter's boundaries
 wobble by a pixel or so, and beside the car a pixel covers more ground along its line of sight than the marking is
-wide (30 cm at 10 m for a 400 px focal length). Averaged over the views, a thin line's label frequency at its
+wide (30 cm at 13 m for a 400 px focal length 1.4 m up). Averaged over the views, a thin line's label frequency at its
 centre falls below the road's around it, and the map's argmax loses the line, though the centre stays a ridge of
 lane frequency across the line. A vertex whose lane frequency exceeds both its neighbours on opposite sides along
 some lattice direction is on such a ridge; its lane frequency is raised by `gain` times the smaller of the two
