@@ -7,7 +7,9 @@ centre falls below the road's around it, and the map's argmax loses the line, th
 lane frequency across the line. A vertex whose lane frequency exceeds both its neighbours on opposite sides along
 some lattice direction is on such a ridge; its lane frequency is raised by `gain` times the smaller of the two
 excesses and its frequencies are normalised again. The edges of a wide marking (higher on one side, lower on the
-other) and the inside of a uniform area are not ridges and keep their frequencies.
+other) and the inside of a uniform area are not ridges and keep their frequencies. A thin line that runs along
+the mesh's rows centred between two of them has no centre vertex and gains nothing: the two rules tried for that
+case widened lines the plain frequencies mapped (bench/RESULTS.md, 2026-12-08).
 """
 
 from __future__ import annotations
