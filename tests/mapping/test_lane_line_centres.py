@@ -30,8 +30,8 @@ def _frequencies(lane: np.ndarray) -> np.ndarray:
 
 def test_a_blurred_thin_line_is_raised_on_its_centre_and_nothing_else_moves():
     """A 14 cm line at 10 degrees to the mesh's rows, blurred to a 40 % peak (road wins everywhere), becomes lane
-    along its centre; a wide marking (a plateau and its two edges), uniform road and the vertices beside unread ones
-    keep their frequencies exactly."""
+    along its centre; a wide marking (a plateau and its two edges), uniform road and unread vertices keep their
+    frequencies exactly."""
     mesh = _mesh()
     across = np.array([-np.sin(np.radians(10.0)), np.cos(np.radians(10.0))])
     d_thin = mesh.xy @ across - 0.8  # signed distance to the thin line's centre (y from -0.1 to 1.7 m)
@@ -40,7 +40,7 @@ def test_a_blurred_thin_line_is_raised_on_its_centre_and_nothing_else_moves():
     # y = -1.2 m, its edges ramps 10 cm wide
     p = _frequencies(np.maximum(thin, wide))
     known = np.ones(mesh.num_vertices, bool)
-    known[mesh.xy[:, 0] > 2.5] = False  # unread: their neighbours cannot be ridges across them
+    known[mesh.xy[:, 0] > 2.5] = False  # unread (no side of a ridge either)
     raised = raise_line_centres(p, mesh.neighbours, known, LANE, 2.0)
     np.testing.assert_allclose(raised.sum(1)[known], 1.0)
     assert (p[mesh.xy[:, 1] > -0.5].argmax(1) == ROAD).all()
