@@ -151,8 +151,9 @@ def observe(road_map: RoadMap, train: list[Keyframe], cameras: dict[str, CameraM
     timings["mapped_area_wall_s"] = time.perf_counter() - area_started
     if road_map.semantic_logits is not None:
         labelled = np.nonzero(obs.label_counts.sum(1) > 0)[0]
-        logits = semantic_logits_from_counts(obs.label_counts, mesh.neighbours, fast.lane_line_gain)
-        road_map.semantic_logits[torch.from_numpy(labelled)] = logits[torch.from_numpy(labelled)]
+        ids = torch.from_numpy(labelled)
+        road_map.semantic_logits[ids] = semantic_logits_from_counts(obs.label_counts, mesh.neighbours,
+                                                                    fast.lane_line_gain)[ids]
         road_map.labelled[labelled] = True
     timings["observe_wall_s"] = time.perf_counter() - started
     return obs

@@ -43,9 +43,10 @@ def semantic_logits_from_counts(counts: np.ndarray, neighbours: np.ndarray | Non
     """Log label frequencies (with a small prior) of (M, C) label counts. With the mesh's `neighbours` (M, 6) (the
     counts then of every vertex, a row of zeros where nothing was read), the lane marking's frequency is raised on
     line centres by `line_gain` (mapping.fits.lane_line_centres)."""
-    p = (counts + LABEL_PRIOR) / (counts.sum(1, keepdims=True) + LABEL_PRIOR * counts.shape[1])
+    total = counts.sum(1, keepdims=True)
+    p = (counts + LABEL_PRIOR) / (total + LABEL_PRIOR * counts.shape[1])
     if neighbours is not None:
-        p = raise_line_centres(p, neighbours, counts.sum(1) > 0, SemanticClass.LANE_MARKING, line_gain)
+        p = raise_line_centres(p, neighbours, total[:, 0] > 0, SemanticClass.LANE_MARKING, line_gain)
     return torch.from_numpy(np.log(p).astype(np.float32))
 
 

@@ -6,7 +6,7 @@ import pytest
 
 import mapping.outputs.map_metrics as map_metrics
 from daemon.spine.semantic_classes import SemanticClass
-from mapping.fits.lane_line_centres import line_centre_excess, raise_line_centres
+from mapping.fits.lane_line_centres import OPPOSITE_NEIGHBOURS, line_centre_excess, raise_line_centres
 from mapping.fits.observation_fit import semantic_logits_from_counts
 from mapping.fits.vertex_observations import MeshFootprint, VertexObservations, observe_keyframe
 from mapping.localization.trajectory import HorizontalTrack
@@ -26,6 +26,20 @@ def _frequencies(lane: np.ndarray) -> np.ndarray:
     p = np.zeros((len(lane), 5))
     p[:, LANE], p[:, ROAD] = lane, 1.0 - lane
     return p
+
+
+def test_the_opposite_neighbour_slots_face_each_other_through_the_vertex():
+    """OPPOSITE_NEIGHBOURS names road_mesh's neighbour columns by position: each pair lies on a line through the
+    vertex, one mesh side either way, and the three pairs are the lattice's three directions."""
+    mesh = _mesh()
+    inner = np.flatnonzero((mesh.neighbours >= 0).all(1))
+    directions = []
+    for a, b in OPPOSITE_NEIGHBOURS:
+        to_a, to_b = (mesh.xy[mesh.neighbours[inner, k]] - mesh.xy[inner] for k in (a, b))
+        np.testing.assert_allclose(to_a, -to_b, atol=1e-9)
+        np.testing.assert_allclose(np.linalg.norm(to_a, axis=1), 0.1, rtol=1e-9)
+        directions.append(np.degrees(np.arctan2(to_a[0, 1], to_a[0, 0])) % 180.0)
+    assert sorted(np.round(directions)) == [0.0, 60.0, 120.0]
 
 
 def test_a_blurred_thin_line_is_raised_on_its_centre_and_nothing_else_moves():
